@@ -1,0 +1,22 @@
+"""Multiscale Camera: continuous multiscale images through bent camera rays.
+
+Only ``register`` and ``unregister`` live here; bpy is imported when they run, so the
+pure-numpy ``core`` package imports without Blender.
+"""
+
+
+def _modules():
+    from .render import engine
+    from .ui import operators, panels, properties
+
+    return (properties, operators, panels, engine)
+
+
+def register():
+    for module in _modules():
+        module.register()
+
+
+def unregister():
+    for module in reversed(_modules()):
+        module.unregister()

@@ -1,0 +1,1 @@
+"""bpy -> numpy: the only place where Blender data becomes core data."""

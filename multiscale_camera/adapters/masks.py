@@ -1,0 +1,57 @@
+"""Blender images -> boolean masks at the render size (row 0 at the top)."""
+
+import numpy as np
+
+# Rec. 709 luminance weights: white (preserved) is luminance >= 0.5.
+LUMINANCE = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
+THRESHOLD = 0.5
+
+
+def image_pixels(image):
+    """(H, W, 4) float32 RGBA of a Blender image, row 0 at the top.
+
+    Returns None when the image has no pixels (missing file, empty buffer).
+    """
+    w, h = image.size
+    if w == 0 or h == 0:
+        return None
+    buf = np.empty(w * h * image.channels, dtype=np.float32)
+    image.pixels.foreach_get(buf)
+    rgba = buf.reshape(h, w, image.channels)[::-1]
+    if image.channels < 3:
+        rgba = np.repeat(rgba[..., :1], 3, axis=-1)
+    return rgba
+
+
+def resample_nearest(mask, width, height):
+    """Nearest-neighbour resampling of an (h, w) array to (height, width), centres aligned."""
+    h, w = mask.shape
+    ys = ((np.arange(height) + 0.5) * (h / height)).astype(int).clip(0, h - 1)
+    xs = ((np.arange(width) + 0.5) * (w / width)).astype(int).clip(0, w - 1)
+    return mask[ys][:, xs]
+
+
+def mask_from_image(image, width, height):
+    """A bool (height, width) mask from a Blender image, and notices about it.
+
+    Returns
+    -------
+    mask : (height, width) bool array, True where luminance >= 0.5.
+    notices : list of str.
+    """
+    if image is None:
+        return np.zeros((height, width), dtype=bool), []
+    rgba = image_pixels(image)
+    if rgba is None:
+        return np.zeros((height, width), dtype=bool), [
+            f"Mask '{image.name}' has no pixels (is its file missing?); treated as empty"
+        ]
+    mask = rgba[..., :3] @ LUMINANCE >= THRESHOLD
+    notices = []
+    if mask.shape != (height, width):
+        notices.append(
+            f"Mask '{image.name}' is {mask.shape[1]}x{mask.shape[0]}, the render is "
+            f"{width}x{height}: resampled to the render size"
+        )
+        mask = resample_nearest(mask, width, height)
+    return mask, notices

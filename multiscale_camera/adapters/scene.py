@@ -1,0 +1,52 @@
+"""A Blender scene's multiscale settings -> a checked core ``Rig``."""
+
+import numpy as np
+
+from ..core.errors import RigError
+from ..core.rig import Rig, resolve_conflicts
+from .cameras import pinhole_from_object, render_size
+from .masks import mask_from_image
+
+EMPTY_LIST = (
+    "The camera list is empty: add cameras in the 3D viewport's sidebar "
+    "(Multiscale tab), largest scale first"
+)
+
+
+def rig_from_scene(scene):
+    """Build the rig from ``scene.multiscale``.
+
+    Returns
+    -------
+    Rig, whose ``notices`` say what was adjusted (resampled masks, shared pixels).
+
+    Raises
+    ------
+    RigError with a message naming the list item or camera and what to change.
+    """
+    settings = scene.multiscale
+    if len(settings.cameras) == 0:
+        raise RigError(EMPTY_LIST)
+    width, height = render_size(scene)
+    cameras, masks, notices = [], [], []
+    for number, item in enumerate(settings.cameras, start=1):
+        obj = item.camera
+        if obj is None:
+            raise RigError(
+                f"Camera list item {number} has no camera (none was set, or it was deleted): "
+                "pick a camera for it or remove the item"
+            )
+        if obj.type != "CAMERA":
+            raise RigError(
+                f"Camera list item {number}: '{obj.name}' is not a camera but a "
+                f"{obj.type.lower()}; pick a camera object"
+            )
+        cameras.append(pinhole_from_object(obj, scene))
+        mask, said = mask_from_image(item.mask, width, height)
+        masks.append(mask)
+        notices += said
+    names = [c.name for c in cameras]
+    if len(set(names)) != len(names):
+        raise RigError("A camera appears twice in the camera list; each camera may appear once")
+    masks, said = resolve_conflicts(np.stack(masks), names)
+    return Rig(tuple(cameras), masks, beta=float(settings.beta), notices=tuple(notices + said))

@@ -1,0 +1,9 @@
+"""Exceptions raised by the core; the Blender side turns them into user messages."""
+
+
+class RigError(ValueError):
+    """The camera rig or its masks cannot produce an image; the message says what to change."""
+
+
+class SolverDidNotConverge(RuntimeError):
+    """An iterative solve stopped before reaching its tolerance."""

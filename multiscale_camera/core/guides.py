@@ -1,0 +1,128 @@
+"""Bezier guides between consecutive cameras (paper eq. 1) and the curved rays R_i.
+
+Every ray starts on camera 1's near plane. For a pixel, the guide B_j runs from camera
+j's near-plane point p_j (leaving along v_j) to camera j+1's p_{j+1} (arriving along
+v_{j+1}). The curved ray R_i follows B_1 .. B_{i-1} and then runs straight along v_i.
+
+Vertex layout shared by every R_i, so curves can be blended vertex by vertex:
+vertex 0 is p_1; stage j (j = 1 .. N-1) adds ``segments`` vertices ending at the stage's
+far boundary; a last vertex continues along the final direction. A curve that no longer
+bends in a stage (i <= j) runs straight along v_i there, as far as the guide's chord.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+
+# Keep the handle into camera j+1 within this fraction of its near distance d_{j+1}:
+# a handle reaching behind the eye makes the guides of neighbouring pixels cross there.
+GUARD_FRACTION = 0.5
+
+# Vertices per guide stage: a cubic with handles at most beta*L deviates from its
+# 8-segment polyline by well under 1% of L.
+DEFAULT_SEGMENTS = 8
+
+
+@dataclass(frozen=True)
+class Guides:
+    """Near-plane points and directions of every camera for a set of pixels.
+
+    Attributes
+    ----------
+    points : (N, P, 3) float64, world units: p_{i,x,y}.
+    directions : (N, P, 3) float64, unit: v_{i,x,y}.
+    handles_out, handles_in : (N-1, P) float64, world units
+        Length of the handle leaving p_j and of the one arriving at p_{j+1}.
+    shortened : (N-1,) int
+        Pixels whose arriving handle the guard shortened, per stage.
+    """
+
+    points: np.ndarray
+    directions: np.ndarray
+    handles_out: np.ndarray
+    handles_in: np.ndarray
+    shortened: np.ndarray
+
+
+def build_guides(cameras, px, py, beta=0.2):
+    """Near-plane points, directions and handle lengths for pixels ``(px, py)``.
+
+    Parameters
+    ----------
+    cameras : sequence of N PinholeCamera sharing one image size.
+    px, py : (P,) float arrays, continuous pixel coordinates (centres at +0.5).
+    beta : float, handle length over chord length (eq. 1).
+
+    Returns
+    -------
+    Guides
+    """
+    dirs = np.stack([c.directions(px, py) for c in cameras])
+    pts = np.stack([c.near_points(d) for c, d in zip(cameras, dirs)])
+    chord = np.linalg.norm(pts[1:] - pts[:-1], axis=-1)
+    out = beta * chord
+    limit = np.array([GUARD_FRACTION * c.clip_start for c in cameras[1:]])[:, None]
+    into = np.minimum(out, limit)
+    return Guides(pts, dirs, out, into, (out > limit).sum(axis=1))
+
+
+def bezier(q0, q1, q2, q3, t):
+    """Cubic Bezier points.
+
+    Parameters
+    ----------
+    q0, q1, q2, q3 : (P, 3) float arrays, control points.
+    t : (K,) float array in [0, 1].
+
+    Returns
+    -------
+    (P, K, 3) float64 array.
+    """
+    t = np.asarray(t, dtype=np.float64)[None, :, None]
+    s = 1.0 - t
+    return (
+        (s**3) * q0[:, None]
+        + (3 * s * s * t) * q1[:, None]
+        + (3 * s * t * t) * q2[:, None]
+        + (t**3) * q3[:, None]
+    )
+
+
+def curved_rays(guides, segments=DEFAULT_SEGMENTS):
+    """The curved rays R_1..R_N of every pixel, in the shared vertex layout.
+
+    Parameters
+    ----------
+    guides : Guides for N cameras and P pixels.
+    segments : int, vertices per stage.
+
+    Returns
+    -------
+    (N, P, K, 3) float64 array, K = 1 + (N - 1) * segments + 1, world units. The last
+    segment of R_i points along v_i (its length is the last stage's chord, or one
+    world unit for a single camera) and is meant to be extended.
+    """
+    pts, dirs = guides.points, guides.directions
+    n, p = pts.shape[:2]
+    t = np.arange(1, segments + 1) / segments
+    rays = np.empty((n, p, 1 + (n - 1) * segments + 1, 3))
+    rays[:, :, 0] = pts[0]
+    for j in range(n - 1):
+        chord = np.linalg.norm(pts[j + 1] - pts[j], axis=-1)
+        sl = slice(1 + j * segments, 1 + (j + 1) * segments)
+        start = rays[:, :, j * segments]
+        for i in range(n):
+            if i > j:
+                # still bending: follow guide B_j (the curve stands at p_j here)
+                rays[i, :, sl] = bezier(
+                    pts[j],
+                    pts[j] + dirs[j] * guides.handles_out[j][:, None],
+                    pts[j + 1] - dirs[j + 1] * guides.handles_in[j][:, None],
+                    pts[j + 1],
+                    t,
+                )
+            else:
+                rays[i, :, sl] = start[i][:, None] + dirs[i][:, None] * (chord[:, None, None] * t[None, :, None])
+    tail = np.linalg.norm(pts[-1] - pts[-2], axis=-1) if n > 1 else np.ones(p)
+    rays[:, :, -1] = rays[:, :, -2] + dirs * tail[None, :, None]
+    return rays

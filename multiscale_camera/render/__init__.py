@@ -1,0 +1,1 @@
+"""Rendering the ray bundle: BVH march, shading, passes, and the RenderEngine."""

@@ -1,0 +1,94 @@
+"""The ``MULTISCALE`` render engine: a thin shell around ``pipeline``."""
+
+import time
+
+import bpy
+
+from ..core.errors import RigError, SolverDidNotConverge
+from . import pipeline
+from .raycast import Cancelled
+
+
+class MultiscaleRenderEngine(bpy.types.RenderEngine):
+    bl_idname = "MULTISCALE"
+    bl_label = "Multiscale"
+    bl_use_postprocess = True
+    bl_use_preview = False
+
+    def render(self, depsgraph):
+        scene = depsgraph.scene
+        start = time.perf_counter()
+        self.update_stats("", "Multiscale: building rays")
+        try:
+            frame = pipeline.prepare_frame(depsgraph)
+        except (RigError, SolverDidNotConverge) as err:
+            self.fail(f"Multiscale: {err}")
+            return
+        for notice in frame.notices:
+            self.report({"WARNING"}, f"Multiscale: {notice}")
+        width, height = frame.size
+        for name, channels, chan_id, _kind in pipeline.PASSES[1:]:
+            self.add_pass(name, channels, chan_id)
+        step = pipeline.rows_per_tile(width)
+        try:
+            for row0 in range(0, height, step):
+                if self.test_break():
+                    return
+                row1 = min(row0 + step, height)
+                passes = pipeline.render_rows(frame, row0, row1, self.test_break)
+                self.write_rows(passes, row0, row1, height, width)
+                self.update_progress(row1 / height)
+                seconds = time.perf_counter() - start
+                self.update_stats(
+                    "", f"Multiscale: {row1}/{height} rows, {frame.casts / max(seconds, 1e-9) / 1e6:.2f} M casts/s"
+                )
+        except Cancelled:
+            return
+        seconds = time.perf_counter() - start
+        print(
+            f"Multiscale: {width}x{height}, {frame.casts} segment casts, "
+            f"{seconds:.2f} s ({', '.join(f'{k} {v:.2f} s' for k, v in frame.seconds.items())})"
+        )
+
+    def write_rows(self, passes, row0, row1, height, width):
+        """Write image rows (row 0 at the top) into the Render Result (rows bottom-up)."""
+        result = self.begin_result(0, height - row1, width, row1 - row0)
+        layer = result.layers[0]
+        for render_pass in layer.passes:
+            data = passes.get(render_pass.name)
+            if data is None and render_pass.name == "Object Index":
+                data = passes["IndexOB"]
+            if data is not None and data.shape[-1] == render_pass.channels:
+                render_pass.rect.foreach_set(data[::-1].ravel())
+        self.end_result(result)
+
+    def fail(self, message):
+        self.report({"ERROR"}, message)
+        self.error_set(message)
+
+    def update_render_passes(self, scene=None, renderlayer=None):
+        for name, channels, chan_id, kind in pipeline.PASSES:
+            self.register_pass(scene, renderlayer, name, channels, chan_id, kind)
+
+
+# Blender's own property panels that should show for this engine too.
+_SHARED_PANEL_ENGINES = {"BLENDER_RENDER"}
+
+
+def _compatible_panels():
+    for panel in bpy.types.Panel.__subclasses__():
+        engines = getattr(panel, "COMPAT_ENGINES", None)
+        if engines and engines & _SHARED_PANEL_ENGINES:
+            yield panel
+
+
+def register():
+    bpy.utils.register_class(MultiscaleRenderEngine)
+    for panel in _compatible_panels():
+        panel.COMPAT_ENGINES.add(MultiscaleRenderEngine.bl_idname)
+
+
+def unregister():
+    for panel in _compatible_panels():
+        panel.COMPAT_ENGINES.discard(MultiscaleRenderEngine.bl_idname)
+    bpy.utils.unregister_class(MultiscaleRenderEngine)

@@ -1,0 +1,1 @@
+"""Blender UI: scene properties, operators, the sidebar panel."""

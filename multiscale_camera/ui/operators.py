@@ -1,0 +1,141 @@
+"""Operators ``multiscale.*``: editing the camera list, checking the rig, rendering."""
+
+import bpy
+from bpy.props import BoolProperty, EnumProperty
+
+from ..adapters.scene import rig_from_scene
+from ..core.errors import RigError
+
+
+def _settings(context):
+    return context.scene.multiscale
+
+
+class MULTISCALE_OT_camera_add(bpy.types.Operator):
+    """Add the selected cameras (or the active one) to the end of the list, or an empty
+    item to fill in when no camera is selected"""
+
+    bl_idname = "multiscale.camera_add"
+    bl_label = "Add Camera"
+    bl_options = {"REGISTER", "UNDO"}
+
+    def execute(self, context):
+        settings = _settings(context)
+        listed = {item.camera for item in settings.cameras if item.camera is not None}
+        chosen = [o for o in getattr(context, "selected_objects", []) if o.type == "CAMERA"]
+        active = context.active_object
+        if not chosen and active is not None and active.type == "CAMERA":
+            chosen = [active]
+        new = [o for o in chosen if o not in listed]
+        if chosen and not new:
+            self.report({"WARNING"}, "The selected cameras are already in the list")
+            return {"CANCELLED"}
+        for obj in new or [None]:
+            item = settings.cameras.add()
+            item.camera = obj
+        settings.active_index = len(settings.cameras) - 1
+        return {"FINISHED"}
+
+
+class MULTISCALE_OT_camera_remove(bpy.types.Operator):
+    """Remove the active item from the list (the camera object and its mask stay)"""
+
+    bl_idname = "multiscale.camera_remove"
+    bl_label = "Remove Camera"
+    bl_options = {"REGISTER", "UNDO"}
+
+    @classmethod
+    def poll(cls, context):
+        return len(_settings(context).cameras) > 0
+
+    def execute(self, context):
+        settings = _settings(context)
+        settings.cameras.remove(min(settings.active_index, len(settings.cameras) - 1))
+        settings.active_index = max(0, min(settings.active_index, len(settings.cameras) - 1))
+        return {"FINISHED"}
+
+
+class MULTISCALE_OT_camera_move(bpy.types.Operator):
+    """Move the active camera up (larger scale) or down (smaller scale) in the list"""
+
+    bl_idname = "multiscale.camera_move"
+    bl_label = "Move Camera"
+    bl_options = {"REGISTER", "UNDO"}
+
+    direction: EnumProperty(items=[("UP", "Up", ""), ("DOWN", "Down", "")], default="UP")
+
+    @classmethod
+    def poll(cls, context):
+        return len(_settings(context).cameras) > 1
+
+    def execute(self, context):
+        settings = _settings(context)
+        i = settings.active_index
+        j = i - 1 if self.direction == "UP" else i + 1
+        if not 0 <= j < len(settings.cameras):
+            return {"CANCELLED"}
+        settings.cameras.move(i, j)
+        settings.active_index = j
+        return {"FINISHED"}
+
+
+class MULTISCALE_OT_validate(bpy.types.Operator):
+    """Check the camera list and masks and say what would stop or spoil a render"""
+
+    bl_idname = "multiscale.validate"
+    bl_label = "Check Rig"
+
+    def execute(self, context):
+        try:
+            rig = rig_from_scene(context.scene)
+        except RigError as err:
+            self.report({"ERROR"}, str(err))
+            return {"CANCELLED"}
+        for notice in rig.notices:
+            self.report({"WARNING"}, notice)
+        self.report({"INFO"}, f"The rig of {len(rig.cameras)} cameras is ready to render")
+        return {"FINISHED"}
+
+
+class MULTISCALE_OT_render(bpy.types.Operator):
+    """Render the multiscale image into Render Result with the Multiscale engine"""
+
+    bl_idname = "multiscale.render"
+    bl_label = "Render Multiscale"
+
+    write_still: BoolProperty(name="Write Image", default=False, description="Save the image to the output path")
+
+    def execute(self, context):
+        scene = context.scene
+        try:
+            rig_from_scene(scene)
+        except RigError as err:
+            self.report({"ERROR"}, str(err))
+            return {"CANCELLED"}
+        if scene.render.engine != "MULTISCALE":
+            scene.render.engine = "MULTISCALE"
+            self.report({"INFO"}, "Render engine set to Multiscale")
+        if bpy.app.background:
+            bpy.ops.render.render(write_still=self.write_still)
+        else:
+            bpy.ops.render.render("INVOKE_DEFAULT", write_still=self.write_still)
+        return {"FINISHED"}
+
+
+CLASSES = (
+    MULTISCALE_OT_camera_add,
+    MULTISCALE_OT_camera_remove,
+    MULTISCALE_OT_camera_move,
+    MULTISCALE_OT_validate,
+    MULTISCALE_OT_render,
+)
+
+
+def register():
+    for cls in CLASSES:
+        bpy.utils.register_class(cls)
+
+
+def unregister():
+    for cls in reversed(CLASSES):
+        bpy.utils.unregister_class(cls)

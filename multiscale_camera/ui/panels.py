@@ -1,0 +1,60 @@
+"""The 3D viewport's sidebar tab "Multiscale"."""
+
+import bpy
+
+
+class MULTISCALE_UL_cameras(bpy.types.UIList):
+    def draw_item(self, context, layout, data, item, icon, active_data, active_property, index):
+        row = layout.row(align=True)
+        row.label(text=f"{index + 1}.")
+        if item.camera is None:
+            row.alert = True
+            row.prop(item, "camera", text="", icon="ERROR")
+        else:
+            row.prop(item, "camera", text="", emboss=False, icon="CAMERA_DATA")
+        row.label(text="", icon="IMAGE_DATA" if item.mask is not None else "BLANK1")
+
+
+class MULTISCALE_PT_main(bpy.types.Panel):
+    bl_label = "Multiscale Camera"
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "Multiscale"
+
+    def draw(self, context):
+        layout = self.layout
+        settings = context.scene.multiscale
+        layout.label(text="Cameras, largest scale first:")
+        row = layout.row()
+        row.template_list("MULTISCALE_UL_cameras", "", settings, "cameras", settings, "active_index", rows=3)
+        col = row.column(align=True)
+        col.operator("multiscale.camera_add", icon="ADD", text="")
+        col.operator("multiscale.camera_remove", icon="REMOVE", text="")
+        col.separator()
+        col.operator("multiscale.camera_move", icon="TRIA_UP", text="").direction = "UP"
+        col.operator("multiscale.camera_move", icon="TRIA_DOWN", text="").direction = "DOWN"
+        if 0 <= settings.active_index < len(settings.cameras):
+            item = settings.cameras[settings.active_index]
+            box = layout.box()
+            box.prop(item, "camera")
+            box.template_ID(item, "mask", new="image.new", open="image.open")
+        layout.prop(settings, "method")
+        layout.prop(settings, "beta")
+        row = layout.row(align=True)
+        row.operator("multiscale.validate", icon="CHECKMARK")
+        row = layout.row()
+        row.scale_y = 1.4
+        row.operator("multiscale.render", icon="RENDER_STILL")
+
+
+CLASSES = (MULTISCALE_UL_cameras, MULTISCALE_PT_main)
+
+
+def register():
+    for cls in CLASSES:
+        bpy.utils.register_class(cls)
+
+
+def unregister():
+    for cls in reversed(CLASSES):
+        bpy.utils.unregister_class(cls)

@@ -1,0 +1,98 @@
+"""Scene settings: ``bpy.types.Scene.multiscale`` and its camera list.
+
+The names here are a public contract (DESIGN.md): users' scripts and tests set
+``scene.multiscale.cameras``, ``method``, ``quality`` and friends directly.
+"""
+
+import bpy
+from bpy.props import (
+    CollectionProperty,
+    EnumProperty,
+    FloatProperty,
+    IntProperty,
+    PointerProperty,
+    StringProperty,
+)
+
+METHOD_ITEMS = [
+    ("AUTO", "Auto", "The cheapest method that meets the accuracy target on this rig"),
+    ("IMAGE_BLEND", "Image Blend", "Blend each pixel's curved rays by harmonic mask weights"),
+    ("LINEAR", "Linear", "Linear interpolation of ray directions between preserved regions"),
+    ("VECTOR_FIELD", "Vector Field", "Smooth the tangent vectors directly (paper eq. 3)"),
+    ("SCALAR_FIELD", "Scalar Field", "Smooth a membership field and blend tangent fields (paper eq. 5, 6)"),
+]
+
+# Methods the code can run today; the rest are listed so saved files and scripts
+# keep their value, and the engine explains that they are not available yet.
+IMPLEMENTED_METHODS = ("IMAGE_BLEND",)
+DEFAULT_METHOD = "IMAGE_BLEND"
+
+QUALITY_ITEMS = [
+    ("PREVIEW", "Preview", "Fast; about 2 px accuracy"),
+    ("STANDARD", "Standard", "About 0.5 px accuracy"),
+    ("HIGH", "High", "About 0.25 px accuracy"),
+    ("CUSTOM", "Custom", "Use the accuracy given in pixels"),
+]
+
+SHADING_ITEMS = [
+    ("SOLID", "Solid", "Multiscale Camera's own shading: base colour, lights and shadows"),
+    ("CYCLES", "Cycles", "Hand the bent rays to Cycles (Blender 4.5+)"),
+]
+
+
+def _poll_camera(_self, obj):
+    return obj.type == "CAMERA"
+
+
+class MultiscaleCameraItem(bpy.types.PropertyGroup):
+    camera: PointerProperty(
+        name="Camera", type=bpy.types.Object, poll=_poll_camera,
+        description="A perspective camera; the list runs from the largest scale to the smallest",
+    )
+    mask: PointerProperty(
+        name="Mask", type=bpy.types.Image,
+        description="White where this camera's view is preserved in the final image",
+    )
+    transfer_function: PointerProperty(
+        name="Transfer Function", type=bpy.types.Texture,
+        description="Colour ramp from density to colour and opacity, for volumes",
+    )
+
+
+class MultiscaleSettings(bpy.types.PropertyGroup):
+    cameras: CollectionProperty(type=MultiscaleCameraItem)
+    active_index: IntProperty(name="Active Camera", default=0, min=0)
+    method: EnumProperty(
+        name="Method", items=METHOD_ITEMS, default=DEFAULT_METHOD,
+        description="How the bent rays are generated",
+    )
+    quality: EnumProperty(
+        name="Quality", items=QUALITY_ITEMS, default="STANDARD",
+        description="Accuracy target of the ray field",
+    )
+    accuracy_px: FloatProperty(
+        name="Accuracy", default=0.5, min=0.01, max=16.0, subtype="PIXEL",
+        description="Target preserved-ray error in pixels (used as is under Custom quality)",
+    )
+    beta: FloatProperty(
+        name="Beta", default=0.2, min=0.01, max=0.5,
+        description="Handle length of the Bezier guides, as a fraction of the distance between near planes",
+    )
+    samples: IntProperty(name="Samples", default=1, min=1, max=256, description="Rays per pixel")
+    shading: EnumProperty(name="Shading", items=SHADING_ITEMS, default="SOLID")
+    report: StringProperty(name="Report", default="", description="JSON report of the last field build")
+
+
+CLASSES = (MultiscaleCameraItem, MultiscaleSettings)
+
+
+def register():
+    for cls in CLASSES:
+        bpy.utils.register_class(cls)
+    bpy.types.Scene.multiscale = PointerProperty(type=MultiscaleSettings)
+
+
+def unregister():
+    del bpy.types.Scene.multiscale
+    for cls in reversed(CLASSES):
+        bpy.utils.unregister_class(cls)
