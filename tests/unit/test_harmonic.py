@@ -1,0 +1,63 @@
+import numpy as np
+import pytest
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from multiscale_camera.core.errors import RigError
+from multiscale_camera.core.harmonic import apply_laplacian, mask_weights
+
+from .rigs import disk_masks
+
+
+def dense_reference(masks):
+    """Harmonic interpolation by a direct sparse solve of the 4-neighbour Laplacian."""
+    n, h, w = masks.shape
+    size = h * w
+    idx = np.arange(size).reshape(h, w)
+    rows, cols = [], []
+    for a, b in ((idx[:, 1:], idx[:, :-1]), (idx[1:, :], idx[:-1, :])):
+        rows += [a.ravel(), b.ravel()]
+        cols += [b.ravel(), a.ravel()]
+    adj = sp.csr_matrix((np.ones(sum(len(r) for r in rows)), (np.concatenate(rows), np.concatenate(cols))), (size, size))
+    lap = sp.diags(np.asarray(adj.sum(1)).ravel()) - adj
+    fixed = masks.any(0).ravel()
+    free = ~fixed
+    values = masks.reshape(n, -1).astype(float)
+    out = values.copy()
+    a = lap[free][:, free].tocsc()
+    for i in range(n):
+        rhs = -lap[free][:, fixed] @ values[i, fixed]
+        out[i, free] = spla.spsolve(a, rhs)
+    return out.reshape(n, h, w)
+
+
+@pytest.mark.parametrize("shape", [(20, 30), (45, 70), (97, 130)])
+def test_mask_weights_match_direct_solve(shape):
+    h, w = shape
+    masks = disk_masks(w, h, 0.15 * w, 0.35 * w)
+    masks = np.concatenate([masks, np.zeros((1, h, w), bool)])
+    masks[2, : h // 6, : w // 6] = True
+    masks[0] &= ~masks[2]
+    got = mask_weights(masks, tol=1e-8)
+    assert got.converged
+    np.testing.assert_allclose(got.x, dense_reference(masks), atol=2e-5)
+    np.testing.assert_allclose(got.x.sum(0), 1.0, atol=1e-5)
+
+
+def test_mask_weights_one_hot_inside_masks():
+    masks = disk_masks(80, 60, 10, 25)
+    x = mask_weights(masks).x
+    assert (x[0][masks[0]] == 1).all() and (x[1][masks[0]] == 0).all()
+    assert (x[1][masks[1]] == 1).all()
+
+
+def test_laplacian_is_symmetric_with_zero_flux_borders():
+    rng = np.random.default_rng(1)
+    u, v = rng.normal(size=(2, 1, 7, 9))
+    assert np.isclose((apply_laplacian(u) * v).sum(), (u * apply_laplacian(v)).sum())
+    assert np.allclose(apply_laplacian(np.ones((1, 7, 9))), 0)
+
+
+def test_empty_masks_raise():
+    with pytest.raises(RigError, match="Every mask is empty"):
+        mask_weights(np.zeros((2, 5, 5), bool))

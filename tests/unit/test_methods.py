@@ -1,0 +1,56 @@
+import numpy as np
+import pytest
+
+from multiscale_camera.core.errors import RigError
+from multiscale_camera.core.methods import prepare
+from multiscale_camera.core.rig import Rig, resolve_conflicts
+
+from .rigs import two_camera_rig
+
+
+def test_image_blend_preserves_each_cameras_pinhole_rays():
+    cams, masks = two_camera_rig()
+    fld = prepare(Rig(cams, masks), "IMAGE_BLEND")
+    h, w = masks.shape[1:]
+    iy, ix = np.mgrid[0:h, 0:w]
+    b = fld.rays(ix.ravel(), iy.ravel())
+    verts = b.vertices.astype(np.float64).reshape(h, w, -1, 3)
+    # camera 2's preserved pixels: the last segment is camera 2's ray through that pixel
+    for cam, mask, k in ((cams[1], masks[1], -2), (cams[0], masks[0], 0)):
+        ys, xs = np.nonzero(mask)
+        for vertex in (k, -1):
+            pix, depth = cam.project(verts[ys, xs, vertex])
+            assert (depth > 0).all()
+            err = np.hypot(pix[:, 0] - xs - 0.5, pix[:, 1] - ys - 0.5)
+            assert err.max() < 1e-3, err.max()
+    m = b.membership.reshape(h, w, -1)[..., 0]
+    assert np.all(m[masks[0]] == 1) and np.all(m[masks[1]] == 2)
+    free = ~masks.any(0)
+    assert (m[free] > 1).any() and (m[free] < 2).all()
+
+
+def test_auto_uses_an_available_method_and_unknown_method_is_explained():
+    cams, masks = two_camera_rig()
+    assert prepare(Rig(cams, masks), "AUTO").method == "IMAGE_BLEND"
+    with pytest.raises(RigError, match="Method 'LINEAR' is not available in this version"):
+        prepare(Rig(cams, masks), "LINEAR")
+
+
+def test_rig_rejects_empty_last_mask_but_allows_empty_intermediate():
+    cams, masks = two_camera_rig()
+    three = (cams[0], cams[1], cams[1])
+    ok = np.stack([masks[0], np.zeros_like(masks[0]), masks[1]])
+    Rig(three, ok)
+    with pytest.raises(RigError, match="The mask of the last camera 'C2' is empty"):
+        Rig(cams, np.stack([masks[0], np.zeros_like(masks[1])]))
+    with pytest.raises(RigError, match="Every mask is empty"):
+        Rig(cams, np.zeros_like(masks))
+
+
+def test_resolve_conflicts_gives_shared_pixels_to_the_smaller_scale():
+    masks = np.zeros((2, 4, 4), bool)
+    masks[0, :, :3] = True
+    masks[1, :, 2:] = True
+    out, notices = resolve_conflicts(masks, ["A", "B"])
+    assert not (out[0] & out[1]).any() and out[1, :, 2:].all()
+    assert notices == ["4 pixels are in the masks of both 'A' and 'B'; the smaller scale ('B') keeps them"]
