@@ -5,6 +5,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .meshes import uses_nodes
+
 
 @dataclass(frozen=True)
 class Light:
@@ -58,7 +60,7 @@ def world_colour(scene):
     world = scene.world
     if world is None:
         return np.zeros(3, dtype=np.float32)
-    if world.use_nodes and world.node_tree is not None:
+    if uses_nodes(world):
         for node in world.node_tree.nodes:
             if node.type == "BACKGROUND":
                 colour = np.array(node.inputs["Color"].default_value[:3], dtype=np.float32)

@@ -32,12 +32,21 @@ class SceneGeometry:
         return len(self.triangles)
 
 
+def uses_nodes(block):
+    """Whether a material or world is shaded by its node tree (always, from Blender 5.0)."""
+    import bpy
+
+    if block.node_tree is None:
+        return False
+    return bpy.app.version >= (5, 0, 0) or block.use_nodes
+
+
 def material_colour(material, fallback):
     """Linear RGB base colour of a material: its Principled BSDF's Base Color value, else
     its viewport colour; ``fallback`` (the object's colour) when there is no material."""
     if material is None:
         return tuple(fallback[:3])
-    if material.use_nodes and material.node_tree is not None:
+    if uses_nodes(material):
         for node in material.node_tree.nodes:
             if node.type == "BSDF_PRINCIPLED":
                 return tuple(node.inputs["Base Color"].default_value[:3])

@@ -115,6 +115,10 @@ class MULTISCALE_OT_render(bpy.types.Operator):
         if scene.render.engine != "MULTISCALE":
             scene.render.engine = "MULTISCALE"
             self.report({"INFO"}, "Render engine set to Multiscale")
+        if scene.camera is None:
+            # Blender refuses to render a scene without an active camera
+            scene.camera = scene.multiscale.cameras[0].camera
+            self.report({"INFO"}, f"Scene camera set to '{scene.camera.name}'")
         if bpy.app.background:
             bpy.ops.render.render(write_still=self.write_still)
         else:
