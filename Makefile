@@ -1,0 +1,84 @@
+# Multiscale Camera: development targets.
+#
+#   make build    stage and pack the extension: dist/multiscale_camera-<version>-<platform>.zip
+#   make test     build, then run tests/ (unit, blender, e2e) with $(BLENDER)
+#   make samples  write sample_blends/*.blend
+#   make demo     install the linux zip in a throwaway user folder, render demo.blend to out/
+#   make lint     ruff
+#
+# BLENDER defaults to tools/blender (Blender's command line on the bpy wheel);
+# point it at a real Blender to run the same tests there.
+
+SHELL := bash
+.DEFAULT_GOAL := build
+.DELETE_ON_ERROR:
+
+PYTHON311 := $(shell command -v python3.11)
+VENV := .venv
+PY := $(VENV)/bin/python
+VENV_STAMP := $(VENV)/.stamp
+BPY_SCRIPTS := $(VENV)/lib/python3.11/site-packages/bpy/5.0/scripts
+BLENDER_EXT := $(PY) $(BPY_SCRIPTS)/addons_core/bl_pkg/cli/blender_ext.py
+# Blender's own tag list, the one `blender --command extension build` checks against.
+VALID_TAGS := --valid-tags $(BPY_SCRIPTS)/modules/_bpy_internal/extensions/tags.py
+
+BLENDER ?= $(CURDIR)/tools/blender
+export BLENDER
+
+OPENEXR_VERSION := $(shell sed -n 's/^OpenEXR==//p' requirements.txt)
+PACKAGE_FILES := $(shell find multiscale_camera -name __pycache__ -prune -o -print 2>/dev/null)
+LINUX_ZIP := dist/LINUX_ZIP
+SAMPLE_SCRIPTS := $(wildcard sample_blends/*.py)
+# --python-exit-code acts on the scripts after it, as in Blender.
+RUN_SAMPLES := $(BLENDER) -b --factory-startup --python-exit-code 1 \
+	--python sample_blends/make_samples.py
+
+.PHONY: venv build test samples demo lint clean distclean
+
+venv: $(VENV_STAMP)
+
+$(VENV_STAMP): requirements.txt
+	@if [ ! -x $(PY) ]; then \
+	  if [ -z "$(PYTHON311)" ]; then echo "python3.11 is not on PATH" >&2; exit 1; fi; \
+	  echo "$(PYTHON311) -m venv $(VENV)"; $(PYTHON311) -m venv $(VENV); \
+	fi
+	$(PY) -m pip install --quiet -r requirements.txt
+	touch $@
+
+build: $(LINUX_ZIP)
+
+# The zips hold the manifest (plus platforms and wheels), the package's contents at the
+# root and the OpenEXR wheels; dist/LINUX_ZIP names the linux-x64 one for tests and demo.
+$(LINUX_ZIP): $(VENV_STAMP) blender_manifest.toml tools/stage.py $(PACKAGE_FILES)
+	rm -rf dist && mkdir -p dist
+	$(PY) tools/stage.py build/stage --openexr $(OPENEXR_VERSION) \
+	  --package multiscale_camera --manifest blender_manifest.toml --cache .cache/wheels
+	$(BLENDER_EXT) build --source-dir build/stage --output-dir dist --split-platforms $(VALID_TAGS)
+	for zip in dist/*.zip; do $(BLENDER_EXT) validate $(VALID_TAGS) "$$zip" || exit 1; done
+	ls dist/*-linux_x64.zip > $@
+	@echo "linux-x64 zip: $$(cat $@)"
+
+test: build
+	$(PY) -m pytest -q tests
+
+samples: venv
+	$(RUN_SAMPLES)
+
+sample_blends/demo.blend: $(SAMPLE_SCRIPTS) | venv
+	$(RUN_SAMPLES)
+
+demo: build sample_blends/demo.blend
+	rm -rf out/blender-user && mkdir -p out
+	BLENDER_USER_RESOURCES=$(CURDIR)/out/blender-user $(BLENDER) -b --factory-startup \
+	  --python-exit-code 1 --python tools/demo.py -- \
+	  --zip "$$(cat $(LINUX_ZIP))" --blend sample_blends/demo.blend --out out
+
+lint: venv
+	$(PY) -m ruff check .
+
+clean:
+	rm -rf build dist out .pytest_cache .ruff_cache
+	find . -path ./$(VENV) -prune -o -name __pycache__ -type d -prune -exec rm -rf {} +
+
+distclean: clean
+	rm -rf $(VENV) .cache
