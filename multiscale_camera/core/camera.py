@@ -54,21 +54,22 @@ class PinholeCamera:
     pixel_aspect_x: float = 1.0
     pixel_aspect_y: float = 1.0
 
-    @property
-    def rotation(self):
-        """(3, 3) float64: orthonormal camera-to-world rotation."""
-        m = np.asarray(self.matrix_world, dtype=np.float64)[:3, :3]
-        return m / np.linalg.norm(m, axis=0, keepdims=True)
+    def __post_init__(self):
+        m = np.array(self.matrix_world, dtype=np.float64)
+        rot = m[:3, :3] / np.linalg.norm(m[:3, :3], axis=0, keepdims=True)
+        for name, value in (("matrix_world", m), ("rotation", rot), ("eye", m[:3, 3].copy()),
+                            ("forward", -rot[:, 2].copy())):
+            value.flags.writeable = False
+            object.__setattr__(self, name, value)
+        xmin, xmax, ymin, ymax = self.view_plane()
+        # pixel -> camera-local point on the plane z = -1: (ax * x + bx, ay * y + by, -1)
+        object.__setattr__(self, "_affine", (
+            (xmax - xmin) / self.width, xmin, -(ymax - ymin) / self.height, ymax,
+        ))
 
-    @property
-    def eye(self):
-        """(3,) float64: the eye position E_i, world units."""
-        return np.asarray(self.matrix_world, dtype=np.float64)[:3, 3].copy()
-
-    @property
-    def forward(self):
-        """(3,) float64: unit view axis V_i (the camera's local -Z in world space)."""
-        return -self.rotation[:, 2]
+    # rotation : (3, 3) float64, orthonormal camera-to-world rotation.
+    # eye : (3,) float64, the eye position E_i, world units.
+    # forward : (3,) float64, unit view axis V_i (the camera's local -Z in world space).
 
     def view_plane(self):
         """Bounds of the view plane at unit distance, in camera-local units.
@@ -108,19 +109,13 @@ class PinholeCamera:
         -------
         (*S, 3) float64 array of unit vectors.
         """
-        xmin, xmax, ymin, ymax = self.view_plane()
-        px = np.asarray(px, dtype=np.float64)
-        py = np.asarray(py, dtype=np.float64)
-        local = np.stack(
-            [
-                xmin + px * ((xmax - xmin) / self.width),
-                ymax - py * ((ymax - ymin) / self.height),
-                -np.ones_like(px),
-            ],
-            axis=-1,
-        )
-        d = local @ self.rotation.T
-        return d / np.linalg.norm(d, axis=-1, keepdims=True)
+        ax, bx, ay, by = self._affine
+        lx = np.asarray(px, dtype=np.float64) * ax + bx
+        ly = np.asarray(py, dtype=np.float64) * ay + by
+        r = self.rotation
+        d = np.stack([r[k, 0] * lx + r[k, 1] * ly - r[k, 2] for k in range(3)], axis=-1)
+        d /= np.sqrt(lx * lx + ly * ly + 1.0)[..., None]
+        return d
 
     def near_points(self, directions):
         """Where rays from the eye along ``directions`` cross the near plane.
@@ -133,8 +128,10 @@ class PinholeCamera:
         -------
         (..., 3) float64 array: p_i = E_i + v * d_i / (v . V_i), world units.
         """
-        cos = np.asarray(directions, dtype=np.float64) @ self.forward
-        return self.eye + directions * (self.clip_start / cos)[..., None]
+        d = np.asarray(directions, dtype=np.float64)
+        f = self.forward
+        cos = d[..., 0] * f[0] + d[..., 1] * f[1] + d[..., 2] * f[2]
+        return self.eye + d * (self.clip_start / cos)[..., None]
 
     def project(self, points):
         """Project world points into this camera's image.
@@ -150,14 +147,14 @@ class PinholeCamera:
         depth : (...) float64 array
             Distance along the view axis; points behind the eye have depth <= 0.
         """
-        xmin, xmax, ymin, ymax = self.view_plane()
-        local = (np.asarray(points, dtype=np.float64) - self.eye) @ self.rotation
-        depth = -local[..., 2]
+        ax, bx, ay, by = self._affine
+        rel = np.asarray(points, dtype=np.float64) - self.eye
+        r = self.rotation
+        lx, ly, lz = (rel[..., 0] * r[0, k] + rel[..., 1] * r[1, k] + rel[..., 2] * r[2, k] for k in range(3))
+        depth = -lz
         with np.errstate(divide="ignore", invalid="ignore"):
-            u = local[..., 0] / depth
-            v = local[..., 1] / depth
-        x = (u - xmin) * (self.width / (xmax - xmin))
-        y = (ymax - v) * (self.height / (ymax - ymin))
+            x = (lx / depth - bx) / ax
+            y = (ly / depth - by) / ay
         return np.stack([x, y], axis=-1), depth
 
 

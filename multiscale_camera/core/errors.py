@@ -7,3 +7,7 @@ class RigError(ValueError):
 
 class SolverDidNotConverge(RuntimeError):
     """An iterative solve stopped before reaching its tolerance."""
+
+
+class Cancelled(Exception):
+    """The user asked long work to stop (Esc); nothing is wrong."""

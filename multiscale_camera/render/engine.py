@@ -4,9 +4,8 @@ import time
 
 import bpy
 
-from ..core.errors import RigError, SolverDidNotConverge
+from ..core.errors import Cancelled, RigError, SolverDidNotConverge
 from . import pipeline
-from .raycast import Cancelled
 
 
 class MultiscaleRenderEngine(bpy.types.RenderEngine):

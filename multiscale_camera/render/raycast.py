@@ -9,6 +9,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..core.errors import Cancelled
+
 # Interior vertices whose incoming and outgoing directions differ by less than this
 # (1 - cos of the angle; ~1e-4 degrees) are dropped: merging them moves nothing.
 COLLINEAR = 1e-12
@@ -84,10 +86,6 @@ class Hits:
     direction: np.ndarray
     membership: np.ndarray
     casts: int
-
-
-class Cancelled(Exception):
-    """``should_stop`` asked the march to stop."""
 
 
 def march(tree, bundle, should_stop=None):
