@@ -29,9 +29,9 @@ def test_image_blend_preserves_each_cameras_pinhole_rays():
     assert (m[free] > 1).any() and (m[free] < 2).all()
 
 
-def test_auto_uses_an_available_method_and_unknown_method_is_explained():
+def test_auto_uses_the_most_accurate_method_and_unknown_method_is_explained():
     cams, masks = two_camera_rig()
-    assert prepare(Rig(cams, masks), "AUTO").method == "IMAGE_BLEND"
+    assert prepare(Rig(cams, masks), "AUTO").method == "SCALAR_FIELD"
     with pytest.raises(RigError, match="Method 'LINEAR' is not available in this version"):
         prepare(Rig(cams, masks), "LINEAR")
 

@@ -1,0 +1,183 @@
+"""The report's measures of a ray bundle (DESIGN.md, Metrics).
+
+- Preserved-ray error of camera i (i >= 2) at a pixel of its mask eroded by 2 pixels:
+  where the pixel's ray first crosses camera i's near plane, projected into camera i,
+  minus the pixel centre, in camera i's pixels; and the angle between the ray there and
+  the pinhole direction v_i. For camera 1 the ray's point and direction where it leaves
+  the modelled volume (the end of its bending stretch) are used instead.
+- Folds: a 2x2 quad of neighbouring rays folds when the signed area of its four points,
+  projected on the plane normal to their mean direction, changes sign along the
+  bending stretch (from camera 1's near plane to the last camera's near plane).
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+
+# Erosion of the masks, pixels, before measuring preserved rays (DESIGN.md).
+ERODE_PX = 2
+# At most this many pixels per camera are measured; a larger mask is subsampled evenly.
+MAX_MEASURED = 20000
+
+
+def erode(mask, pixels=ERODE_PX):
+    """Binary erosion by a (2 * pixels + 1) square; outside the image counts as outside.
+
+    Parameters
+    ----------
+    mask : (H, W) bool.
+
+    Returns
+    -------
+    (H, W) bool.
+    """
+    out = mask.copy()
+    for _ in range(pixels):
+        m = out.copy()
+        out[1:] &= m[:-1]
+        out[:-1] &= m[1:]
+        out[0] = False
+        out[-1] = False
+        m = out.copy()
+        out[:, 1:] &= m[:, :-1]
+        out[:, :-1] &= m[:, 1:]
+        out[:, 0] = False
+        out[:, -1] = False
+    return out
+
+
+def measured_pixels(mask, limit=MAX_MEASURED):
+    """(ix, iy) int arrays of the eroded mask's pixels, evenly subsampled to ``limit``."""
+    iy, ix = np.nonzero(erode(mask))
+    if len(ix) > limit:
+        keep = np.linspace(0, len(ix) - 1, limit).astype(np.int64)
+        ix, iy = ix[keep], iy[keep]
+    return ix, iy
+
+
+def plane_crossing(vertices, cam):
+    """Where polylines first cross a camera's near plane.
+
+    Parameters
+    ----------
+    vertices : (R, K, 3) float array. cam : PinholeCamera.
+
+    Returns
+    -------
+    point : (R, 3) float64, world units (NaN where a ray never crosses).
+    direction : (R, 3) float64 unit direction of the ray leaving the plane: the segment
+        that starts at the first vertex on or beyond the plane (the crossing segment when
+        that vertex is the last).
+    """
+    v = vertices.astype(np.float64)
+    s = (v - cam.eye) @ cam.forward - cam.clip_start
+    ahead = s >= 0
+    k = np.argmax(ahead, axis=1)
+    crosses = ahead.any(axis=1) & (k > 0)
+    k = np.maximum(k, 1)
+    r = np.arange(len(v))
+    a, b = v[r, k - 1], v[r, k]
+    sa, sb = s[r, k - 1], s[r, k]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        point = a + (b - a) * (-sa / (sb - sa))[:, None]
+    k1 = np.minimum(k + 1, v.shape[1] - 1)
+    d = np.where((k1 > k)[:, None], v[r, k1] - b, b - a)
+    d /= np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-30)
+    point[~crosses] = np.nan
+    return point, d
+
+
+@dataclass(frozen=True)
+class Preserved:
+    """Preserved-ray errors of one camera.
+
+    pixels : int, pixels measured. error_px : (P,) float64 pixel error.
+    angle_deg : (P,) float64, angle to the pinhole direction, degrees.
+    """
+
+    pixels: int
+    error_px: np.ndarray
+    angle_deg: np.ndarray
+
+    def summary(self):
+        """{"p50", "p95", "max"} of the error and of the angle (NaN-free; NaN counts as inf)."""
+
+        def stats(a):
+            if len(a) == 0:
+                return {"p50": 0.0, "p95": 0.0, "max": 0.0}
+            a = np.where(np.isfinite(a), a, np.inf)
+            return {k: float(np.percentile(a, q)) for k, q in (("p50", 50), ("p95", 95), ("max", 100))}
+
+        return stats(self.error_px), stats(self.angle_deg)
+
+
+def preserved_error(cameras, i, bundle, exit_index=None):
+    """Preserved-ray error of camera ``i`` (0-based) over the rays of ``bundle``.
+
+    Parameters
+    ----------
+    cameras : sequence of PinholeCamera. i : int.
+    bundle : RayBundle whose rays serve pixels of camera i's eroded mask.
+    exit_index : (R,) int, for camera 1: the vertex where each ray leaves the modelled
+        volume (default: the last vertex).
+
+    Returns
+    -------
+    Preserved
+    """
+    cam = cameras[i]
+    v = bundle.vertices
+    px = bundle.pixels[:, 0] + 0.5
+    py = bundle.pixels[:, 1] + 0.5
+    if len(v) == 0:
+        return Preserved(0, np.zeros(0), np.zeros(0))
+    if i == 0:
+        r = np.arange(len(v))
+        k = np.full(len(v), v.shape[1] - 1) if exit_index is None else np.clip(exit_index, 1, v.shape[1] - 1)
+        point = v[r, k].astype(np.float64)
+        d = point - v[r, k - 1]
+        d /= np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-30)
+    else:
+        point, d = plane_crossing(v, cam)
+    pix, _depth = cam.project(point)
+    err = np.hypot(pix[:, 0] - px, pix[:, 1] - py)
+    ref = cam.directions(px, py)
+    cos = np.clip((d * ref).sum(-1), -1.0, 1.0)
+    return Preserved(len(v), err, np.degrees(np.arccos(cos)))
+
+
+def quad_folds(vertices, active):
+    """Quads of neighbouring rays that fold along the bending stretch.
+
+    Parameters
+    ----------
+    vertices : (Hy, Wx, K, 3) float array: rays on a pixel lattice, vertex k of every ray
+        at the same step of the march.
+    active : (Hy, Wx, K) bool: whether vertex k is inside the bending stretch.
+
+    Returns
+    -------
+    (Hy - 1, Wx - 1) bool: True where the quad's orientation ever differs from its
+    orientation on camera 1's near plane.
+    """
+    v = vertices.astype(np.float64)
+    a, b, c, d = v[:-1, :-1], v[:-1, 1:], v[1:, 1:], v[1:, :-1]
+    live = active[:-1, :-1] & active[:-1, 1:] & active[1:, 1:] & active[1:, :-1]
+    tangent = np.zeros_like(a)
+    for p in (a, b, c, d):
+        step = np.diff(p, axis=2, append=p[:, :, -1:] + (p[:, :, -1:] - p[:, :, -2:-1]))
+        tangent += step / np.maximum(np.linalg.norm(step, axis=-1, keepdims=True), 1e-30)
+    area = (np.cross(c - a, d - b) * tangent).sum(-1)
+    sign0 = np.sign(area[:, :, :1])
+    flipped = (np.sign(area) != sign0) & (area != 0) & live
+    return flipped.any(axis=-1)
+
+
+def bending_active(vertices, last_cam, counts=None):
+    """(…, K) bool: vertices before the last camera's near plane (and, with ``counts``,
+    among the traced ones): the stretch where folds are counted."""
+    s = (vertices.astype(np.float64) - last_cam.eye) @ last_cam.forward - last_cam.clip_start
+    before = np.logical_and.accumulate(s < 0, axis=-1)
+    if counts is not None:
+        before &= np.arange(vertices.shape[-2]) < counts[..., None]
+    return before
