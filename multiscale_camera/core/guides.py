@@ -15,7 +15,9 @@ from dataclasses import dataclass
 import numpy as np
 
 # Keep the handle into camera j+1 within this fraction of its near distance d_{j+1}:
-# a handle reaching behind the eye makes the guides of neighbouring pixels cross there.
+# a handle reaching behind the eye (beta * L >= d_{j+1}) makes the guides of
+# neighbouring pixels cross there. The clamp min(beta * L, GUARD_FRACTION * d_{j+1}) is
+# continuous across pixels, so it adds no seam where it starts to act.
 GUARD_FRACTION = 0.5
 
 # Vertices per guide stage: a cubic with handles at most beta*L deviates from its
@@ -34,7 +36,8 @@ class Guides:
     handles_out, handles_in : (N-1, P) float64, world units
         Length of the handle leaving p_j and of the one arriving at p_{j+1}.
     shortened : (N-1,) int
-        Pixels whose arriving handle the guard shortened, per stage.
+        Pixels whose paper handle beta * L would reach behind camera j+1's eye
+        (beta * L >= d_{j+1}), per stage: their guides are shortened by the guard.
     """
 
     points: np.ndarray
@@ -61,9 +64,9 @@ def build_guides(cameras, px, py, beta=0.2):
     pts = np.stack([c.near_points(d) for c, d in zip(cameras, dirs)])
     chord = np.linalg.norm(pts[1:] - pts[:-1], axis=-1)
     out = beta * chord
-    limit = np.array([GUARD_FRACTION * c.clip_start for c in cameras[1:]])[:, None]
-    into = np.minimum(out, limit)
-    return Guides(pts, dirs, out, into, (out > limit).sum(axis=1))
+    near = np.array([c.clip_start for c in cameras[1:]])[:, None]
+    into = np.minimum(out, GUARD_FRACTION * near)
+    return Guides(pts, dirs, out, into, (out >= near).sum(axis=1))
 
 
 def bezier(q0, q1, q2, q3, t):

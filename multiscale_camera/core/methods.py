@@ -19,7 +19,15 @@ import numpy as np
 from .bundle import RayBundle
 from .errors import Cancelled, RigError, SolverDidNotConverge
 from .family import Family
-from .field import MAX_STRIDE, STEP_CELLS, FieldTracer, choose_grid, fill_membership, near_plane_width
+from .field import (
+    MAX_STRIDE,
+    FieldTracer,
+    choose_grid,
+    fill_membership,
+    merge,
+    near_plane_width,
+    step_cells,
+)
 from .guides import DEFAULT_SEGMENTS, build_guides, curved_rays
 from .harmonic import mask_weights
 from .solvers import solve_membership
@@ -293,9 +301,10 @@ def prepare_scalar_field(rig, settings=None, should_stop=None):
     stride = lattice_stride(rig, grid)
     xs, ys = _lattice_axis(w, stride), _lattice_axis(h, stride)
     gy, gx = np.meshgrid(ys, xs, indexing="ij")
-    step = STEP_CELLS * grid.cell
-    max_steps = int(np.ceil(np.linalg.norm(np.array(grid.shape)) / STEP_CELLS * 2)) + 8
-    traced = tracer.trace(gx.ravel() + 0.5, gy.ravel() + 0.5, step, max_steps, should_stop)
+    cells = step_cells(settings.accuracy_px)
+    step = cells * grid.cell
+    max_steps = int(np.ceil(np.linalg.norm(np.array(grid.shape)) / cells * 2)) + 8
+    traced = _trace_lattice(tracer, rig, gx.ravel(), gy.ravel(), step, max_steps, should_stop)
     t3 = time.perf_counter()
     fld.xs, fld.ys, fld.traced, fld.grid, fld.membership = xs, ys, traced, grid, solve.x
     fld.grids.append(list(grid.shape))
@@ -318,6 +327,28 @@ def prepare_scalar_field(rig, settings=None, should_stop=None):
         )
     fld.warnings += guard_warnings(rig)
     return fld
+
+
+def _trace_lattice(tracer, rig, ix, iy, step, max_steps, should_stop):
+    """Lattice rays: analytic R_i where a preserved pixel's ray stays in camera i's
+    constraint, RK4 streamlines for the rest (the transitions)."""
+    u, v = ix + 0.5, iy + 0.5
+    todo = np.ones(len(ix), dtype=bool)
+    parts, order = [], []
+    vertices = max_steps + 1
+    for i in range(len(rig.cameras)):
+        sel = np.flatnonzero(rig.masks[i][iy, ix])
+        if len(sel) == 0:
+            continue
+        ok, exact = tracer.preserved_rays(i, u[sel], v[sel], step, vertices)
+        parts.append(exact)
+        order.append(sel[ok])
+        todo[sel[ok]] = False
+    rest = np.flatnonzero(todo)
+    if len(rest):
+        parts.append(tracer.trace(u[rest], v[rest], step, max_steps, should_stop))
+        order.append(rest)
+    return merge(parts, order, len(ix))
 
 
 METHODS = {"IMAGE_BLEND": prepare_image_blend, "SCALAR_FIELD": prepare_scalar_field}

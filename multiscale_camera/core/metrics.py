@@ -1,9 +1,9 @@
 """The report's measures of a ray bundle (DESIGN.md, Metrics).
 
 - Preserved-ray error of camera i (i >= 2) at a pixel of its mask eroded by 2 pixels:
-  where the pixel's ray first crosses camera i's near plane, projected into camera i,
-  minus the pixel centre, in camera i's pixels; and the angle between the ray there and
-  the pinhole direction v_i. For camera 1 the ray's point and direction where it leaves
+  where the ray the pixel renders beyond camera i's near plane meets that plane
+  (``plane_crossing``), projected into camera i, minus the pixel centre, in camera i's
+  pixels; and the angle between that ray and the pinhole direction v_i. For camera 1 the ray's point and direction where it leaves
   the modelled volume (the end of its bending stretch) are used instead.
 - Folds: a 2x2 quad of neighbouring rays folds when the signed area of its four points,
   projected on the plane normal to their mean direction, changes sign along the
@@ -56,7 +56,13 @@ def measured_pixels(mask, limit=MAX_MEASURED):
 
 
 def plane_crossing(vertices, cam):
-    """Where polylines first cross a camera's near plane.
+    """The ray each polyline renders beyond a camera's near plane, met with that plane.
+
+    The polyline's first segment that starts on or beyond the plane carries the ray on
+    into camera i's preserved view; its line, extended back to the plane, gives the
+    point, and the segment the direction. (The segment that straddles the plane is a
+    chord across the guide's last bend and shows nothing beyond the plane.) A ray whose
+    last vertex is the first beyond the plane uses the straddling segment instead.
 
     Parameters
     ----------
@@ -65,9 +71,7 @@ def plane_crossing(vertices, cam):
     Returns
     -------
     point : (R, 3) float64, world units (NaN where a ray never crosses).
-    direction : (R, 3) float64 unit direction of the ray leaving the plane: the segment
-        that starts at the first vertex on or beyond the plane (the crossing segment when
-        that vertex is the last).
+    direction : (R, 3) float64, unit.
     """
     v = vertices.astype(np.float64)
     s = (v - cam.eye) @ cam.forward - cam.clip_start
@@ -76,13 +80,14 @@ def plane_crossing(vertices, cam):
     crosses = ahead.any(axis=1) & (k > 0)
     k = np.maximum(k, 1)
     r = np.arange(len(v))
-    a, b = v[r, k - 1], v[r, k]
-    sa, sb = s[r, k - 1], s[r, k]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        point = a + (b - a) * (-sa / (sb - sa))[:, None]
     k1 = np.minimum(k + 1, v.shape[1] - 1)
-    d = np.where((k1 > k)[:, None], v[r, k1] - b, b - a)
+    a = np.where((k1 > k)[:, None], v[r, k], v[r, k - 1])
+    b = np.where((k1 > k)[:, None], v[r, k1], v[r, k])
+    d = b - a
     d /= np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-30)
+    sa = (a - cam.eye) @ cam.forward - cam.clip_start
+    with np.errstate(invalid="ignore", divide="ignore"):
+        point = a - d * (sa / (d @ cam.forward))[:, None]
     point[~crosses] = np.nan
     return point, d
 

@@ -130,6 +130,7 @@ def rk4_streamlines(
     tableau=RK4,
     chunk=CHUNK_RAYS,
     with_rays=False,
+    split=None,
 ):
     """Trace one streamline from every seed through a vector field.
 
@@ -159,6 +160,11 @@ def rk4_streamlines(
     with_rays : bool, call ``velocity(points, rays)`` instead, ``rays`` (P,) int64 being
         the indices into ``seeds`` of the rays the points belong to (the same at every
         stage of a step), so the field can keep per-ray state such as warm starts.
+    split : callable ``(points (P, 3), directions (P, 3), rays (P,), step) -> (P,)``
+        or None: the arc length at which a step from each point should be cut in two,
+        or ``step`` for no cut. A step that straddles a surface where the field is only
+        once differentiable loses RK4's order; two sub-steps meeting on the surface keep
+        it. Only the step's end is recorded, so vertex k still lies at arc length k * step.
 
     Returns
     -------
@@ -186,6 +192,7 @@ def rk4_streamlines(
         should_stop,
         tableau,
         with_rays,
+        split,
     )
     count = len(seeds)
     reason = np.zeros(count, dtype=np.int8)
@@ -220,8 +227,10 @@ class _Tracer:
         should_stop,
         tableau,
         with_rays,
+        split,
     ):
         self.velocity = velocity
+        self.split = split
         self.with_rays = with_rays
         self.step = step
         self.max_steps = max_steps
@@ -290,7 +299,7 @@ class _Tracer:
                 if not len(ids):
                     break
             h = np.minimum(self.step, self.max_length - s)
-            x_new = self._step(x, k0, h[:, None], ids + first)
+            x_new = self._split_step(x, k0, h, ids + first)
             s += h
             left = np.zeros(len(ids), dtype=bool)
             if self.inside is not None:
@@ -317,6 +326,21 @@ class _Tracer:
             x = x_new
         length[ids] = s  # rays cut short by cancelling
         return rec.trimmed(), rec.counts, reason, length
+
+    def _split_step(self, x, k0, h, rays):
+        """One step of length h (P,), cut in two where ``split`` asks."""
+        if self.split is None:
+            return self._step(x, k0, h[:, None], rays)
+        first = np.clip(self.split(x, k0, rays, self.step), 0.0, h)
+        cut = (first > 1e-9 * h) & (first < (1.0 - 1e-9) * h)
+        out = np.empty_like(x)
+        whole = ~cut
+        out[whole] = self._step(x[whole], k0[whole], h[whole, None], rays[whole])
+        if cut.any():
+            mid = self._step(x[cut], k0[cut], first[cut, None], rays[cut])
+            k_mid = self._field(mid, rays[cut])[0]
+            out[cut] = self._step(mid, k_mid, (h - first)[cut, None], rays[cut])
+        return out
 
     def _step(self, x, k0, h, rays):
         """One explicit RK step of length h (P, 1) from x (P, 3) with k0 = f(x)."""

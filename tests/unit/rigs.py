@@ -38,3 +38,24 @@ def two_camera_rig(width=64, height=48):
     c1 = camera("C1", (0, -16, 8), (0, 0, 0), width, height, clip_start=4.0)
     c2 = camera("C2", (0.5, -4, 2), (0.2, 0, 0), width, height, clip_start=1.5)
     return (c1, c2), disk_masks(width, height, 0.2 * width, 0.35 * width)
+
+
+def orbit(target, distance, azimuth_deg, elevation_deg):
+    """A point ``distance`` from ``target`` seen at an azimuth (about +Z, 0 = from -Y)
+    and elevation, degrees."""
+    az, el = np.radians(azimuth_deg), np.radians(elevation_deg)
+    offset = np.array([np.sin(az) * np.cos(el), -np.cos(az) * np.cos(el), np.sin(el)])
+    return np.asarray(target, dtype=float) + distance * offset
+
+
+def zoom_rig(width=160, height=120, turn_deg=20.0, ratio=4.0):
+    """The issue's two-camera rig: camera 2 ``ratio`` times closer to the subject and
+    turned ``turn_deg`` about it; near planes far from the eyes (the paper's guideline 4:
+    camera 1's at 0.4 of its distance, camera 2's half way to the subject)."""
+    target = (0.0, 0.0, 0.5)
+    far = 20.0
+    c1 = camera("C1", orbit(target, far, 0, 25), target, width, height, clip_start=0.4 * far,
+                clip_end=200.0)
+    c2 = camera("C2", orbit(target, far / ratio, turn_deg, 25), target, width, height,
+                clip_start=0.5 * far / ratio, clip_end=200.0)
+    return (c1, c2), disk_masks(width, height, 0.2 * width, 0.35 * width)

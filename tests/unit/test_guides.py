@@ -45,3 +45,8 @@ def test_guard_shortens_handles_that_reach_behind_the_next_eye():
     g = build_guides((near_c1, far), px, py, beta=0.2)
     assert g.shortened.tolist() == [0]
     np.testing.assert_allclose(g.handles_in, g.handles_out)
+    # between GUARD_FRACTION * d and d the handle is clamped (continuously), not reported
+    mid_c1 = camera("C1", (0, -20, 0), (0, 0, 0), clip_start=13.5)
+    g = build_guides((mid_c1, far), px, py, beta=0.2)
+    assert g.shortened.tolist() == [0]
+    np.testing.assert_allclose(g.handles_in, GUARD_FRACTION * 1.5)
