@@ -258,12 +258,14 @@ class Fill:
     values : (nx, ny, nz) float32, camera number (1-based) where constrained, else 0.
     constrained : (nx, ny, nz) bool. conflicts : int, voxels two cameras claimed (left free).
     per_camera : tuple of int, voxels each camera claims alone.
+    overlaps : (N, N) int64, voxels claimed by both camera i and camera j.
     """
 
     values: np.ndarray
     constrained: np.ndarray
     conflicts: int
     per_camera: tuple
+    overlaps: np.ndarray
 
 
 def fill_membership(rig, grid, families):
@@ -278,7 +280,13 @@ def fill_membership(rig, grid, families):
         per.append(c)
     constrained = claims == 1
     values = np.where(constrained, owner, 0.0).astype(np.float32)
-    return Fill(values, constrained, int((claims > 1).sum()), tuple(int((c & constrained).sum()) for c in per))
+    n = len(per)
+    overlaps = np.zeros((n, n), dtype=np.int64)
+    for i in range(n):
+        for j in range(i + 1, n):
+            overlaps[i, j] = overlaps[j, i] = int((per[i] & per[j]).sum())
+    return Fill(values, constrained, int((claims > 1).sum()),
+                tuple(int((c & constrained).sum()) for c in per), overlaps)
 
 
 # Dense samples per guide stage for arc-length lookups of R_i: the chord error of

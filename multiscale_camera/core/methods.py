@@ -32,6 +32,7 @@ from .guides import DEFAULT_SEGMENTS, build_guides, curved_rays
 from .harmonic import mask_weights
 from .solvers import solve_membership
 from .trace import StopReason
+from .validate import check_rig, conflict_messages
 
 
 @dataclass(frozen=True)
@@ -92,15 +93,10 @@ class RayField:
         """Rays for pixels ``(ix, iy)`` ((P,) int arrays, row 0 at the top): a RayBundle."""
         raise NotImplementedError
 
-    def lattice(self):
-        """Rays on the pixel lattice the method traced, for fold counting.
-
-        Returns
-        -------
-        vertices : (Hy, Wx, K, 3) float32. counts : (Hy, Wx) int, vertices actually
-        traced. stride : int, pixels between lattice rays.
-        """
-        raise NotImplementedError
+    def exit_index(self, ix, iy):
+        """(P,) int: the vertex where each pixel's ray leaves the modelled volume (the
+        end of its bending stretch); the last vertex unless a method knows better."""
+        return None
 
     def _bundle(self, ix, iy, verts, membership):
         cams = self.rig.cameras
@@ -112,11 +108,6 @@ class RayField:
             start_depth=np.linalg.norm(p1 - cams[0].eye, axis=-1).astype(np.float32),
             reach=np.full(len(ix), max(c.clip_end for c in cams), dtype=np.float32),
         )
-
-
-def _lattice_axis(n, stride):
-    """Lattice pixel indices 0, stride, ..., always including the last pixel n - 1."""
-    return np.unique(np.append(np.arange(0, n, stride), n - 1))
 
 
 @dataclass
@@ -139,15 +130,6 @@ class CurveBlendField(RayField):
         m = np.arange(1, len(cams) + 1, dtype=np.float64) @ w
         return self._bundle(ix, iy, verts, np.repeat(m[:, None], verts.shape[1], axis=1))
 
-    def lattice(self):
-        w, h = self.rig.size
-        stride = 1 if w * h <= 512 * 512 else 2
-        ys, xs = _lattice_axis(h, stride), _lattice_axis(w, stride)
-        iy, ix = np.meshgrid(ys, xs, indexing="ij")
-        b = self.rays(ix.ravel(), iy.ravel())
-        k = b.vertices.shape[1]
-        return b.vertices.reshape(len(ys), len(xs), k, 3), np.full((len(ys), len(xs)), k), stride
-
 
 def prepare_image_blend(rig, settings=None, should_stop=None):
     """IMAGE_BLEND: each pixel's ray is its curves R_i blended by harmonic mask weights.
@@ -156,9 +138,10 @@ def prepare_image_blend(rig, settings=None, should_stop=None):
     camera i's near plane it is camera i's own pinhole ray. Neighbouring rays can cross
     in the transitions (folds), since nothing ties them together.
     """
+    warnings = check_rig(rig)
     t0 = time.perf_counter()
     solve = mask_weights(rig.masks)
-    fld = CurveBlendField(rig=rig, method="IMAGE_BLEND", weights=solve.x)
+    fld = CurveBlendField(rig=rig, method="IMAGE_BLEND", weights=solve.x, warnings=warnings)
     fld.seconds.update(fill=0.0, solve=time.perf_counter() - t0, tangents=0.0, trace=0.0)
     fld.solver.update(
         iterations=solve.iterations,
@@ -188,76 +171,185 @@ def guard_warnings(rig):
 
 @dataclass
 class TracedField(RayField):
-    """Rays traced on a pixel lattice; other pixels' rays are interpolated bilinearly,
-    vertex by vertex (vertex k of every ray lies at the same arc length).
+    """Rays traced on an adaptive pixel lattice; every other pixel's ray is interpolated
+    bilinearly, vertex by vertex (vertex k of every ray lies at the same arc length),
+    from the four corners of the lattice cell (a quadtree leaf) that holds it.
 
-    xs, ys : lattice pixel columns and rows. traced : field.Traced, rays in row-major
-    lattice order. grid : Grid. membership : (nx, ny, nz) float32.
+    traced : field.Traced, all traced rays. index : (H, W) int32, the traced ray of a
+    pixel or -1. leaves : (L, 4) int32 cells (x0, y0, x1, y1) in pixels, corners
+    included. leaf_of : (H, W) int32, the leaf holding each pixel. grid : Grid.
+    membership : (nx, ny, nz) float32.
     """
 
-    xs: np.ndarray = None
-    ys: np.ndarray = None
     traced: object = None
+    index: np.ndarray = None
+    leaves: np.ndarray = None
+    leaf_of: np.ndarray = None
     grid: object = None
     membership: np.ndarray = None
 
-    def lattice(self):
-        k = self.traced.vertices.shape[1]
-        shape = (len(self.ys), len(self.xs))
-        stride = int(self.xs[1] - self.xs[0]) if len(self.xs) > 1 else 1
-        return self.traced.vertices.reshape(*shape, k, 3), self.traced.counts.reshape(shape), stride
+    def _corners(self, ix, iy):
+        x0, y0, x1, y1 = self.leaves[self.leaf_of[iy, ix]].T
+        fx = np.where(x1 > x0, (ix - x0) / np.maximum(x1 - x0, 1), 0.0).astype(np.float32)[:, None]
+        fy = np.where(y1 > y0, (iy - y0) / np.maximum(y1 - y0, 1), 0.0).astype(np.float32)[:, None]
+        idx = self.index
+        return (
+            (idx[y0, x0], (1 - fy) * (1 - fx)),
+            (idx[y0, x1], (1 - fy) * fx),
+            (idx[y1, x0], fy * (1 - fx)),
+            (idx[y1, x1], fy * fx),
+        )
 
     def rays(self, ix, iy):
         ix, iy = np.asarray(ix), np.asarray(iy)
-        verts, mem = _interpolate_lattice(
-            self.xs, self.ys, self.traced.vertices, self.traced.membership, ix, iy
-        )
+        k = self.traced.vertices.shape[1]
+        verts = np.zeros((len(ix), k, 3), dtype=np.float32)
+        mem = np.zeros((len(ix), k), dtype=np.float32)
+        for row, w in self._corners(ix, iy):
+            verts += self.traced.vertices[row] * w[:, :, None]
+            mem += self.traced.membership[row] * w
         return self._bundle(ix, iy, verts, mem)
 
     def exit_index(self, ix, iy):
         """(P,) int: for each pixel, the vertex where its ray leaves the grid (the
-        smallest traced count among the lattice rays it is interpolated from)."""
-        counts = self.traced.counts.reshape(len(self.ys), len(self.xs))
-        ax, fx = _locate(self.xs, np.asarray(ix))
-        ay, fy = _locate(self.ys, np.asarray(iy))
-        c = np.minimum.reduce([counts[ay, ax], counts[ay, ax + 1], counts[ay + 1, ax], counts[ay + 1, ax + 1]])
-        return c - 1
+        smallest traced count among the rays it is interpolated from)."""
+        counts = self.traced.counts
+        rows = [row for row, _w in self._corners(np.asarray(ix), np.asarray(iy))]
+        return np.minimum.reduce([counts[r] for r in rows]) - 1
 
 
-def _locate(axis, values):
-    """Lattice cell index and fraction of integer pixel ``values`` along a lattice axis."""
-    if len(axis) == 1:
-        return np.zeros(len(values), dtype=np.int64), np.zeros(len(values))
-    a = np.clip(np.searchsorted(axis, values, side="right") - 1, 0, len(axis) - 2)
-    f = (values - axis[a]) / (axis[a + 1] - axis[a])
-    return a, f
+def _lattice_axis(n, stride):
+    """Lattice pixel indices 0, stride, ..., always including the last pixel n - 1."""
+    return np.unique(np.append(np.arange(0, n, stride), n - 1))
 
 
-def _interpolate_lattice(xs, ys, vertices, membership, ix, iy):
-    """Bilinear interpolation of lattice polylines at pixels (ix, iy).
+def _across(d, t):
+    """Length of the part of vectors ``d`` (..., 3) across unit directions ``t``: the
+    arc-length layout lets neighbouring vertices slide along their rays, which moves
+    nothing in the image."""
+    return np.linalg.norm(d - (d * t).sum(-1, keepdims=True) * t, axis=-1)
 
-    Returns
-    -------
-    vertices : (P, K, 3) float32. membership : (P, K) float32.
+
+# A cell's interpolation error over its parent's midpoint deviation: 1/4 for smooth rays,
+# 1/2 where N's trilinear kinks make them only once differentiable (the bound used).
+CHILD_ERROR_RATIO = 2.0
+
+
+class _AdaptiveLattice:
+    """Traces rays on a pixel lattice and refines it where interpolation would err.
+
+    A cell's interpolation error is estimated from the second differences of its
+    rays (a child cell's bilinear interpolation errs by at most about half its parent's
+    midpoint deviation), in pixels of the multiscale image at each vertex (the spacing
+    of neighbouring rays there), both measured across the rays; cells above the tolerance are split in four and their
+    midpoints traced, down to single pixels.
     """
-    nx = len(xs)
-    ax, fx = _locate(xs, ix)
-    ay, fy = _locate(ys, iy)
-    if len(xs) == 1:
-        ax1 = ax
-    else:
-        ax1 = ax + 1
-    ay1 = ay + 1 if len(ys) > 1 else ay
-    fx = fx.astype(np.float32)[:, None]
-    fy = fy.astype(np.float32)[:, None]
-    corners = ((ay, ax, (1 - fy) * (1 - fx)), (ay, ax1, (1 - fy) * fx), (ay1, ax, fy * (1 - fx)), (ay1, ax1, fy * fx))
-    verts = np.zeros((len(ix), vertices.shape[1], 3), dtype=np.float32)
-    mem = np.zeros((len(ix), vertices.shape[1]), dtype=np.float32)
-    for cy, cx, w in corners:
-        row = cy * nx + cx
-        verts += vertices[row] * w[:, :, None]
-        mem += membership[row] * w
-    return verts, mem
+
+    def __init__(self, tracer, rig, step, max_steps, tol_px, should_stop):
+        self.tracer, self.rig, self.step = tracer, rig, step
+        self.max_steps, self.tol, self.should_stop = max_steps, tol_px, should_stop
+        w, h = rig.size
+        self.index = np.full((h, w), -1, dtype=np.int32)
+        self.parts, self.order, self.count = [], [], 0
+
+    def trace(self, px, py):
+        """Trace the pixels not traced yet (duplicates allowed)."""
+        key = np.unique(np.asarray(py, dtype=np.int64) * self.index.shape[1] + np.asarray(px))
+        py, px = np.divmod(key, self.index.shape[1])
+        new = self.index[py, px] < 0
+        px, py = px[new], py[new]
+        if len(px) == 0:
+            return
+        if self.should_stop is not None and self.should_stop():
+            raise Cancelled()
+        self.parts.append(_trace_pixels(self.tracer, self.rig, px, py, self.step, self.max_steps, self.should_stop))
+        self.order.append(np.arange(self.count, self.count + len(px)))
+        self.index[py, px] = np.arange(self.count, self.count + len(px))
+        self.count += len(px)
+        self.traced = merge(self.parts, self.order, self.count)
+        self.parts, self.order = [self.traced], [np.arange(self.count)]
+
+    def deviation(self, mid, a, b, pixels):
+        """How far ray(mid) strays from the mean of rays a and b, in pixels.
+
+        Max over the vertices inside the grid of |ray(mid) - (ray(a) + ray(b)) / 2|
+        across the ray, over the spacing of the neighbouring rays there (|ray(b) -
+        ray(a)| / pixels): pixels of the multiscale image. Beyond the grid the rays run
+        straight and may cross far off, where that spacing vanishes; that stretch is not
+        weighed. (P,) arrays of flat pixel keys and pixel distances."""
+        v, counts = self.traced.vertices, self.traced.counts
+        ia, ib, im = (self.index.ravel()[k] for k in (a, b, mid))
+        va, vb, vm = (v[i].astype(np.float64) for i in (ia, ib, im))
+        t = np.diff(vm, axis=1, append=2 * vm[:, -1:] - vm[:, -2:-1])
+        t /= np.maximum(np.linalg.norm(t, axis=-1, keepdims=True), 1e-30)
+        d = _across(vm - 0.5 * (va + vb), t)
+        spacing = _across(vb - va, t) / np.maximum(pixels, 1)[:, None]
+        traced = np.arange(v.shape[1])[None, :] < np.minimum.reduce([counts[ia], counts[ib], counts[im]])[:, None]
+        return np.where(traced, d / np.maximum(spacing, 1e-12), 0.0).max(axis=1)
+
+    def _lattice_roughness(self, xs, ys):
+        """(cells,) float: for each base cell, the largest deviation of a corner ray from
+        the mean of its two lattice neighbours (a span of two cells), row-major cells."""
+        w = self.index.shape[1]
+        gy, gx = np.meshgrid(ys, xs, indexing="ij")
+        key = gy * w + gx
+        dev = np.zeros(key.shape)
+        if len(xs) > 2:
+            d = self.deviation(key[:, 1:-1].ravel(), key[:, :-2].ravel(), key[:, 2:].ravel(),
+                               (gx[:, 2:] - gx[:, :-2]).ravel())
+            dev[:, 1:-1] = np.maximum(dev[:, 1:-1], d.reshape(len(ys), -1))
+        if len(ys) > 2:
+            d = self.deviation(key[1:-1].ravel(), key[:-2].ravel(), key[2:].ravel(),
+                               (gy[2:] - gy[:-2]).ravel())
+            dev[1:-1] = np.maximum(dev[1:-1], d.reshape(-1, len(xs)))
+        corners = np.maximum.reduce([dev[:-1, :-1], dev[:-1, 1:], dev[1:, :-1], dev[1:, 1:]])
+        return corners.ravel()
+
+    def run(self, stride):
+        w, h = self.rig.size
+        xs, ys = _lattice_axis(w, stride), _lattice_axis(h, stride)
+        gy, gx = np.meshgrid(ys, xs, indexing="ij")
+        self.trace(gx.ravel(), gy.ravel())
+        x0, y0 = np.meshgrid(xs[:-1], ys[:-1]) if len(xs) > 1 and len(ys) > 1 else (gx, gy)
+        x1, y1 = np.meshgrid(xs[1:], ys[1:]) if len(xs) > 1 and len(ys) > 1 else (gx, gy)
+        cells = np.stack([x0.ravel(), y0.ravel(), x1.ravel(), y1.ravel()], axis=1)
+        # the base lattice's own second differences estimate its cells' error, so only
+        # the cells that need it get their midpoints traced
+        rough = self._lattice_roughness(xs, ys)
+        flagged = rough / CHILD_ERROR_RATIO > self.tol
+        leaves = [cells[~flagged]]
+        cells = cells[flagged]
+        while len(cells):
+            x0, y0, x1, y1 = cells.T
+            xm, ym = (x0 + x1) // 2, (y0 + y1) // 2
+            split = (x1 - x0 > 1) | (y1 - y0 > 1)
+            leaves.append(cells[~split])
+            cells, x0, y0, x1, y1, xm, ym = (a[split] for a in (cells, x0, y0, x1, y1, xm, ym))
+            if not len(cells):
+                break
+            self.trace(np.concatenate([xm, xm, x0, x1, xm]), np.concatenate([y0, y1, ym, ym, ym]))
+            key = lambda x, y: y * w + x  # noqa: E731
+            err = np.maximum.reduce([
+                self.deviation(key(xm, y0), key(x0, y0), key(x1, y0), x1 - x0),
+                self.deviation(key(xm, y1), key(x0, y1), key(x1, y1), x1 - x0),
+                self.deviation(key(x0, ym), key(x0, y0), key(x0, y1), y1 - y0),
+                self.deviation(key(x1, ym), key(x1, y0), key(x1, y1), y1 - y0),
+            ])
+            # bilinear error falls as the cell size squared where the rays are smooth, but
+            # only linearly across the kinks of N at voxel faces: assume the slower rate
+            fine = err / CHILD_ERROR_RATIO <= self.tol
+            children = np.concatenate([
+                np.stack([x0, y0, xm, ym], 1), np.stack([xm, y0, x1, ym], 1),
+                np.stack([x0, ym, xm, y1], 1), np.stack([xm, ym, x1, y1], 1),
+            ])
+            keep = np.tile(fine, 4)
+            leaves.append(children[keep])
+            cells = children[~keep]
+        leaves = np.concatenate(leaves).astype(np.int32)
+        leaf_of = np.zeros((h, w), dtype=np.int32)
+        for n, (a, b, c, d) in enumerate(leaves.tolist()):
+            leaf_of[b : d + 1, a : c + 1] = n
+        return self.traced, self.index, leaves, leaf_of
 
 
 def lattice_stride(rig, grid):
@@ -274,6 +366,7 @@ def prepare_scalar_field(rig, settings=None, should_stop=None):
     exact per-camera tangent fields; rays are its RK4 streamlines."""
     settings = settings or Settings()
     fld = TracedField(rig=rig, method="SCALAR_FIELD")
+    fld.warnings += check_rig(rig)
     t0 = time.perf_counter()
     choice = choose_grid(rig, settings.accuracy_px, settings.max_voxels)
     grid = choice.grid
@@ -297,16 +390,14 @@ def prepare_scalar_field(rig, settings=None, should_stop=None):
             f"{solve.iterations} iterations; simplify the masks or lower the quality"
         )
     tracer = FieldTracer(rig, grid, solve.x, cubic=settings.cubic)
-    w, h = rig.size
     stride = lattice_stride(rig, grid)
-    xs, ys = _lattice_axis(w, stride), _lattice_axis(h, stride)
-    gy, gx = np.meshgrid(ys, xs, indexing="ij")
     cells = step_cells(settings.accuracy_px)
     step = cells * grid.cell
     max_steps = int(np.ceil(np.linalg.norm(np.array(grid.shape)) / cells * 2)) + 8
-    traced = _trace_lattice(tracer, rig, gx.ravel(), gy.ravel(), step, max_steps, should_stop)
+    lattice = _AdaptiveLattice(tracer, rig, step, max_steps, settings.accuracy_px, should_stop)
+    traced, fld.index, fld.leaves, fld.leaf_of = lattice.run(stride)
     t3 = time.perf_counter()
-    fld.xs, fld.ys, fld.traced, fld.grid, fld.membership = xs, ys, traced, grid, solve.x
+    fld.traced, fld.grid, fld.membership = traced, grid, solve.x
     fld.grids.append(list(grid.shape))
     fld.seconds.update(
         fill=t1 - t0, solve=t2 - t1, tangents=tracer.tangent_seconds, trace=t3 - t2 - tracer.tangent_seconds
@@ -318,20 +409,17 @@ def prepare_scalar_field(rig, settings=None, should_stop=None):
         stalled=int((traced.reason == StopReason.STALLED).sum()),
         unfinished=int((traced.reason == StopReason.REACHED_LIMIT).sum()),
         stride=stride,
+        traced=int(len(traced.counts)),
         cell=grid.cell,
     )
-    if fill.conflicts:
-        fld.warnings.append(
-            f"{fill.conflicts} voxels lie on preserved rays of two cameras and were left free: "
-            "the masks contradict each other there (widen the gap between them, or move a near plane)"
-        )
+    fld.warnings += conflict_messages([c.name for c in rig.cameras], fill.overlaps)
     fld.warnings += guard_warnings(rig)
     return fld
 
 
-def _trace_lattice(tracer, rig, ix, iy, step, max_steps, should_stop):
-    """Lattice rays: analytic R_i where a preserved pixel's ray stays in camera i's
-    constraint, RK4 streamlines for the rest (the transitions)."""
+def _trace_pixels(tracer, rig, ix, iy, step, max_steps, should_stop):
+    """Rays of pixels (ix, iy): analytic R_i where a preserved pixel's ray stays in
+    camera i's constraint, RK4 streamlines for the rest (the transitions)."""
     u, v = ix + 0.5, iy + 0.5
     todo = np.ones(len(ix), dtype=bool)
     parts, order = [], []

@@ -82,7 +82,8 @@ def resolve_conflicts(masks, names):
             later = [names[j] for j in range(i + 1, len(masks)) if (masks[j] & masks[i]).any()]
             notices.append(
                 f"{int(clash.sum())} pixels are in the masks of both '{names[i]}' and "
-                f"'{later[0]}'; the smaller scale ('{later[0]}') keeps them"
+                f"'{later[0]}'; the smaller scale ('{later[0]}') keeps them (erase one of the "
+                "masks there to decide yourself)"
             )
             masks[i] &= ~taken
         taken |= masks[i]

@@ -53,4 +53,7 @@ def test_resolve_conflicts_gives_shared_pixels_to_the_smaller_scale():
     masks[1, :, 2:] = True
     out, notices = resolve_conflicts(masks, ["A", "B"])
     assert not (out[0] & out[1]).any() and out[1, :, 2:].all()
-    assert notices == ["4 pixels are in the masks of both 'A' and 'B'; the smaller scale ('B') keeps them"]
+    assert notices == [
+        "4 pixels are in the masks of both 'A' and 'B'; the smaller scale ('B') keeps them "
+        "(erase one of the masks there to decide yourself)"
+    ]

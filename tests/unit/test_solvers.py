@@ -18,9 +18,11 @@ def laplacian_matrix(shape):
     """7-point graph Laplacian with zero-flux faces, C order, as a sparse matrix."""
 
     def path(n):
+        if n == 1:
+            return sp.csr_matrix((1, 1))
         d = np.full(n, 2.0)
         d[[0, -1]] -= 1
-        return sp.diags([d, -np.ones(n - 1), -np.ones(n - 1)], [0, 1, -1]) if n > 1 else sp.csr_matrix((1, 1))
+        return sp.diags([d, -np.ones(n - 1), -np.ones(n - 1)], [0, 1, -1])
 
     eye = [sp.identity(n) for n in shape]
     return (
@@ -67,7 +69,8 @@ def cones(n):
     radius = 0.55 - 0.4 * z
     values = np.zeros((n, n, n))
     constrained = np.zeros((n, n, n), bool)
-    for value, (z0, z1), (r0, r1) in ((1, (0, 0.3), (0.55, 1)), (2, (0.4, 0.6), (0.25, 0.6)), (3, (0.75, 1), (0, 0.35))):
+    segments = ((1, (0, 0.3), (0.55, 1)), (2, (0.4, 0.6), (0.25, 0.6)), (3, (0.75, 1), (0, 0.35)))
+    for value, (z0, z1), (r0, r1) in segments:
         m = (z >= z0) & (z < z1) & (r >= r0 * radius) & (r < r1 * radius)
         constrained |= m
         values[m] = value
@@ -125,7 +128,8 @@ def test_no_constraint_gives_the_isolated_value_everywhere():
     values = np.full(shape, np.nan)
     constrained = np.zeros(shape, bool)
     assert isolated_voxels(constrained).all()
-    for result in (solve_membership(values, constrained), explicit_diffusion(values, constrained, 5)):
+    solved = solve_membership(values, constrained)
+    for result in (solved, explicit_diffusion(values, constrained, 5)):
         assert result.converged and not np.isnan(result.x).any()
         assert (result.x == ISOLATED_VALUE).all()
 
