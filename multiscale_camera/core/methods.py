@@ -79,6 +79,7 @@ class RayField:
     warnings : list of str, for the report and the user.
     grids : list of [nx, ny, nz].
     stats : dict of counts ("conflicts", "stalled", ...).
+    notices : list of str, what the scene adapters adjusted (resampled masks, ...).
     """
 
     rig: object
@@ -88,6 +89,7 @@ class RayField:
     warnings: list = field(default_factory=list)
     grids: list = field(default_factory=list)
     stats: dict = field(default_factory=dict)
+    notices: list = field(default_factory=list)
 
     def rays(self, ix, iy):
         """Rays for pixels ``(ix, iy)`` ((P,) int arrays, row 0 at the top): a RayBundle."""

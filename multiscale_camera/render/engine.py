@@ -19,9 +19,11 @@ class MultiscaleRenderEngine(bpy.types.RenderEngine):
         start = time.perf_counter()
         self.update_stats("", "Multiscale: building rays")
         try:
-            frame = pipeline.prepare_frame(depsgraph)
+            frame = pipeline.prepare_frame(depsgraph, self.test_break)
         except (RigError, SolverDidNotConverge) as err:
             self.fail(f"Multiscale: {err}")
+            return
+        except Cancelled:
             return
         for notice in frame.notices:
             self.report({"WARNING"}, f"Multiscale: {notice}")

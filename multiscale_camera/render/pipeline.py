@@ -9,7 +9,8 @@ import numpy as np
 from ..adapters.lights import scene_lights, world_colour
 from ..adapters.meshes import scene_geometry
 from ..adapters.scene import rig_from_scene
-from ..core.methods import prepare
+from ..core.fingerprint import field_key
+from ..core.methods import prepare, settings_for
 from .raycast import march
 from .shade import shade
 
@@ -54,23 +55,60 @@ class Frame:
         return self.rig.size
 
 
-def prepare_frame(depsgraph):
-    """Build the rig, the ray field and the scene's BVH.
+# Built fields kept for reuse, newest last: a field depends only on the rig and the
+# settings, so moving a light or editing a material renders again without a rebuild.
+_FIELDS = {}
+KEEP_FIELDS = 2
+
+
+def build_field(scene, should_stop=None):
+    """The scene's ray field, from the cache when the rig and settings are unchanged.
+
+    ``scene`` should be an evaluated scene (``depsgraph.scene``), so that object
+    matrices are current.
+
+    Returns
+    -------
+    (RayField, built) : the field, and whether it was built now.
+    """
+    settings_group = scene.multiscale
+    rig = rig_from_scene(scene)
+    settings = settings_for(settings_group.quality, settings_group.accuracy_px)
+    key = field_key(rig, settings_group.method, settings)
+    if key in _FIELDS:
+        _FIELDS[key] = _FIELDS.pop(key)
+        return _FIELDS[key], False
+    fld = prepare(rig, settings_group.method, settings, should_stop)
+    fld.notices = list(rig.notices)
+    _FIELDS[key] = fld
+    while len(_FIELDS) > KEEP_FIELDS:
+        _FIELDS.pop(next(iter(_FIELDS)))
+    return fld, True
+
+
+def clear_fields():
+    """Forget every cached field."""
+    _FIELDS.clear()
+
+
+def prepare_frame(depsgraph, should_stop=None):
+    """Build (or reuse) the ray field and the scene's BVH.
 
     Raises
     ------
     RigError, SolverDidNotConverge: the rig cannot be rendered (the message says why).
+    Cancelled: ``should_stop`` said so.
     """
     from mathutils.bvhtree import BVHTree
 
     scene = depsgraph.scene
     t0 = time.perf_counter()
-    rig = rig_from_scene(scene)
+    ray_field, built = build_field(scene, should_stop)
+    rig = ray_field.rig
     t1 = time.perf_counter()
-    ray_field = prepare(rig, scene.multiscale.method)
-    t2 = time.perf_counter()
+    t2 = t1
     geometry = scene_geometry(depsgraph)
-    notices = list(rig.notices) + list(ray_field.warnings)
+    notices = list(ray_field.notices) + list(ray_field.warnings)
     if len(geometry):
         tree = BVHTree.FromPolygons(
             geometry.vertices.tolist(), geometry.triangles.tolist(), all_triangles=True
@@ -90,7 +128,7 @@ def prepare_frame(depsgraph):
         transparent=bool(scene.render.film_transparent),
         scale=max(scale, 1e-6),
         notices=notices,
-        seconds={"rig": t1 - t0, "field": t2 - t1, "geometry": t3 - t2},
+        seconds={"field" if built else "field (cached)": t1 - t0, "geometry": t3 - t2},
     )
 
 

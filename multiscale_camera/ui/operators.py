@@ -3,12 +3,21 @@
 import bpy
 from bpy.props import BoolProperty, EnumProperty
 
+import time
+
 from ..adapters.scene import rig_from_scene
-from ..core.errors import RigError
+from ..core.errors import RigError, SolverDidNotConverge
+from ..core.report import build_report, headline, to_json
+from ..render import pipeline
 
 
 def _settings(context):
     return context.scene.multiscale
+
+
+def _evaluated(context):
+    """The scene as the depsgraph evaluates it: object matrices up to date."""
+    return context.evaluated_depsgraph_get().scene
 
 
 class MULTISCALE_OT_camera_add(bpy.types.Operator):
@@ -87,13 +96,38 @@ class MULTISCALE_OT_validate(bpy.types.Operator):
 
     def execute(self, context):
         try:
-            rig = rig_from_scene(context.scene)
+            rig = rig_from_scene(_evaluated(context))
         except RigError as err:
             self.report({"ERROR"}, str(err))
             return {"CANCELLED"}
         for notice in rig.notices:
             self.report({"WARNING"}, notice)
         self.report({"INFO"}, f"The rig of {len(rig.cameras)} cameras is ready to render")
+        return {"FINISHED"}
+
+
+class MULTISCALE_OT_compute_field(bpy.types.Operator):
+    """Build the ray field of the camera list (or reuse the cached one) and measure it:
+    preserved-ray error per camera, folds, timings. The report is kept in the scene"""
+
+    bl_idname = "multiscale.compute_field"
+    bl_label = "Compute Field"
+
+    def execute(self, context):
+        scene = context.scene
+        start = time.perf_counter()
+        try:
+            fld, built = pipeline.build_field(_evaluated(context))
+        except (RigError, SolverDidNotConverge) as err:
+            self.report({"ERROR"}, str(err))
+            return {"CANCELLED"}
+        report = build_report(fld, scene.multiscale.quality, sum(fld.seconds.values()))
+        report["cached"] = not built
+        scene.multiscale.report = to_json(report)
+        for notice in fld.notices + fld.warnings:
+            self.report({"WARNING"}, notice)
+        line = headline(report)
+        self.report({"INFO"}, f"{line} ({'built' if built else 'cached'}, {time.perf_counter() - start:.1f} s)")
         return {"FINISHED"}
 
 
@@ -108,7 +142,7 @@ class MULTISCALE_OT_render(bpy.types.Operator):
     def execute(self, context):
         scene = context.scene
         try:
-            rig_from_scene(scene)
+            rig_from_scene(_evaluated(context))
         except RigError as err:
             self.report({"ERROR"}, str(err))
             return {"CANCELLED"}
@@ -131,6 +165,7 @@ CLASSES = (
     MULTISCALE_OT_camera_remove,
     MULTISCALE_OT_camera_move,
     MULTISCALE_OT_validate,
+    MULTISCALE_OT_compute_field,
     MULTISCALE_OT_render,
 )
 

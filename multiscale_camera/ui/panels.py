@@ -1,6 +1,19 @@
 """The 3D viewport's sidebar tab "Multiscale"."""
 
+import json
+
 import bpy
+
+from ..core.report import headline
+
+
+def _report(settings):
+    """The last build report as a dict, or None when there is none (or it is unreadable)."""
+    try:
+        report = json.loads(settings.report) if settings.report else None
+    except ValueError:
+        return None
+    return report if isinstance(report, dict) and "cameras" in report else None
 
 
 class MULTISCALE_UL_cameras(bpy.types.UIList):
@@ -38,10 +51,21 @@ class MULTISCALE_PT_main(bpy.types.Panel):
             box = layout.box()
             box.prop(item, "camera")
             box.template_ID(item, "mask", new="image.new", open="image.open")
-        layout.prop(settings, "method")
-        layout.prop(settings, "beta")
+        col = layout.column(align=True)
+        col.prop(settings, "method")
+        col.prop(settings, "quality")
+        if settings.quality == "CUSTOM":
+            col.prop(settings, "accuracy_px")
+        col.prop(settings, "beta")
         row = layout.row(align=True)
         row.operator("multiscale.validate", icon="CHECKMARK")
+        row.operator("multiscale.compute_field", icon="FORCE_MAGNETIC")
+        report = _report(settings)
+        if report is not None:
+            box = layout.box()
+            box.label(text=headline(report), icon="INFO")
+            for warning in report.get("warnings", [])[:4]:
+                box.label(text=warning, icon="ERROR")
         row = layout.row()
         row.scale_y = 1.4
         row.operator("multiscale.render", icon="RENDER_STILL")

@@ -22,10 +22,8 @@ METHOD_ITEMS = [
     ("SCALAR_FIELD", "Scalar Field", "Smooth a membership field and blend tangent fields (paper eq. 5, 6)"),
 ]
 
-# Methods the code can run today; the rest are listed so saved files and scripts
-# keep their value, and the engine explains that they are not available yet.
-IMPLEMENTED_METHODS = ("IMAGE_BLEND",)
-DEFAULT_METHOD = "IMAGE_BLEND"
+# The most accurate method the code has (DESIGN.md).
+DEFAULT_METHOD = "SCALAR_FIELD"
 
 QUALITY_ITEMS = [
     ("PREVIEW", "Preview", "Fast; about 2 px accuracy"),

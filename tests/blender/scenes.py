@@ -61,4 +61,5 @@ def two_camera_scene(scene, width=48, height=36):
         item.mask = mask_image(f"{cam.name} mask", mask)
     scene.camera = c1
     scene.render.engine = "MULTISCALE"
+    bpy.context.view_layer.update()
     return c1, c2

@@ -1,0 +1,49 @@
+"""compute_field, the report and the field cache, driven headless."""
+
+import json
+
+import bpy
+import numpy as np
+
+from multiscale_camera.render import pipeline
+
+from .scenes import mask_image, two_camera_scene
+
+
+def test_compute_field_writes_a_version_1_report(empty_scene):
+    scene = empty_scene
+    two_camera_scene(scene)
+    pipeline.clear_fields()
+    assert bpy.ops.multiscale.compute_field() == {"FINISHED"}
+    report = json.loads(scene.multiscale.report)
+    assert report["version"] == 1 and report["method"] == "SCALAR_FIELD"
+    assert report["quality"] == "STANDARD" and report["cached"] is False
+    assert set(report["seconds"]) >= {"fill", "solve", "tangents", "trace", "total"}
+    assert [c["name"] for c in report["cameras"]] == ["C1", "C2"]
+    for cam in report["cameras"]:
+        assert cam["pixels"] > 0 and set(cam["preserved_px"]) == {"p50", "p95", "max"}
+    assert report["solver"]["converged"] and len(report["grids"]) == 1
+
+
+def test_field_is_reused_until_the_rig_changes(empty_scene):
+    scene = empty_scene
+    two_camera_scene(scene)
+    pipeline.clear_fields()
+    first, built = pipeline.build_field(scene)
+    assert built
+    # lights and materials are not part of the field
+    light = next(o for o in scene.objects if o.type == "LIGHT")
+    light.rotation_euler.x += 0.3
+    bpy.data.materials[0].diffuse_color = (1, 0, 0, 1)
+    again, built = pipeline.build_field(scene)
+    assert not built and again is first
+    bpy.ops.multiscale.compute_field()
+    assert json.loads(scene.multiscale.report)["cached"] is True
+    # a new mask, a moved camera or another quality rebuild it
+    scene.multiscale.cameras[1].mask = mask_image("smaller", np.pad(np.ones((8, 8), bool), ((14, 14), (20, 20))))
+    assert pipeline.build_field(scene)[1]
+    scene.multiscale.cameras[0].camera.location.z += 0.1
+    bpy.context.view_layer.update()
+    assert pipeline.build_field(scene)[1]
+    scene.multiscale.quality = "PREVIEW"
+    assert pipeline.build_field(scene)[1]
