@@ -204,12 +204,15 @@ class TracedField(RayField):
 
     def rays(self, ix, iy):
         ix, iy = np.asarray(ix), np.asarray(iy)
-        k = self.traced.vertices.shape[1]
+        corners = self._corners(ix, iy)
+        # past the last traced vertex every ray runs straight: one more vertex holds it
+        k = min(self.traced.vertices.shape[1], max(int(self.traced.counts[r].max()) for r, _w in corners) + 1)
+        k = max(k, 2)
         verts = np.zeros((len(ix), k, 3), dtype=np.float32)
         mem = np.zeros((len(ix), k), dtype=np.float32)
-        for row, w in self._corners(ix, iy):
-            verts += self.traced.vertices[row] * w[:, :, None]
-            mem += self.traced.membership[row] * w
+        for row, w in corners:
+            verts += self.traced.vertices[row, :k] * w[:, :, None]
+            mem += self.traced.membership[row, :k] * w
         return self._bundle(ix, iy, verts, mem)
 
     def exit_index(self, ix, iy):
