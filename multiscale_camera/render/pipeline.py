@@ -153,6 +153,12 @@ def render_rows(frame, row0, row1, should_stop=None):
     alpha = np.where(hits.hit | (not frame.transparent), 1.0, 0.0).astype(np.float32)
     if frame.transparent:
         colour = colour * alpha[:, None]
+    # Membership: where the ray leaves the bending stretch (DESIGN.md), not at the hit
+    leave = frame.field.exit_index(ix.ravel(), iy.ravel())
+    if leave is None:
+        leave = np.full(len(bundle), bundle.vertices.shape[1] - 1)
+    leave = np.clip(leave, 0, bundle.vertices.shape[1] - 1)
+    membership = bundle.membership[np.arange(len(bundle)), leave]
     index = np.zeros(len(hits.hit), dtype=np.float32)
     index[hits.hit] = frame.geometry.pass_index[hits.triangle[hits.hit]]
     depth = np.where(hits.hit, bundle.start_depth + hits.distance, MISS_DEPTH)
@@ -161,7 +167,7 @@ def render_rows(frame, row0, row1, should_stop=None):
         "Depth": depth.astype(np.float32).reshape(*shape, 1),
         "Normal": normal.reshape(*shape, 3),
         "IndexOB": index.reshape(*shape, 1),
-        "Membership": hits.membership.reshape(*shape, 1),
+        "Membership": membership.astype(np.float32).reshape(*shape, 1),
     }
 
 

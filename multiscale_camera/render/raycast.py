@@ -34,7 +34,7 @@ class Segments:
     length : (S,) float64; a ray's last segment includes the bundle's reach.
     ray : (S,) int64, the ray each segment belongs to; ``offsets`` (R+1,) int64 index
         each ray's run of segments. ``before`` (S,) float64: arc length of the ray
-        before the segment. ``m0``, ``m1`` (S,) float32: membership at its two ends.
+        before the segment.
     """
 
     origin: np.ndarray
@@ -43,8 +43,6 @@ class Segments:
     ray: np.ndarray
     offsets: np.ndarray
     before: np.ndarray
-    m0: np.ndarray
-    m1: np.ndarray
 
 
 def polyline_segments(bundle):
@@ -68,7 +66,6 @@ def polyline_segments(bundle):
     keep[:, 1:-1] = entered | ends
     rid, kid = np.nonzero(keep)
     pts = v[rid, kid]
-    mem = bundle.membership[rid, kid]
     same = rid[1:] == rid[:-1]
     origin = pts[:-1][same]
     vec = pts[1:][same] - origin
@@ -81,7 +78,7 @@ def polyline_segments(bundle):
     before = cum - length - np.repeat(cum[offsets[:-1]] - length[offsets[:-1]], counts)
     length = length.copy()
     length[offsets[1:] - 1] += bundle.reach
-    return Segments(origin, direction, length, ray, offsets, before, mem[:-1][same], mem[1:][same])
+    return Segments(origin, direction, length, ray, offsets, before)
 
 
 @dataclass(frozen=True)
@@ -92,7 +89,6 @@ class Hits:
     distance : (R,) float64, arc length from vertex 0 to the hit (inf for a miss).
     location : (R, 3) float64, world units. direction : (R, 3) float64, unit direction
         of the segment that holds the hit (of the last segment for a miss).
-    membership : (R,) float32, membership at the hit (at the last vertex for a miss).
     casts : int, segment casts made.
     """
 
@@ -101,7 +97,6 @@ class Hits:
     distance: np.ndarray
     location: np.ndarray
     direction: np.ndarray
-    membership: np.ndarray
     casts: int
 
 
@@ -156,7 +151,5 @@ def march(tree, bundle, should_stop=None):
     s = np.where(hit, hit_seg, last)
     t = np.where(hit, hit_dist, 0.0)
     location = seg.origin[s] + seg.direction[s] * t[:, None]
-    frac = np.clip(t / np.maximum(seg.length[s], 1e-30), 0.0, 1.0).astype(np.float32)
-    membership = np.where(hit, seg.m0[s] + (seg.m1[s] - seg.m0[s]) * frac, seg.m1[last])
     distance = np.where(hit, seg.before[s] + t, np.inf)
-    return Hits(hit, hit_tri, distance, location, seg.direction[s], membership.astype(np.float32), casts)
+    return Hits(hit, hit_tri, distance, location, seg.direction[s], casts)
