@@ -444,7 +444,23 @@ def _trace_pixels(tracer, rig, ix, iy, step, max_steps, should_stop):
     return merge(parts, order, len(ix))
 
 
-METHODS = {"IMAGE_BLEND": prepare_image_blend, "SCALAR_FIELD": prepare_scalar_field}
+def _strawman(name):
+    """A builder of ``strawmen``, imported on first use (it builds on this module)."""
+
+    def build(rig, settings=None, should_stop=None):
+        from . import strawmen
+
+        return getattr(strawmen, name)(rig, settings, should_stop)
+
+    return build
+
+
+METHODS = {
+    "IMAGE_BLEND": prepare_image_blend,
+    "LINEAR": _strawman("prepare_linear"),
+    "VECTOR_FIELD": _strawman("prepare_vector_field"),
+    "SCALAR_FIELD": prepare_scalar_field,
+}
 # AUTO picks the cheapest method that meets the accuracy target on this rig; until that
 # choice is measured per rig, the most accurate method.
 AUTO_CHOICE = "SCALAR_FIELD"

@@ -32,8 +32,8 @@ def test_image_blend_preserves_each_cameras_pinhole_rays():
 def test_auto_uses_the_most_accurate_method_and_unknown_method_is_explained():
     cams, masks = two_camera_rig()
     assert prepare(Rig(cams, masks), "AUTO").method == "SCALAR_FIELD"
-    with pytest.raises(RigError, match="Method 'LINEAR' is not available in this version"):
-        prepare(Rig(cams, masks), "LINEAR")
+    with pytest.raises(RigError, match="Method 'BOGUS' is not available in this version"):
+        prepare(Rig(cams, masks), "BOGUS")
 
 
 def test_rig_rejects_empty_last_mask_but_allows_empty_intermediate():
