@@ -136,7 +136,8 @@ def splat_camera(grid, family, mask, chunk=200_000):
 
     The family R_i is sampled over the mask at a pixel spacing and a tau spacing small
     enough that consecutive samples are at most half a cell apart; each sample marks its
-    nearest voxel, and the marks are dilated by one voxel.
+    nearest voxel (the core). The halo is the core dilated by one voxel: with it, every
+    trilinear lookup along a preserved ray reads only this camera's constraint.
 
     Parameters
     ----------
@@ -144,11 +145,11 @@ def splat_camera(grid, family, mask, chunk=200_000):
 
     Returns
     -------
-    (nx, ny, nz) bool.
+    core, halo : (nx, ny, nz) bool, disjoint.
     """
     claimed = np.zeros(grid.shape, dtype=bool)
     if not mask.any():
-        return claimed
+        return claimed, claimed.copy()
     h, w = mask.shape
     cam = family.cameras[-1]
     # sample pixels in and one pixel around the mask, so its edge rays are covered
@@ -187,7 +188,9 @@ def splat_camera(grid, family, mask, chunk=200_000):
             ok = ((idx >= 0) & (idx < grid.shape)).all(axis=1)
             idx = idx[ok]
             claimed[idx[:, 0], idx[:, 1], idx[:, 2]] = True
-    return _dilate(claimed) | straight_claims(grid, cam, mask)
+    near, around = straight_claims(grid, cam, mask)
+    core = claimed | near
+    return core, (_dilate(claimed) | around) & ~core
 
 
 def _square_dilations(mask, levels):
@@ -219,19 +222,20 @@ DILATION_LEVELS = 10
 def straight_claims(grid, cam, mask, chunk=1 << 20):
     """Voxels within a voxel's reach of camera i's preserved rays beyond its near plane.
 
-    Each voxel centre is projected into camera i; it is claimed when it lies beyond the
-    near plane and the mask, dilated by the voxel's half-diagonal seen from the camera
-    (in pixels), holds its pixel. Exact for the straight part of the family, with no
-    sampling.
+    Each voxel centre is projected into camera i; beyond the near plane it is a core
+    claim when the mask, dilated by half a voxel seen from the camera (in pixels), holds
+    its pixel, and a halo claim when the mask dilated by the voxel's half-diagonal does.
+    Exact for the straight part of the family, with no sampling.
 
     Returns
     -------
-    (nx, ny, nz) bool.
+    core, halo : (nx, ny, nz) bool, disjoint.
     """
     h, w = mask.shape
     dil = _square_dilations(mask, DILATION_LEVELS)
     px_world = cam._affine[0]  # view-plane width of one pixel at unit distance
-    out = np.zeros(grid.size, dtype=bool)
+    core = np.zeros(grid.size, dtype=bool)
+    halo = np.zeros(grid.size, dtype=bool)
     centres = grid.centres(flat=True)
     for s in range(0, grid.size, chunk):
         pts = centres[s : s + chunk]
@@ -239,16 +243,21 @@ def straight_claims(grid, cam, mask, chunk=1 << 20):
         front = depth >= cam.clip_start
         radius = np.sqrt(3.0) * grid.cell / (np.maximum(depth, 1e-30) * px_world)
         level = np.clip(np.ceil(np.log2(np.maximum(radius, 1.0))), 0, DILATION_LEVELS - 1).astype(int)
+        inner = np.clip(np.ceil(np.log2(np.maximum(radius / np.sqrt(12.0), 1.0))), 0, DILATION_LEVELS - 1)
+        inner = inner.astype(int)
         reach = 2.0 ** level
         x, y = pix[:, 0], pix[:, 1]
         near = front & (x > -reach) & (x < w + reach) & (y > -reach) & (y < h + reach)
         xi = np.clip(x, 0, w - 1).astype(int)
         yi = np.clip(y, 0, h - 1).astype(int)
-        hit = np.zeros(len(pts), dtype=bool)
         sel = np.flatnonzero(near)
-        hit[sel] = dil[level[sel], yi[sel], xi[sel]]
-        out[s : s + chunk] = hit
-    return out.reshape(grid.shape)
+        in_core = np.zeros(len(pts), dtype=bool)
+        in_halo = np.zeros(len(pts), dtype=bool)
+        in_core[sel] = dil[inner[sel], yi[sel], xi[sel]]
+        in_halo[sel] = dil[level[sel], yi[sel], xi[sel]] & ~in_core[sel]
+        core[s : s + chunk] = in_core
+        halo[s : s + chunk] = in_halo
+    return core.reshape(grid.shape), halo.reshape(grid.shape)
 
 
 @dataclass(frozen=True)
@@ -256,9 +265,9 @@ class Fill:
     """The constraint field M of eq. 4.
 
     values : (nx, ny, nz) float32, camera number (1-based) where constrained, else 0.
-    constrained : (nx, ny, nz) bool. conflicts : int, voxels two cameras claimed (left free).
-    per_camera : tuple of int, voxels each camera claims alone.
-    overlaps : (N, N) int64, voxels claimed by both camera i and camera j.
+    constrained : (nx, ny, nz) bool. conflicts : int, voxels that preserved rays of two
+    cameras pass through (left free). per_camera : tuple of int, core voxels each camera
+    keeps. overlaps : (N, N) int64, voxels preserved rays of both i and j pass through.
     """
 
     values: np.ndarray
@@ -269,23 +278,36 @@ class Fill:
 
 
 def fill_membership(rig, grid, families):
-    """Eq. 4: M = i along the preserved rays of camera i; shared voxels stay free."""
-    claims = np.zeros(grid.shape, dtype=np.uint8)
-    owner = np.zeros(grid.shape, dtype=np.float32)
+    """Eq. 4: M = i along the preserved rays of camera i; shared voxels stay free.
+
+    Each camera claims the voxels its preserved rays pass through (core) and a
+    one-voxel halo around them. A core claim outranks another camera's halo, so where
+    two preserved tubes come within a voxel of each other both keep their own rays'
+    voxels; only voxels that two cores claim, or two halos, are left free."""
+    cores = np.zeros(grid.shape, dtype=np.uint8)
+    halos = np.zeros(grid.shape, dtype=np.uint8)
+    core_of = np.zeros(grid.shape, dtype=np.float32)
+    halo_of = np.zeros(grid.shape, dtype=np.float32)
     per = []
     for i, fam in enumerate(families):
-        c = splat_camera(grid, fam, rig.masks[i])
-        claims += c
-        owner[c] = i + 1
-        per.append(c)
-    constrained = claims == 1
-    values = np.where(constrained, owner, 0.0).astype(np.float32)
+        core, halo = splat_camera(grid, fam, rig.masks[i])
+        cores += core
+        halos += halo
+        core_of[core] = i + 1
+        halo_of[halo] = i + 1
+        per.append(core)
+    # a preserved ray's own voxel outranks another camera's halo; two cores on one voxel
+    # contradict each other and leave it free, as do two halos
+    by_core = cores == 1
+    by_halo = (cores == 0) & (halos == 1)
+    constrained = by_core | by_halo
+    values = np.where(by_core, core_of, np.where(by_halo, halo_of, 0.0)).astype(np.float32)
     n = len(per)
     overlaps = np.zeros((n, n), dtype=np.int64)
     for i in range(n):
         for j in range(i + 1, n):
             overlaps[i, j] = overlaps[j, i] = int((per[i] & per[j]).sum())
-    return Fill(values, constrained, int((claims > 1).sum()),
+    return Fill(values, constrained, int((cores > 1).sum()),
                 tuple(int((c & constrained).sum()) for c in per), overlaps)
 
 

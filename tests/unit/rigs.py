@@ -59,3 +59,16 @@ def zoom_rig(width=160, height=120, turn_deg=20.0, ratio=4.0):
     c2 = camera("C2", orbit(target, far / ratio, turn_deg, 25), target, width, height,
                 clip_start=0.5 * far / ratio, clip_end=200.0)
     return (c1, c2), disk_masks(width, height, 0.2 * width, 0.35 * width)
+
+
+def three_camera_rig(width=192, height=108):
+    """Three cameras, each about 2.5 times closer to the subject than the one before and
+    turned 10 degrees further; near planes half way from each eye to the subject."""
+    target = (0.0, 0.0, 0.5)
+    c1 = camera("C1", orbit(target, 24.0, 0, 25), target, width, height, clip_start=9.6, clip_end=200.0)
+    c2 = camera("C2", orbit(target, 10.0, 10, 25), target, width, height, clip_start=5.0, clip_end=200.0)
+    c3 = camera("C3", orbit(target, 4.0, 20, 25), target, width, height, clip_start=2.0, clip_end=200.0)
+    px, py = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
+    r = np.hypot(px - width / 2, py - height / 2) / width
+    masks = np.stack([r > 0.42, (r > 0.2) & (r < 0.3), r < 0.12])
+    return (c1, c2, c3), masks
