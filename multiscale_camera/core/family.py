@@ -14,13 +14,15 @@ the tangent field X_i (paper section 4.4) exactly, without sampling it on a grid
 
 import numpy as np
 
+
+def dot3(a, b):
+    """Row-wise dot product of (..., 3) arrays: faster than a reduction over a length-3 axis."""
+    return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
+
 from .guides import GUARD_FRACTION
 
 # Newton stops when the point error is below this fraction of camera i's near distance.
 NEWTON_TOLERANCE = 1e-9
-# Finite-difference steps for the Jacobian: pixels, and tau units.
-FD_PIXEL = 1e-3
-FD_TAU = 1e-5
 
 
 class Family:
@@ -39,47 +41,94 @@ class Family:
         self.beta = beta
         self.scale = self.cameras[-1].clip_start
 
-    def _near(self, j, u, v):
+    def _near(self, j, u, v, derivatives=False):
+        """Near-plane points p_j and unit directions v_j of pixels (u, v) of camera j, and
+        with ``derivatives`` their derivatives along u and along v.
+
+        With a = R (ax u + bx, ay v + by, -1) the unnormalised direction and f the view
+        axis (a . f = 1), p = E + d_j a and v = a / |a|.
+        """
         cam = self.cameras[j]
         d = cam.directions(u, v)
-        return cam.near_points(d), d
+        p = cam.near_points(d)
+        if not derivatives:
+            return p, d
+        ax, _bx, ay, _by = cam._affine
+        r, f = cam.rotation, cam.forward
+        # the local (lx, ly, -1) gives a . f = 1, so a = (p - E) / d_j
+        a = (p - cam.eye) * (1.0 / cam.clip_start)
+        inv_norm = 1.0 / np.sqrt(dot3(a, a))[:, None]
+        out = []
+        for col, scale in ((r[:, 0], ax), (r[:, 1], ay)):
+            da = col * scale  # d a / d u (or d v)
+            dp = cam.clip_start * (da - a * (da @ f))  # d_j d/du of a / (a . f)
+            dd = (da - d * (d @ da)[:, None]) * inv_norm  # d/du of a / |a|
+            out += [dp, dd]
+        return p, d, out
 
-    def evaluate(self, u, v, tau):
-        """Points and tangents of the family.
+    def evaluate(self, u, v, tau, jacobian=False):
+        """Points and tangents of the family, and optionally the derivatives along u, v.
 
         Parameters
         ----------
         u, v, tau : (P,) float64 arrays.
+        jacobian : bool, also return dR/du and dR/dv.
 
         Returns
         -------
         point : (P, 3) float64, world units.
         tangent : (P, 3) float64, dR/dtau (not normalised), world units per tau unit.
+        du, dv : (P, 3) float64, world units per pixel (with ``jacobian``).
         """
         u, v, tau = (np.asarray(a, dtype=np.float64) for a in (u, v, tau))
-        point = np.empty((len(u), 3))
-        tangent = np.empty((len(u), 3))
+        n = len(u)
+        point = np.empty((n, 3))
+        tangent = np.empty((n, 3))
+        if jacobian:
+            ju, jv = np.empty((n, 3)), np.empty((n, 3))
         stage = np.clip(np.floor(tau), 0, self.i).astype(np.int64)
         for j in range(self.i + 1):
-            sel = np.flatnonzero(stage == j)
+            sel = np.flatnonzero(stage == j) if self.i else np.arange(n)
             if len(sel) == 0:
                 continue
             uu, vv, tt = u[sel], v[sel], tau[sel] - j
-            p0, d0 = self._near(j, uu, vv)
+            first = self._near(j, uu, vv, jacobian)
+            p0, d0 = first[0], first[1]
             if j == self.i:
                 point[sel] = p0 + d0 * (tt * self.scale)[:, None]
                 tangent[sel] = d0 * self.scale
+                if jacobian:
+                    dp0u, dd0u, dp0v, dd0v = first[2]
+                    ju[sel] = dp0u + dd0u * (tt * self.scale)[:, None]
+                    jv[sel] = dp0v + dd0v * (tt * self.scale)[:, None]
                 continue
-            p3, d3 = self._near(j + 1, uu, vv)
-            chord = np.sqrt(((p3 - p0) ** 2).sum(-1))
+            second = self._near(j + 1, uu, vv, jacobian)
+            p3, d3 = second[0], second[1]
+            span = p3 - p0
+            chord = np.sqrt(dot3(span, span))
             out = self.beta * chord
-            into = np.minimum(out, GUARD_FRACTION * self.cameras[j + 1].clip_start)
+            limit = GUARD_FRACTION * self.cameras[j + 1].clip_start
+            into = np.minimum(out, limit)
             q1 = p0 + d0 * out[:, None]
             q2 = p3 - d3 * into[:, None]
             t = tt[:, None]
             s = 1.0 - t
-            point[sel] = s**3 * p0 + 3 * s * s * t * q1 + 3 * s * t * t * q2 + t**3 * p3
+            b0, b1, b2, b3 = s**3, 3 * s * s * t, 3 * s * t * t, t**3
+            point[sel] = b0 * p0 + b1 * q1 + b2 * q2 + b3 * p3
             tangent[sel] = 3 * s * s * (q1 - p0) + 6 * s * t * (q2 - q1) + 3 * t * t * (p3 - q2)
+            if jacobian:
+                unit = span / np.maximum(chord, 1e-300)[:, None]
+                clamped = (out >= limit)[:, None]
+                for k, dst in ((0, ju), (2, jv)):
+                    dp0, dd0 = first[2][k], first[2][k + 1]
+                    dp3, dd3 = second[2][k], second[2][k + 1]
+                    dout = self.beta * dot3(unit, dp3 - dp0)[:, None]
+                    dinto = np.where(clamped, 0.0, dout)
+                    dq1 = dp0 + dd0 * out[:, None] + d0 * dout
+                    dq2 = dp3 - dd3 * into[:, None] - d3 * dinto
+                    dst[sel] = b0 * dp0 + b1 * dq1 + b2 * dq2 + b3 * dp3
+        if jacobian:
+            return point, tangent, ju, jv
         return point, tangent
 
     def start(self, points):
@@ -141,23 +190,21 @@ class Family:
         error = np.full(len(points), np.inf)
         tangent = np.zeros((len(points), 3))
         tol = NEWTON_TOLERANCE * self.scale
-        for _ in range(iterations + 1):
-            p, t = self.evaluate(u[active], v[active], tau[active])
+        for it in range(iterations + 1):
+            last = it == iterations
+            if last:
+                p, t = self.evaluate(u[active], v[active], tau[active])
+            else:
+                p, t, ju, jv = self.evaluate(u[active], v[active], tau[active], jacobian=True)
             r = p - points[active]
-            err = np.sqrt((r * r).sum(-1))
+            err = np.sqrt(dot3(r, r))
             error[active] = err
             tangent[active] = t
             keep = err > tol
-            active, r, t, p = active[keep], r[keep], t[keep], p[keep]
-            if len(active) == 0 or _ == iterations:
+            if last or not keep.any():
                 break
-            m = len(active)
-            both, _t = self.evaluate(
-                np.concatenate([u[active] + FD_PIXEL, u[active]]),
-                np.concatenate([v[active], v[active] + FD_PIXEL]),
-                np.concatenate([tau[active], tau[active]]),
-            )
-            step = solve3((both[:m] - p) / FD_PIXEL, (both[m:] - p) / FD_PIXEL, t, -r)
+            active, r, t = active[keep], r[keep], t[keep]
+            step = solve3(ju[keep], jv[keep], t, -r)
             u[active] += step[:, 0]
             v[active] += step[:, 1]
             tau[active] = np.maximum(tau[active] + step[:, 2], 0.0)
@@ -176,8 +223,6 @@ def solve3(a, b, c, r):
     (P, 3) float64; rows of singular systems are zero.
     """
     bc = np.cross(b, c)
-    det = (a * bc).sum(-1)
+    det = dot3(a, bc)
     safe = np.where(np.abs(det) > 1e-300, det, np.inf)
-    return np.stack(
-        [(r * bc).sum(-1), (a * np.cross(r, c)).sum(-1), (a * np.cross(b, r)).sum(-1)], axis=-1
-    ) / safe[:, None]
+    return np.stack([dot3(r, bc), dot3(a, np.cross(r, c)), dot3(a, np.cross(b, r))], axis=-1) / safe[:, None]

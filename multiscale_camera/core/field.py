@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import Cancelled
-from .family import Family
+from .family import Family, dot3
 from .grid import FieldSampler, Grid
 from .guides import DEFAULT_SEGMENTS, build_guides, curved_rays
 from .solvers import solve_membership
@@ -412,11 +412,11 @@ class FieldTracer:
         start = time.perf_counter()
         cam = self.rig.cameras[i]
         rel = x - cam.eye
-        depth = rel @ cam.forward
+        depth = dot3(rel, cam.forward)
         beyond = depth >= cam.clip_start
         out = np.empty_like(x)
         # on camera i's straight part the tangent is its pinhole direction
-        out[beyond] = rel[beyond] / np.linalg.norm(rel[beyond], axis=-1, keepdims=True)
+        out[beyond] = rel[beyond] / np.sqrt(dot3(rel[beyond], rel[beyond]))[:, None]
         bend = np.flatnonzero(~beyond)
         if len(bend):
             r = rows[bend]
@@ -424,7 +424,7 @@ class FieldTracer:
                 x[bend], params[i, r, 0], params[i, r, 1], params[i, r, 2], WARM_ITERATIONS
             )
             params[i, r, 0], params[i, r, 1], params[i, r, 2] = u, v, tau
-            out[bend] = tangent / np.linalg.norm(tangent, axis=-1, keepdims=True)
+            out[bend] = tangent / np.sqrt(dot3(tangent, tangent))[:, None]
         self.tangent_seconds += time.perf_counter() - start
         return out
 
@@ -462,8 +462,8 @@ class FieldTracer:
         first = np.full(len(x), float(step))
         for cam in self.rig.cameras[1:]:
             f = cam.forward
-            dist = cam.clip_start - ((x - cam.eye) * f).sum(-1)
-            rate = (direction * f).sum(-1)
+            dist = cam.clip_start - dot3(x - cam.eye, f)
+            rate = dot3(direction, f)
             with np.errstate(divide="ignore", invalid="ignore"):
                 t = dist / rate
             ahead = (dist > 0) & (rate > 0) & (t < first)

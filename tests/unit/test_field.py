@@ -167,3 +167,19 @@ def test_contradictory_masks_are_counted_and_reported():
     assert fld.stats["conflicts"] > 0
     assert any("their masks contradict each other there" in w for w in fld.warnings)
     assert not np.isnan(fld.traced.vertices).any()
+
+
+def test_family_jacobian_matches_central_differences():
+    from .rigs import three_camera_rig
+
+    cams, _ = three_camera_rig(192, 108)
+    rng = np.random.default_rng(0)
+    for i in range(3):
+        fam = Family(cams, i)
+        u, v, tau = rng.uniform(-20, 210, 300), rng.uniform(-20, 130, 300), rng.uniform(0, i + 0.9, 300)
+        _p, _t, ju, jv = fam.evaluate(u, v, tau, jacobian=True)
+        h = 1e-4
+        fu = (fam.evaluate(u + h, v, tau)[0] - fam.evaluate(u - h, v, tau)[0]) / (2 * h)
+        fv = (fam.evaluate(u, v + h, tau)[0] - fam.evaluate(u, v - h, tau)[0]) / (2 * h)
+        np.testing.assert_allclose(ju, fu, atol=1e-7 * np.abs(fu).max())
+        np.testing.assert_allclose(jv, fv, atol=1e-7 * np.abs(fv).max())
