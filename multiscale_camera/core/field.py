@@ -48,7 +48,7 @@ STALL_SPEED = 1e-3
 WARM_ITERATIONS = 2
 # Lattice stride bounds in pixels: one traced ray per stride x stride block, the others
 # interpolated (rays bend on the scale of a cell, many pixels wide).
-MAX_STRIDE = 8
+MAX_STRIDE = 16
 
 
 @dataclass(frozen=True)
@@ -491,7 +491,9 @@ class FieldTracer:
         reason = np.full(r, StopReason.LEFT_GRID, dtype=np.int8)
         reason[count == k] = StopReason.REACHED_LIMIT
         sel = np.flatnonzero(ok)
-        return ok, Traced(verts[sel].astype(np.float32), membership[sel], count[sel], reason[sel], step)
+        # past the last vertex inside the grid the rays run straight: keep one more
+        keep = min(k, int(count[sel].max()) + 1) if len(sel) else 2
+        return ok, Traced(verts[sel, :keep].astype(np.float32), membership[sel, :keep], count[sel], reason[sel], step)
 
     def trace(self, u0, v0, step, max_steps, should_stop=None):
         """RK4 streamlines from the near-plane points of pixels (u0, v0) of camera 1.
