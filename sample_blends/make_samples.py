@@ -1,0 +1,54 @@
+"""Build the sample .blend files.
+
+    tools/blender -b --factory-startup --python sample_blends/make_samples.py --python-exit-code 1
+    tools/blender -b --factory-startup --python sample_blends/make_samples.py -- --out DIR --only two_camera
+
+Writes demo.blend and two_camera.blend (compressed, masks packed) next to this
+script, or into --out.
+"""
+
+import argparse
+import os
+import sys
+
+import bpy
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+REPO = os.path.dirname(HERE)
+sys.path.insert(0, HERE)
+import scenes  # noqa: E402
+
+BUILDERS = {"demo": scenes.build_demo, "two_camera": scenes.build_two_camera}
+
+
+def enable_multiscale():
+    """Register the package from this checkout (--factory-startup enables no extension)."""
+    if hasattr(bpy.types.Scene, "multiscale"):
+        return
+    sys.path.insert(0, REPO)
+    import multiscale_camera
+    multiscale_camera.register()
+
+
+def make(name, out_dir):
+    bpy.ops.wm.read_homefile(use_empty=True)
+    BUILDERS[name](bpy.context.scene)
+    path = os.path.join(out_dir, f"{name}.blend")
+    bpy.ops.wm.save_as_mainfile(filepath=path, compress=True, relative_remap=True)
+    print(f"wrote {path}")
+    return path
+
+
+def main(argv):
+    parser = argparse.ArgumentParser(prog="make_samples.py")
+    parser.add_argument("--out", default=HERE, help="output folder (default: sample_blends/)")
+    parser.add_argument("--only", nargs="+", choices=sorted(BUILDERS), default=sorted(BUILDERS))
+    args = parser.parse_args(argv)
+    os.makedirs(args.out, exist_ok=True)
+    enable_multiscale()
+    for name in args.only:
+        make(name, args.out)
+
+
+if __name__ == "__main__":
+    main(sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else [])
