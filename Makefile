@@ -60,6 +60,7 @@ $(LINUX_ZIP): $(VENV_STAMP) blender_manifest.toml tools/stage.py $(PACKAGE_FILES
 	@echo "linux-x64 zip: $$(cat $@)"
 
 test: build
+	$(PY) -m ruff check .
 	$(PY) -m pytest -q tests
 
 samples: venv

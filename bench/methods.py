@@ -71,27 +71,52 @@ def main():
     parser.add_argument("--width", type=int, default=1920)
     parser.add_argument("--height", type=int, default=1080)
     parser.add_argument("--rigs", nargs="+", default=list(RIGS))
-    parser.add_argument("--one", nargs=3, metavar=("RIG", "METHOD", "QUALITY"), help=argparse.SUPPRESS)
+    parser.add_argument(
+        "--one", nargs=3, metavar=("RIG", "METHOD", "QUALITY"), help=argparse.SUPPRESS
+    )
     args = parser.parse_args()
     if args.one:
         print(json.dumps(run_one(*args.one, args.width, args.height)))
         return
     rows = []
-    header = f"{'rig':17} {'method':13} {'quality':9} {'build s':>8} {'p95 px':>8} {'max px':>8} {'folds':>6} {'stall':>5} {'MB':>6}"
+    header = (
+        f"{'rig':17} {'method':13} {'quality':9} {'fill':>6} {'solve':>6} {'tang':>6} "
+        f"{'trace':>6} {'build s':>8} {'p95 px':>8} {'max px':>8} {'folds':>6} {'stall':>5} "
+        f"{'MB':>6}"
+    )
     print(header)
     for rig, method, quality in configurations(args.rigs):
-        cmd = [sys.executable, __file__, "--width", str(args.width), "--height", str(args.height),
-               "--one", rig, method, quality]
+        cmd = [
+            sys.executable,
+            __file__,
+            "--width",
+            str(args.width),
+            "--height",
+            str(args.height),
+            "--one",
+            rig,
+            method,
+            quality,
+        ]
         proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
         if proc.returncode:
-            print(f"{rig:17} {method:13} {quality:9} failed: {proc.stderr.strip().splitlines()[-1]}")
-            rows.append({"rig": rig, "method": method, "quality": quality, "error": proc.stderr[-2000:]})
+            print(
+                f"{rig:17} {method:13} {quality:9} failed: {proc.stderr.strip().splitlines()[-1]}"
+            )
+            rows.append(
+                {"rig": rig, "method": method, "quality": quality, "error": proc.stderr[-2000:]}
+            )
             continue
         row = json.loads(proc.stdout.strip().splitlines()[-1])
         rows.append(row)
         worst_max = max(c["preserved_px"]["max"] for c in row["cameras"])
-        print(f"{rig:17} {method:13} {quality:9} {row['build_seconds']:8.2f} {row['worst_p95_px']:8.3f} "
-              f"{worst_max:8.3f} {row['folds']:6d} {row['stalled']:5d} {row['peak_mb']:6.0f}")
+        st = row["seconds"]
+        print(
+            f"{rig:17} {method:13} {quality:9} {st['fill']:6.2f} {st['solve']:6.2f} "
+            f"{st['tangents']:6.2f} {st['trace']:6.2f} {row['build_seconds']:8.2f} "
+            f"{row['worst_p95_px']:8.3f} {worst_max:8.3f} {row['folds']:6d} {row['stalled']:5d} "
+            f"{row['peak_mb']:6.0f}"
+        )
     OUT.write_text(json.dumps({"size": [args.width, args.height], "rows": rows}, indent=1))
     print(f"wrote {OUT.relative_to(ROOT)}")
 

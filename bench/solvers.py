@@ -71,8 +71,11 @@ def main():
     parser.add_argument("--sizes", type=int, nargs="+", default=[64, 128, 256])
     parser.add_argument("--diffusion-sizes", type=int, nargs="+", default=[64, 128])
     parser.add_argument("--cap", type=float, default=60.0, help="seconds per diffusion run")
-    parser.add_argument("--diffusion-dtype", default="float64",
-                        help="float32 stalls before the solver's accuracy on large grids")
+    parser.add_argument(
+        "--diffusion-dtype",
+        default="float64",
+        help="float32 stalls before the solver's accuracy on large grids",
+    )
     args = parser.parse_args()
     dtype = np.dtype(args.diffusion_dtype)
 
@@ -83,46 +86,72 @@ def main():
         result = solve_membership(values, constrained)
         seconds = time.perf_counter() - start
         row = {
-            "n": n, "constrained": round(float(constrained.mean()), 3),
-            "pcg_iterations": result.iterations, "pcg_seconds": round(seconds, 3),
-            "pcg_residual": result.residuals[-1], "converged": result.converged,
+            "n": n,
+            "constrained": round(float(constrained.mean()), 3),
+            "pcg_iterations": result.iterations,
+            "pcg_seconds": round(seconds, 3),
+            "pcg_residual": result.residuals[-1],
+            "converged": result.converged,
         }
         if n in args.diffusion_sizes:
             reference = solve_membership(values, constrained, tol=1e-10, dtype=np.float64).x
             target = float(np.abs(result.x - reference).max())
             d_seconds, steps, error, capped = diffusion_time(
-                values, constrained, reference, target, args.cap, dtype)
-            row.update({
-                "max_error": target, "diffusion_seconds": round(d_seconds, 2),
-                "diffusion_steps": steps, "diffusion_error": error, "diffusion_capped": capped,
-                "ratio": round(d_seconds / seconds, 1), "ratio_is_lower_bound": capped,
-            })
+                values, constrained, reference, target, args.cap, dtype
+            )
+            row.update(
+                {
+                    "max_error": target,
+                    "diffusion_seconds": round(d_seconds, 2),
+                    "diffusion_steps": steps,
+                    "diffusion_error": error,
+                    "diffusion_capped": capped,
+                    "ratio": round(d_seconds / seconds, 1),
+                    "ratio_is_lower_bound": capped,
+                }
+            )
         rows.append(row)
         print_row(row)
 
-    OUT.write_text(json.dumps({
-        "problem": "three cone segments valued 1, 2, 3 along z",
-        "tolerance": "relative residual 1e-6 (solve_membership default)",
-        "diffusion_dtype": dtype.name, "diffusion_cap_seconds": args.cap,
-        "machine": {"python": platform.python_version(), "numpy": np.__version__,
-                    "processor": platform.processor() or platform.machine()},
-        "rows": rows,
-    }, indent=2) + "\n")
+    OUT.write_text(
+        json.dumps(
+            {
+                "problem": "three cone segments valued 1, 2, 3 along z",
+                "tolerance": "relative residual 1e-6 (solve_membership default)",
+                "diffusion_dtype": dtype.name,
+                "diffusion_cap_seconds": args.cap,
+                "machine": {
+                    "python": platform.python_version(),
+                    "numpy": np.__version__,
+                    "processor": platform.processor() or platform.machine(),
+                },
+                "rows": rows,
+            },
+            indent=2,
+        )
+        + "\n"
+    )
     print(f"wrote {OUT}")
 
 
 def print_row(row):
     if not hasattr(print_row, "header"):
         print_row.header = True
-        print(f"{'n':>5} {'constr':>6} {'iters':>5} {'pcg s':>7} {'max err':>9} "
-              f"{'diff s':>8} {'steps':>7} {'diff err':>9} {'ratio':>9}")
-    line = (f"{row['n']:>5} {row['constrained']:>6.3f} {row['pcg_iterations']:>5} "
-            f"{row['pcg_seconds']:>7.2f}")
+        print(
+            f"{'n':>5} {'constr':>6} {'iters':>5} {'pcg s':>7} {'max err':>9} "
+            f"{'diff s':>8} {'steps':>7} {'diff err':>9} {'ratio':>9}"
+        )
+    line = (
+        f"{row['n']:>5} {row['constrained']:>6.3f} {row['pcg_iterations']:>5} "
+        f"{row['pcg_seconds']:>7.2f}"
+    )
     if "ratio" in row:
         bound = ">" if row["ratio_is_lower_bound"] else ""
-        line += (f" {row['max_error']:>9.1e} {row['diffusion_seconds']:>8.1f} "
-                 f"{row['diffusion_steps']:>7} {row['diffusion_error']:>9.1e} "
-                 f"{bound + format(row['ratio'], '.0f'):>9}")
+        line += (
+            f" {row['max_error']:>9.1e} {row['diffusion_seconds']:>8.1f} "
+            f"{row['diffusion_steps']:>7} {row['diffusion_error']:>9.1e} "
+            f"{bound + format(row['ratio'], '.0f'):>9}"
+        )
     print(line, flush=True)
 
 

@@ -1,7 +1,8 @@
 """Build the sample .blend files.
 
-    tools/blender -b --factory-startup --python sample_blends/make_samples.py --python-exit-code 1
-    tools/blender -b --factory-startup --python sample_blends/make_samples.py -- --out DIR --only two_camera
+    tools/blender -b --factory-startup --python-exit-code 1 --python sample_blends/make_samples.py
+    tools/blender -b --factory-startup --python-exit-code 1 \
+        --python sample_blends/make_samples.py -- --out DIR --only two_camera
 
 Writes demo.blend and two_camera.blend (compressed, masks packed) next to this
 script, or into --out.
@@ -27,6 +28,7 @@ def enable_multiscale():
         return
     sys.path.insert(0, REPO)
     import multiscale_camera
+
     multiscale_camera.register()
 
 
@@ -51,4 +53,4 @@ def main(argv):
 
 
 if __name__ == "__main__":
-    main(sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else [])
+    main(sys.argv[sys.argv.index("--") + 1 :] if "--" in sys.argv else [])

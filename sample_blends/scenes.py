@@ -80,8 +80,17 @@ def _material(name, rgb):
     return mat
 
 
-def _mesh_object(scene, name, build, rgb, pass_index, location=(0, 0, 0),
-                 rotation=(0, 0, 0), scale=(1, 1, 1), smooth=False):
+def _mesh_object(
+    scene,
+    name,
+    build,
+    rgb,
+    pass_index,
+    location=(0, 0, 0),
+    rotation=(0, 0, 0),
+    scale=(1, 1, 1),
+    smooth=False,
+):
     """Link a new mesh object; ``build(bm)`` fills a bmesh."""
     bm = bmesh.new()
     build(bm)
@@ -111,11 +120,13 @@ def _sphere(bm):
 def _cylinder(radius_bottom=1.0, radius_top=1.0, segments=32):
     """A capped cone or cylinder of depth 1 centred on the origin, along z."""
     return lambda bm: bmesh.ops.create_cone(
-        bm, cap_ends=True, segments=segments, radius1=radius_bottom, radius2=radius_top, depth=1.0)
+        bm, cap_ends=True, segments=segments, radius1=radius_bottom, radius2=radius_top, depth=1.0
+    )
 
 
 def _torus(major, minor, segments=32, ring=12):
     """A torus around the z axis."""
+
     def build(bm):
         u = np.linspace(0, 2 * np.pi, segments, endpoint=False)[:, None]
         v = np.linspace(0, 2 * np.pi, ring, endpoint=False)[None, :]
@@ -127,6 +138,7 @@ def _torus(major, minor, segments=32, ring=12):
                 a, b = i * ring + j, i * ring + (j + 1) % ring
                 c, d = ((i + 1) % segments) * ring + (j + 1) % ring, ((i + 1) % segments) * ring + j
                 bm.faces.new((verts[a], verts[d], verts[c], verts[b]))
+
     return build
 
 
@@ -216,47 +228,180 @@ def _build_square(scene):
         ((16, -9), (7, 8, 6), (0.95, 0.85, 0.3)),
     ]
     for i, ((x, y), (sx, sy, sz), rgb) in enumerate(buildings):
-        _mesh_object(scene, f"Building {i + 1}", _box, rgb, 10 + i, (x, y, sz / 2), scale=(sx, sy, sz))
+        _mesh_object(
+            scene, f"Building {i + 1}", _box, rgb, 10 + i, (x, y, sz / 2), scale=(sx, sy, sz)
+        )
     # A fountain and some crates, so the square has something at its own scale.
-    _mesh_object(scene, "Fountain Basin", _cylinder(), (0.6, 0.6, 0.65), 20, (-6, 7, 0.3), scale=(2.5, 2.5, 0.6))
-    _mesh_object(scene, "Fountain Water", _cylinder(), (0.3, 0.5, 0.9), 21, (-6, 7, 0.55), scale=(2.2, 2.2, 0.1))
-    _mesh_object(scene, "Fountain Column", _cylinder(0.5, 0.3), (0.6, 0.6, 0.65), 22, (-6, 7, 1.5), scale=(1, 1, 2))
+    _mesh_object(
+        scene,
+        "Fountain Basin",
+        _cylinder(),
+        (0.6, 0.6, 0.65),
+        20,
+        (-6, 7, 0.3),
+        scale=(2.5, 2.5, 0.6),
+    )
+    _mesh_object(
+        scene,
+        "Fountain Water",
+        _cylinder(),
+        (0.3, 0.5, 0.9),
+        21,
+        (-6, 7, 0.55),
+        scale=(2.2, 2.2, 0.1),
+    )
+    _mesh_object(
+        scene,
+        "Fountain Column",
+        _cylinder(0.5, 0.3),
+        (0.6, 0.6, 0.65),
+        22,
+        (-6, 7, 1.5),
+        scale=(1, 1, 2),
+    )
     for i, (x, y) in enumerate([(6, 6), (6.9, 6.2), (6.4, 7.1)]):
-        _mesh_object(scene, f"Crate {i + 1}", _box, (0.6, 0.42, 0.25), 23 + i, (x, y, 0.4), (0, 0, 15 * i), (0.8, 0.8, 0.8))
+        _mesh_object(
+            scene,
+            f"Crate {i + 1}",
+            _box,
+            (0.6, 0.42, 0.25),
+            23 + i,
+            (x, y, 0.4),
+            (0, 0, 15 * i),
+            (0.8, 0.8, 0.8),
+        )
 
 
 def _build_stall(scene):
     wood, cloth = (0.45, 0.3, 0.18), (0.8, 0.15, 0.15)
-    _mesh_object(scene, "Stall Table", _box, (0.7, 0.55, 0.35), 30, (0, 0.1, 0.975), scale=(1.8, 0.8, 0.05))
+    _mesh_object(
+        scene, "Stall Table", _box, (0.7, 0.55, 0.35), 30, (0, 0.1, 0.975), scale=(1.8, 0.8, 0.05)
+    )
     for i, (x, y) in enumerate([(-0.85, -0.25), (0.85, -0.25), (-0.85, 0.45), (0.85, 0.45)]):
-        _mesh_object(scene, f"Table Leg {i + 1}", _box, wood, 31, (x, y, 0.475), scale=(0.05, 0.05, 0.95))
+        _mesh_object(
+            scene, f"Table Leg {i + 1}", _box, wood, 31, (x, y, 0.475), scale=(0.05, 0.05, 0.95)
+        )
     for i, (x, y) in enumerate([(-1.1, -0.6), (1.1, -0.6), (-1.1, 0.7), (1.1, 0.7)]):
-        _mesh_object(scene, f"Stall Post {i + 1}", _box, wood, 32 + i, (x, y, 1.25), scale=(0.08, 0.08, 2.5))
+        _mesh_object(
+            scene, f"Stall Post {i + 1}", _box, wood, 32 + i, (x, y, 1.25), scale=(0.08, 0.08, 2.5)
+        )
     # Canopy: striped cloth sloping down toward the back, high enough at the front
     # that the cameras look under it at the teapot.
     for i in range(5):
         rgb = cloth if i % 2 == 0 else (0.95, 0.95, 0.9)
-        _mesh_object(scene, f"Canopy Stripe {i + 1}", _box, rgb, 36 + i % 2,
-                     (-0.96 + 0.48 * i, 0.05, 2.5), (-10, 0, 0), (0.48, 1.6, 0.03))
-    _mesh_object(scene, "Stall Back", _box, (0.3, 0.45, 0.3), 38, (0, 0.72, 1.6), scale=(2.2, 0.04, 1.3))
-    for i, (x, rgb) in enumerate([(-0.65, (0.95, 0.5, 0.1)), (-0.5, (0.9, 0.85, 0.2)), (0.55, (0.3, 0.75, 0.2))]):
-        _mesh_object(scene, f"Fruit Pile {i + 1}", _sphere, rgb, 40 + i, (x, 0.2, 1.06), scale=(0.09, 0.09, 0.06), smooth=True)
-    _mesh_object(scene, "Basket", _cylinder(0.16, 0.2), (0.6, 0.45, 0.2), 43, (0.7, 0.3, 1.06), scale=(1, 1, 0.12))
+        _mesh_object(
+            scene,
+            f"Canopy Stripe {i + 1}",
+            _box,
+            rgb,
+            36 + i % 2,
+            (-0.96 + 0.48 * i, 0.05, 2.5),
+            (-10, 0, 0),
+            (0.48, 1.6, 0.03),
+        )
+    _mesh_object(
+        scene, "Stall Back", _box, (0.3, 0.45, 0.3), 38, (0, 0.72, 1.6), scale=(2.2, 0.04, 1.3)
+    )
+    for i, (x, rgb) in enumerate(
+        [(-0.65, (0.95, 0.5, 0.1)), (-0.5, (0.9, 0.85, 0.2)), (0.55, (0.3, 0.75, 0.2))]
+    ):
+        _mesh_object(
+            scene,
+            f"Fruit Pile {i + 1}",
+            _sphere,
+            rgb,
+            40 + i,
+            (x, 0.2, 1.06),
+            scale=(0.09, 0.09, 0.06),
+            smooth=True,
+        )
+    _mesh_object(
+        scene,
+        "Basket",
+        _cylinder(0.16, 0.2),
+        (0.6, 0.45, 0.2),
+        43,
+        (0.7, 0.3, 1.06),
+        scale=(1, 1, 0.12),
+    )
 
 
 def _build_teapot(scene):
     x, y, z = TEAPOT
     porcelain, blue, gold = (0.2, 0.45, 0.85), (0.1, 0.2, 0.55), (0.95, 0.75, 0.2)
-    _mesh_object(scene, "Teapot Body", _sphere, porcelain, 50, (x, y, z), scale=(0.08, 0.08, 0.06), smooth=True)
-    _mesh_object(scene, "Teapot Band", _cylinder(), gold, 51, (x, y, z), scale=(0.081, 0.081, 0.012))
-    _mesh_object(scene, "Teapot Lid", _cylinder(0.05, 0.035), blue, 52, (x, y, z + 0.064), scale=(1, 1, 0.015))
-    _mesh_object(scene, "Teapot Knob", _sphere, gold, 53, (x, y, z + 0.08), scale=(0.012, 0.012, 0.012), smooth=True)
-    _mesh_object(scene, "Teapot Spout", _cylinder(0.018, 0.009), blue, 54, (x - 0.1, y, z + 0.015), (0, -50, 0), (1, 1, 0.09))
-    _mesh_object(scene, "Teapot Handle", _torus(0.035, 0.008), blue, 55, (x + 0.085, y, z + 0.005), (90, 0, 0))
-    _mesh_object(scene, "Teapot Foot", _cylinder(), blue, 56, (x, y, z - 0.06), scale=(0.045, 0.045, 0.01))
+    _mesh_object(
+        scene,
+        "Teapot Body",
+        _sphere,
+        porcelain,
+        50,
+        (x, y, z),
+        scale=(0.08, 0.08, 0.06),
+        smooth=True,
+    )
+    _mesh_object(
+        scene, "Teapot Band", _cylinder(), gold, 51, (x, y, z), scale=(0.081, 0.081, 0.012)
+    )
+    _mesh_object(
+        scene,
+        "Teapot Lid",
+        _cylinder(0.05, 0.035),
+        blue,
+        52,
+        (x, y, z + 0.064),
+        scale=(1, 1, 0.015),
+    )
+    _mesh_object(
+        scene,
+        "Teapot Knob",
+        _sphere,
+        gold,
+        53,
+        (x, y, z + 0.08),
+        scale=(0.012, 0.012, 0.012),
+        smooth=True,
+    )
+    _mesh_object(
+        scene,
+        "Teapot Spout",
+        _cylinder(0.018, 0.009),
+        blue,
+        54,
+        (x - 0.1, y, z + 0.015),
+        (0, -50, 0),
+        (1, 1, 0.09),
+    )
+    _mesh_object(
+        scene,
+        "Teapot Handle",
+        _torus(0.035, 0.008),
+        blue,
+        55,
+        (x + 0.085, y, z + 0.005),
+        (90, 0, 0),
+    )
+    _mesh_object(
+        scene, "Teapot Foot", _cylinder(), blue, 56, (x, y, z - 0.06), scale=(0.045, 0.045, 0.01)
+    )
     for i, (dx, rgb) in enumerate([(-0.2, (0.85, 0.2, 0.3)), (0.2, (0.2, 0.7, 0.5))]):
-        _mesh_object(scene, f"Cup {i + 1}", _cylinder(0.022, 0.03), rgb, 57 + i, (x + dx, y - 0.05, 1.025), scale=(1, 1, 0.05))
-        _mesh_object(scene, f"Saucer {i + 1}", _cylinder(), (0.95, 0.95, 0.95), 59 + i, (x + dx, y - 0.05, 1.002), scale=(0.05, 0.05, 0.004))
+        _mesh_object(
+            scene,
+            f"Cup {i + 1}",
+            _cylinder(0.022, 0.03),
+            rgb,
+            57 + i,
+            (x + dx, y - 0.05, 1.025),
+            scale=(1, 1, 0.05),
+        )
+        _mesh_object(
+            scene,
+            f"Saucer {i + 1}",
+            _cylinder(),
+            (0.95, 0.95, 0.95),
+            59 + i,
+            (x + dx, y - 0.05, 1.002),
+            scale=(0.05, 0.05, 0.004),
+        )
 
 
 def build_demo(scene):
@@ -287,8 +432,12 @@ def build_demo(scene):
     r, radii = _radius(width, height), DEMO_RADII
     masks = [
         make_mask("Mask Cam1 Square", width, height, lambda x, y: r(x, y) >= radii["cam1"]),
-        make_mask("Mask Cam2 Stall", width, height,
-                  lambda x, y: (r(x, y) >= radii["cam2_inner"]) & (r(x, y) <= radii["cam2_outer"])),
+        make_mask(
+            "Mask Cam2 Stall",
+            width,
+            height,
+            lambda x, y: (r(x, y) >= radii["cam2_inner"]) & (r(x, y) <= radii["cam2_outer"]),
+        ),
         make_mask("Mask Cam3 Object", width, height, lambda x, y: r(x, y) <= radii["cam3"]),
     ]
     _add_cameras(scene, list(zip(cams, masks)))
@@ -312,14 +461,46 @@ def build_two_camera(scene):
     _setup_render(scene, width, height)
     _world(scene, (0.5, 0.7, 0.95))
     _mesh_object(scene, "Ground", _box, (0.5, 0.5, 0.45), 1, (0, 0, -0.05), scale=(40, 40, 0.1))
-    _mesh_object(scene, "Sphere", _sphere, (0.8, 0.2, 0.2), 2, (0, 0, 0.4), scale=(0.4, 0.4, 0.4), smooth=True)
-    _mesh_object(scene, "Small Cube", _box, (0.2, 0.7, 0.3), 3, (0.55, -0.35, 0.15), (0, 0, 30), (0.3, 0.3, 0.3))
-    _mesh_object(scene, "Small Cone", _cylinder(0.15, 0.0), (0.9, 0.8, 0.2), 4, (-0.55, -0.25, 0.2), scale=(1, 1, 0.4))
-    _mesh_object(scene, "Ring", _torus(0.25, 0.06), (0.3, 0.4, 0.9), 5, (0.1, 0.6, 0.3), (70, 0, 20))
+    _mesh_object(
+        scene,
+        "Sphere",
+        _sphere,
+        (0.8, 0.2, 0.2),
+        2,
+        (0, 0, 0.4),
+        scale=(0.4, 0.4, 0.4),
+        smooth=True,
+    )
+    _mesh_object(
+        scene,
+        "Small Cube",
+        _box,
+        (0.2, 0.7, 0.3),
+        3,
+        (0.55, -0.35, 0.15),
+        (0, 0, 30),
+        (0.3, 0.3, 0.3),
+    )
+    _mesh_object(
+        scene,
+        "Small Cone",
+        _cylinder(0.15, 0.0),
+        (0.9, 0.8, 0.2),
+        4,
+        (-0.55, -0.25, 0.2),
+        scale=(1, 1, 0.4),
+    )
+    _mesh_object(
+        scene, "Ring", _torus(0.25, 0.06), (0.3, 0.4, 0.9), 5, (0.1, 0.6, 0.3), (70, 0, 20)
+    )
     _mesh_object(scene, "Big Box", _box, (0.7, 0.5, 0.8), 6, (-4, 3, 1.0), (0, 0, 20), (2, 2, 2))
-    _mesh_object(scene, "Tall Cylinder", _cylinder(), (0.3, 0.8, 0.8), 7, (4, 2, 1.5), scale=(0.8, 0.8, 3))
+    _mesh_object(
+        scene, "Tall Cylinder", _cylinder(), (0.3, 0.8, 0.8), 7, (4, 2, 1.5), scale=(0.8, 0.8, 3)
+    )
     _mesh_object(scene, "Wall", _box, (0.9, 0.6, 0.4), 8, (0, 7, 1.5), scale=(12, 0.4, 3))
-    _mesh_object(scene, "Cone", _cylinder(1.0, 0.0), (0.6, 0.3, 0.2), 9, (3.5, -2.5, 1.0), scale=(1, 1, 2))
+    _mesh_object(
+        scene, "Cone", _cylinder(1.0, 0.0), (0.6, 0.3, 0.2), 9, (3.5, -2.5, 1.0), scale=(1, 1, 2)
+    )
     _light(scene, "Sun", "SUN", 3.0, (0, 0, 20), (35, 0, 40))
 
     target = (0.0, 0.0, 0.3)

@@ -60,8 +60,9 @@ def read_passes(path: str | Path, layer: str | None = None) -> dict[str, np.ndar
         raise KeyError(f"{path}: no view layer {layer!r}")
 
     passes = {
-        name: np.stack([chans[c] for c in sorted(chans, key=_channel_key)], axis=-1)
-        .astype(np.float32)
+        name: np.stack([chans[c] for c in sorted(chans, key=_channel_key)], axis=-1).astype(
+            np.float32
+        )
         for name, chans in grouped.items()
     }
     for old, new in ALIASES.items():

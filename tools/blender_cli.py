@@ -26,8 +26,15 @@ import traceback
 
 SETTINGS = {"-b", "--background", "--factory-startup", "-v", "--version"}
 ALIASES = {"-P": "--python", "-E": "--engine", "-o": "--render-output", "-f": "--render-frame"}
-WITH_VALUE = {"--addons", "--python", "--python-expr", "--python-exit-code", "--engine",
-              "--render-output", "--render-frame"}
+WITH_VALUE = {
+    "--addons",
+    "--python",
+    "--python-expr",
+    "--python-exit-code",
+    "--engine",
+    "--render-output",
+    "--render-frame",
+}
 
 
 class UsageError(Exception):

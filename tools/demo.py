@@ -24,8 +24,7 @@ MODULE = "bl_ext.user_default.multiscale_camera"
 def srgb_encode(linear):
     """Linear values in [0, 1] -> sRGB-encoded values (the sRGB transfer function)."""
     linear = np.clip(linear, 0.0, 1.0)
-    return np.where(linear <= 0.0031308, 12.92 * linear,
-                    1.055 * np.power(linear, 1 / 2.4) - 0.055)
+    return np.where(linear <= 0.0031308, 12.92 * linear, 1.055 * np.power(linear, 1 / 2.4) - 0.055)
 
 
 def save_png(rgba, path):
@@ -54,7 +53,8 @@ def main(argv):
 
     started = time.perf_counter()
     bpy.ops.extensions.package_install_files(
-        filepath=os.path.abspath(args.zip), repo="user_default", enable_on_install=True)
+        filepath=os.path.abspath(args.zip), repo="user_default", enable_on_install=True
+    )
     installed = time.perf_counter()
     if MODULE not in bpy.context.preferences.addons:
         raise SystemExit(f"{MODULE} is not enabled after installing {args.zip}")
@@ -82,10 +82,12 @@ def main(argv):
     finished = time.perf_counter()
 
     print(f"wrote {exr}\nwrote {png}")
-    print(f"seconds: install {installed - started:.2f}, open {opened - installed:.2f}, "
-          f"render {rendered - opened:.2f}, png {finished - rendered:.2f}, "
-          f"total {finished - started:.2f}")
+    print(
+        f"seconds: install {installed - started:.2f}, open {opened - installed:.2f}, "
+        f"render {rendered - opened:.2f}, png {finished - rendered:.2f}, "
+        f"total {finished - started:.2f}"
+    )
 
 
 if __name__ == "__main__":
-    main(sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else [])
+    main(sys.argv[sys.argv.index("--") + 1 :] if "--" in sys.argv else [])

@@ -41,8 +41,19 @@ def cached_wheel(cache: Path, version: str, platform: str, python: str) -> Path 
     if wheels:
         return wheels[0]
     folder.mkdir(parents=True, exist_ok=True)
-    cmd = [sys.executable, "-m", "pip", "download", "--quiet", "--no-deps",
-           "--only-binary=:all:", "--python-version", python, "--dest", str(folder)]
+    cmd = [
+        sys.executable,
+        "-m",
+        "pip",
+        "download",
+        "--quiet",
+        "--no-deps",
+        "--only-binary=:all:",
+        "--python-version",
+        python,
+        "--dest",
+        str(folder),
+    ]
     for tag in PLATFORM_TAGS[platform]:
         cmd += ["--platform", tag]
     cmd.append(f"OpenEXR=={version}")
@@ -68,8 +79,9 @@ def staged_manifest(text: str, platforms: list[str], wheels: list[str]) -> str:
 
     generated = f"platforms = {toml_list(platforms)}wheels = {toml_list(wheels)}\n"
     lines = text.splitlines(keepends=True)
-    first_table = next((i for i, line in enumerate(lines) if line.lstrip().startswith("[")),
-                       len(lines))
+    first_table = next(
+        (i for i, line in enumerate(lines) if line.lstrip().startswith("[")), len(lines)
+    )
     if first_table == len(lines) and lines and not lines[-1].endswith("\n"):
         lines[-1] += "\n"
     return "".join(lines[:first_table] + [generated] + lines[first_table:])
@@ -88,8 +100,7 @@ def main() -> None:
         raise SystemExit(f"{args.package}/__init__.py is missing: nothing to package")
 
     shutil.rmtree(args.stage, ignore_errors=True)
-    shutil.copytree(args.package, args.stage,
-                    ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
+    shutil.copytree(args.package, args.stage, ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
     (args.stage / "wheels").mkdir()
 
     platforms, wheels, missing = [], [], []
@@ -111,8 +122,10 @@ def main() -> None:
     manifest = staged_manifest(args.manifest.read_text(), platforms, wheels)
     (args.stage / "blender_manifest.toml").write_text(manifest)
 
-    print(f"staged {args.stage}: {len(wheels)} OpenEXR {args.openexr} wheels for "
-          f"{', '.join(platforms)}")
+    print(
+        f"staged {args.stage}: {len(wheels)} OpenEXR {args.openexr} wheels for "
+        f"{', '.join(platforms)}"
+    )
     for combo in missing:
         print(f"  not on PyPI, skipped: OpenEXR {args.openexr} for {combo}")
 

@@ -95,10 +95,18 @@ def scene_geometry(depsgraph):
         names.append(obj.original.name)
     if not tris:
         return SceneGeometry(
-            np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros((0, 3), np.float32),
-            np.zeros(0, np.int32), np.zeros(0, np.int32), [],
+            np.zeros((0, 3)),
+            np.zeros((0, 3), np.int64),
+            np.zeros((0, 3), np.float32),
+            np.zeros(0, np.int32),
+            np.zeros(0, np.int32),
+            [],
         )
     return SceneGeometry(
-        np.concatenate(verts), np.concatenate(tris), np.concatenate(colours),
-        np.concatenate(index), np.concatenate(owner), names,
+        np.concatenate(verts),
+        np.concatenate(tris),
+        np.concatenate(colours),
+        np.concatenate(index),
+        np.concatenate(owner),
+        names,
     )

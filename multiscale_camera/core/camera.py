@@ -57,15 +57,26 @@ class PinholeCamera:
     def __post_init__(self):
         m = np.array(self.matrix_world, dtype=np.float64)
         rot = m[:3, :3] / np.linalg.norm(m[:3, :3], axis=0, keepdims=True)
-        for name, value in (("matrix_world", m), ("rotation", rot), ("eye", m[:3, 3].copy()),
-                            ("forward", -rot[:, 2].copy())):
+        for name, value in (
+            ("matrix_world", m),
+            ("rotation", rot),
+            ("eye", m[:3, 3].copy()),
+            ("forward", -rot[:, 2].copy()),
+        ):
             value.flags.writeable = False
             object.__setattr__(self, name, value)
         xmin, xmax, ymin, ymax = self.view_plane()
         # pixel -> camera-local point on the plane z = -1: (ax * x + bx, ay * y + by, -1)
-        object.__setattr__(self, "_affine", (
-            (xmax - xmin) / self.width, xmin, -(ymax - ymin) / self.height, ymax,
-        ))
+        object.__setattr__(
+            self,
+            "_affine",
+            (
+                (xmax - xmin) / self.width,
+                xmin,
+                -(ymax - ymin) / self.height,
+                ymax,
+            ),
+        )
 
     # rotation : (3, 3) float64, orthonormal camera-to-world rotation.
     # eye : (3,) float64, the eye position E_i, world units.
@@ -84,7 +95,11 @@ class PinholeCamera:
         sensor_size = self.sensor_height if self.sensor_fit == "VERTICAL" else self.sensor_width
         fit = self.sensor_fit
         if fit == "AUTO":
-            fit = "HORIZONTAL" if self.pixel_aspect_x * winx >= self.pixel_aspect_y * winy else "VERTICAL"
+            fit = (
+                "HORIZONTAL"
+                if self.pixel_aspect_x * winx >= self.pixel_aspect_y * winy
+                else "VERTICAL"
+            )
         viewfac = winx if fit == "HORIZONTAL" else ycor * winy
         pixsize = sensor_size / self.lens / viewfac
         dx = self.shift_x * viewfac
@@ -150,7 +165,9 @@ class PinholeCamera:
         ax, bx, ay, by = self._affine
         rel = np.asarray(points, dtype=np.float64) - self.eye
         r = self.rotation
-        lx, ly, lz = (rel[..., 0] * r[0, k] + rel[..., 1] * r[1, k] + rel[..., 2] * r[2, k] for k in range(3))
+        lx, ly, lz = (
+            rel[..., 0] * r[0, k] + rel[..., 1] * r[1, k] + rel[..., 2] * r[2, k] for k in range(3)
+        )
         depth = -lz
         with np.errstate(divide="ignore", invalid="ignore"):
             x = (lx / depth - bx) / ax

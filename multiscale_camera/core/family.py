@@ -14,12 +14,13 @@ the tangent field X_i (paper section 4.4) exactly, without sampling it on a grid
 
 import numpy as np
 
+from .guides import GUARD_FRACTION
+
 
 def dot3(a, b):
-    """Row-wise dot product of (..., 3) arrays: faster than a reduction over a length-3 axis."""
+    """Row-wise dot of (..., 3) arrays: faster than a reduction over a length-3 axis."""
     return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
 
-from .guides import GUARD_FRACTION
 
 # Newton stops when the point error is below this fraction of camera i's near distance.
 NEWTON_TOLERANCE = 1e-9
@@ -225,4 +226,7 @@ def solve3(a, b, c, r):
     bc = np.cross(b, c)
     det = dot3(a, bc)
     safe = np.where(np.abs(det) > 1e-300, det, np.inf)
-    return np.stack([dot3(r, bc), dot3(a, np.cross(r, c)), dot3(a, np.cross(b, r))], axis=-1) / safe[:, None]
+    return (
+        np.stack([dot3(r, bc), dot3(a, np.cross(r, c)), dot3(a, np.cross(b, r))], axis=-1)
+        / safe[:, None]
+    )

@@ -26,7 +26,6 @@ from .errors import Cancelled
 from .family import Family, dot3
 from .grid import FieldSampler, Grid
 from .guides import DEFAULT_SEGMENTS, build_guides, curved_rays
-from .solvers import solve_membership
 from .trace import StopReason, rk4_streamlines
 
 # Cells across the smallest camera's near plane, per pixel of accuracy asked for: the
@@ -42,6 +41,8 @@ STEP_CELLS = 1.5
 def step_cells(accuracy_px):
     """RK4 step in cells for an accuracy target in pixels."""
     return float(np.clip(STEP_CELLS * (accuracy_px / 0.5) ** (1.0 / 3.0), 0.5, 3.0))
+
+
 # A ray stalls where the blended tangents cancel to less than this length.
 STALL_SPEED = 1e-3
 # Newton iterations per tangent evaluation when warm-started from a point one step away.
@@ -94,7 +95,11 @@ def choose_grid(rig, accuracy_px, max_voxels, lattice=17):
         rays = curved_rays(g, DEFAULT_SEGMENTS)[:, :, : 1 + (n - 1) * DEFAULT_SEGMENTS]
         pts = rays.reshape(-1, 3)
         # run on past the last near plane far enough for its rays to settle
-        tail = g.points[-1] + g.directions[-1] * (0.25 * np.linalg.norm(g.points[-1] - g.points[-2], axis=-1))[:, None]
+        tail = (
+            g.points[-1]
+            + g.directions[-1]
+            * (0.25 * np.linalg.norm(g.points[-1] - g.points[-2], axis=-1))[:, None]
+        )
         pts = np.concatenate([pts, tail])
     else:
         pts = g.points[0]
@@ -242,10 +247,14 @@ def straight_claims(grid, cam, mask, chunk=1 << 20):
         pix, depth = cam.project(pts)
         front = depth >= cam.clip_start
         radius = np.sqrt(3.0) * grid.cell / (np.maximum(depth, 1e-30) * px_world)
-        level = np.clip(np.ceil(np.log2(np.maximum(radius, 1.0))), 0, DILATION_LEVELS - 1).astype(int)
-        inner = np.clip(np.ceil(np.log2(np.maximum(radius / np.sqrt(12.0), 1.0))), 0, DILATION_LEVELS - 1)
+        level = np.clip(np.ceil(np.log2(np.maximum(radius, 1.0))), 0, DILATION_LEVELS - 1).astype(
+            int
+        )
+        inner = np.clip(
+            np.ceil(np.log2(np.maximum(radius / np.sqrt(12.0), 1.0))), 0, DILATION_LEVELS - 1
+        )
         inner = inner.astype(int)
-        reach = 2.0 ** level
+        reach = 2.0**level
         x, y = pix[:, 0], pix[:, 1]
         near = front & (x > -reach) & (x < w + reach) & (y > -reach) & (y < h + reach)
         xi = np.clip(x, 0, w - 1).astype(int)
@@ -307,8 +316,13 @@ def fill_membership(rig, grid, families):
     for i in range(n):
         for j in range(i + 1, n):
             overlaps[i, j] = overlaps[j, i] = int((per[i] & per[j]).sum())
-    return Fill(values, constrained, int((cores > 1).sum()),
-                tuple(int((c & constrained).sum()) for c in per), overlaps)
+    return Fill(
+        values,
+        constrained,
+        int((cores > 1).sum()),
+        tuple(int((c & constrained).sum()) for c in per),
+        overlaps,
+    )
 
 
 # Dense samples per guide stage for arc-length lookups of R_i: the chord error of
@@ -340,7 +354,9 @@ def arc_length_rays(family, u, v, step, vertices):
     taus = np.linspace(0.0, family.i, family.i * ARC_SAMPLES + 1)
     pts, _ = family.evaluate(np.repeat(u, len(taus)), np.repeat(v, len(taus)), np.tile(taus, r))
     pts = pts.reshape(r, len(taus), 3)
-    cum = np.concatenate([np.zeros((r, 1)), np.cumsum(np.linalg.norm(np.diff(pts, axis=1), axis=-1), axis=1)], axis=1)
+    cum = np.concatenate(
+        [np.zeros((r, 1)), np.cumsum(np.linalg.norm(np.diff(pts, axis=1), axis=-1), axis=1)], axis=1
+    )
     bend = cum[:, -1]
     grid_t = np.arange(len(taus), dtype=np.float64)
     for row in range(r):
@@ -493,7 +509,13 @@ class FieldTracer:
         sel = np.flatnonzero(ok)
         # past the last vertex inside the grid the rays run straight: keep one more
         keep = min(k, int(count[sel].max()) + 1) if len(sel) else 2
-        return ok, Traced(verts[sel, :keep].astype(np.float32), membership[sel, :keep], count[sel], reason[sel], step)
+        return ok, Traced(
+            verts[sel, :keep].astype(np.float32),
+            membership[sel, :keep],
+            count[sel],
+            reason[sel],
+            step,
+        )
 
     def trace(self, u0, v0, step, max_steps, should_stop=None):
         """RK4 streamlines from the near-plane points of pixels (u0, v0) of camera 1.
@@ -516,8 +538,14 @@ class FieldTracer:
         self.params = np.zeros((len(self.families), len(u0), 3))
         self.params[:, :, 0], self.params[:, :, 1] = u0, v0
         lines = rk4_streamlines(
-            self.velocity, seeds, step, max_steps, stall_speed=STALL_SPEED,
-            inside=self.grid.contains, should_stop=should_stop, with_rays=True,
+            self.velocity,
+            seeds,
+            step,
+            max_steps,
+            stall_speed=STALL_SPEED,
+            inside=self.grid.contains,
+            should_stop=should_stop,
+            with_rays=True,
             split=self.near_plane_split,
         )
         if not lines.complete:
@@ -539,7 +567,9 @@ class FieldTracer:
         run = (ks - (count[:, None] - 1)) * step
         verts = np.where(after[..., None], last[:, None] + d[:, None] * run[..., None], verts)
         membership = self.n_of(verts.reshape(-1, 3)).reshape(r, k)
-        return Traced(verts.astype(np.float32), membership, lines.counts.astype(np.int32), lines.reason, step)
+        return Traced(
+            verts.astype(np.float32), membership, lines.counts.astype(np.int32), lines.reason, step
+        )
 
 
 def run_on(traced, vertices):
@@ -551,11 +581,16 @@ def run_on(traced, vertices):
         return traced
     d = (v[:, -1] - v[:, -2]).astype(np.float64)
     d /= np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-30)
-    tail = v[:, -1:].astype(np.float64) + d[:, None] * (traced.step * np.arange(1, extra + 1))[None, :, None]
+    tail = (
+        v[:, -1:].astype(np.float64)
+        + d[:, None] * (traced.step * np.arange(1, extra + 1))[None, :, None]
+    )
     return Traced(
         np.concatenate([v, tail.astype(np.float32)], axis=1),
         np.concatenate([m, np.repeat(m[:, -1:], extra, axis=1)], axis=1),
-        traced.counts, traced.reason, traced.step,
+        traced.counts,
+        traced.reason,
+        traced.step,
     )
 
 
@@ -570,5 +605,10 @@ def merge(parts, order, total):
     counts = np.empty(total, dtype=np.int32)
     reason = np.empty(total, dtype=np.int8)
     for p, idx in zip(parts, order):
-        verts[idx], mem[idx], counts[idx], reason[idx] = p.vertices, p.membership, p.counts, p.reason
+        verts[idx], mem[idx], counts[idx], reason[idx] = (
+            p.vertices,
+            p.membership,
+            p.counts,
+            p.reason,
+        )
     return Traced(verts, mem, counts, reason, step)

@@ -14,8 +14,21 @@ def field_key(rig, method, settings):
     h.update(repr((method, settings, rig.beta, rig.size)).encode())
     for cam in rig.cameras:
         h.update(np.ascontiguousarray(cam.matrix_world, dtype=np.float64).tobytes())
-        h.update(repr((cam.lens, cam.sensor_width, cam.sensor_height, cam.sensor_fit, cam.shift_x,
-                       cam.shift_y, cam.clip_start, cam.clip_end, cam.pixel_aspect_x,
-                       cam.pixel_aspect_y)).encode())
+        h.update(
+            repr(
+                (
+                    cam.lens,
+                    cam.sensor_width,
+                    cam.sensor_height,
+                    cam.sensor_fit,
+                    cam.shift_x,
+                    cam.shift_y,
+                    cam.clip_start,
+                    cam.clip_end,
+                    cam.pixel_aspect_x,
+                    cam.pixel_aspect_y,
+                )
+            ).encode()
+        )
     h.update(np.packbits(np.ascontiguousarray(rig.masks)).tobytes())
     return h.hexdigest()

@@ -125,7 +125,9 @@ def curved_rays(guides, segments=DEFAULT_SEGMENTS):
                     t,
                 )
             else:
-                rays[i, :, sl] = start[i][:, None] + dirs[i][:, None] * (chord[:, None, None] * t[None, :, None])
+                rays[i, :, sl] = start[i][:, None] + dirs[i][:, None] * (
+                    chord[:, None, None] * t[None, :, None]
+                )
     tail = np.linalg.norm(pts[-1] - pts[-2], axis=-1) if n > 1 else np.ones(p)
     rays[:, :, -1] = rays[:, :, -2] + dirs * tail[None, :, None]
     return rays

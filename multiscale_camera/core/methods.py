@@ -85,7 +85,9 @@ class RayField:
     rig: object
     method: str
     seconds: dict = field(default_factory=dict)
-    solver: dict = field(default_factory=lambda: {"iterations": 0, "residual": 0.0, "converged": True})
+    solver: dict = field(
+        default_factory=lambda: {"iterations": 0, "residual": 0.0, "converged": True}
+    )
     warnings: list = field(default_factory=list)
     grids: list = field(default_factory=list)
     stats: dict = field(default_factory=dict)
@@ -206,7 +208,10 @@ class TracedField(RayField):
         ix, iy = np.asarray(ix), np.asarray(iy)
         corners = self._corners(ix, iy)
         # past the last traced vertex every ray runs straight: one more vertex holds it
-        k = min(self.traced.vertices.shape[1], max(int(self.traced.counts[r].max()) for r, _w in corners) + 1)
+        k = min(
+            self.traced.vertices.shape[1],
+            max(int(self.traced.counts[r].max()) for r, _w in corners) + 1,
+        )
         k = max(k, 2)
         verts = np.zeros((len(ix), k, 3), dtype=np.float32)
         mem = np.zeros((len(ix), k), dtype=np.float32)
@@ -246,8 +251,8 @@ class _AdaptiveLattice:
     A cell's interpolation error is estimated from the second differences of its
     rays (a child cell's bilinear interpolation errs by at most about half its parent's
     midpoint deviation), in pixels of the multiscale image at each vertex (the spacing
-    of neighbouring rays there), both measured across the rays; cells above the tolerance are split in four and their
-    midpoints traced, down to single pixels.
+    of neighbouring rays there), both measured across the rays; cells above the
+    tolerance are split in four and their midpoints traced, down to single pixels.
     """
 
     def __init__(self, tracer, rig, step, max_steps, tol_px, should_stop):
@@ -267,7 +272,11 @@ class _AdaptiveLattice:
             return
         if self.should_stop is not None and self.should_stop():
             raise Cancelled()
-        self.parts.append(_trace_pixels(self.tracer, self.rig, px, py, self.step, self.max_steps, self.should_stop))
+        self.parts.append(
+            _trace_pixels(
+                self.tracer, self.rig, px, py, self.step, self.max_steps, self.should_stop
+            )
+        )
         self.order.append(np.arange(self.count, self.count + len(px)))
         self.index[py, px] = np.arange(self.count, self.count + len(px))
         self.count += len(px)
@@ -289,7 +298,10 @@ class _AdaptiveLattice:
         t /= np.maximum(np.linalg.norm(t, axis=-1, keepdims=True), 1e-30)
         d = _across(vm - 0.5 * (va + vb), t)
         spacing = _across(vb - va, t) / np.maximum(pixels, 1)[:, None]
-        traced = np.arange(v.shape[1])[None, :] < np.minimum.reduce([counts[ia], counts[ib], counts[im]])[:, None]
+        traced = (
+            np.arange(v.shape[1])[None, :]
+            < np.minimum.reduce([counts[ia], counts[ib], counts[im]])[:, None]
+        )
         return np.where(traced, d / np.maximum(spacing, 1e-12), 0.0).max(axis=1)
 
     def _lattice_roughness(self, xs, ys):
@@ -300,12 +312,17 @@ class _AdaptiveLattice:
         key = gy * w + gx
         dev = np.zeros(key.shape)
         if len(xs) > 2:
-            d = self.deviation(key[:, 1:-1].ravel(), key[:, :-2].ravel(), key[:, 2:].ravel(),
-                               (gx[:, 2:] - gx[:, :-2]).ravel())
+            d = self.deviation(
+                key[:, 1:-1].ravel(),
+                key[:, :-2].ravel(),
+                key[:, 2:].ravel(),
+                (gx[:, 2:] - gx[:, :-2]).ravel(),
+            )
             dev[:, 1:-1] = np.maximum(dev[:, 1:-1], d.reshape(len(ys), -1))
         if len(ys) > 2:
-            d = self.deviation(key[1:-1].ravel(), key[:-2].ravel(), key[2:].ravel(),
-                               (gy[2:] - gy[:-2]).ravel())
+            d = self.deviation(
+                key[1:-1].ravel(), key[:-2].ravel(), key[2:].ravel(), (gy[2:] - gy[:-2]).ravel()
+            )
             dev[1:-1] = np.maximum(dev[1:-1], d.reshape(-1, len(xs)))
         corners = np.maximum.reduce([dev[:-1, :-1], dev[:-1, 1:], dev[1:, :-1], dev[1:, 1:]])
         return corners.ravel()
@@ -334,19 +351,25 @@ class _AdaptiveLattice:
                 break
             self.trace(np.concatenate([xm, xm, x0, x1, xm]), np.concatenate([y0, y1, ym, ym, ym]))
             key = lambda x, y: y * w + x  # noqa: E731
-            err = np.maximum.reduce([
-                self.deviation(key(xm, y0), key(x0, y0), key(x1, y0), x1 - x0),
-                self.deviation(key(xm, y1), key(x0, y1), key(x1, y1), x1 - x0),
-                self.deviation(key(x0, ym), key(x0, y0), key(x0, y1), y1 - y0),
-                self.deviation(key(x1, ym), key(x1, y0), key(x1, y1), y1 - y0),
-            ])
+            err = np.maximum.reduce(
+                [
+                    self.deviation(key(xm, y0), key(x0, y0), key(x1, y0), x1 - x0),
+                    self.deviation(key(xm, y1), key(x0, y1), key(x1, y1), x1 - x0),
+                    self.deviation(key(x0, ym), key(x0, y0), key(x0, y1), y1 - y0),
+                    self.deviation(key(x1, ym), key(x1, y0), key(x1, y1), y1 - y0),
+                ]
+            )
             # bilinear error falls as the cell size squared where the rays are smooth, but
             # only linearly across the kinks of N at voxel faces: assume the slower rate
             fine = err / CHILD_ERROR_RATIO <= self.tol
-            children = np.concatenate([
-                np.stack([x0, y0, xm, ym], 1), np.stack([xm, y0, x1, ym], 1),
-                np.stack([x0, ym, xm, y1], 1), np.stack([xm, ym, x1, y1], 1),
-            ])
+            children = np.concatenate(
+                [
+                    np.stack([x0, y0, xm, ym], 1),
+                    np.stack([xm, y0, x1, ym], 1),
+                    np.stack([x0, ym, xm, y1], 1),
+                    np.stack([xm, ym, x1, y1], 1),
+                ]
+            )
             keep = np.tile(fine, 4)
             leaves.append(children[keep])
             cells = children[~keep]
@@ -377,7 +400,8 @@ def prepare_scalar_field(rig, settings=None, should_stop=None):
     grid = choice.grid
     if choice.capped:
         fld.warnings.append(
-            f"The accuracy target of {settings.accuracy_px:g} px wants {choice.wanted_cell:.3g}-unit "
+            f"The accuracy target of {settings.accuracy_px:g} px wants "
+            f"{choice.wanted_cell:.3g}-unit "
             f"cells; the voxel budget allows {grid.cell:.3g}: transitions near the smallest "
             "camera may be coarser than asked (raise the quality, or move that camera's near "
             "plane farther from its eye)"
@@ -405,10 +429,16 @@ def prepare_scalar_field(rig, settings=None, should_stop=None):
     fld.traced, fld.grid, fld.membership = traced, grid, solve.x
     fld.grids.append(list(grid.shape))
     fld.seconds.update(
-        fill=t1 - t0, solve=t2 - t1, tangents=tracer.tangent_seconds, trace=t3 - t2 - tracer.tangent_seconds
+        fill=t1 - t0,
+        solve=t2 - t1,
+        tangents=tracer.tangent_seconds,
+        trace=t3 - t2 - tracer.tangent_seconds,
     )
-    fld.solver.update(iterations=solve.iterations, residual=float(solve.residuals[-1]) if solve.residuals else 0.0,
-                      converged=bool(solve.converged))
+    fld.solver.update(
+        iterations=solve.iterations,
+        residual=float(solve.residuals[-1]) if solve.residuals else 0.0,
+        converged=bool(solve.converged),
+    )
     fld.stats.update(
         conflicts=fill.conflicts,
         stalled=int((traced.reason == StopReason.STALLED).sum()),

@@ -3,8 +3,9 @@
 - Preserved-ray error of camera i (i >= 2) at a pixel of its mask eroded by 2 pixels:
   where the ray the pixel renders beyond camera i's near plane meets that plane
   (``plane_crossing``), projected into camera i, minus the pixel centre, in camera i's
-  pixels; and the angle between that ray and the pinhole direction v_i. For camera 1 the ray's point and direction where it leaves
-  the modelled volume (the end of its bending stretch) are used instead.
+  pixels; and the angle between that ray and the pinhole direction v_i. For camera 1
+  the ray's point and direction where it leaves the modelled volume (the end of its
+  bending stretch) are used instead.
 - Folds: a 2x2 quad of neighbouring rays folds when the signed area of its four points,
   projected on the plane normal to their mean direction, changes sign along the
   bending stretch (from camera 1's near plane to the last camera's near plane).
@@ -111,7 +112,9 @@ class Preserved:
             if len(a) == 0:
                 return {"p50": 0.0, "p95": 0.0, "max": 0.0}
             a = np.where(np.isfinite(a), a, np.inf)
-            return {k: float(np.percentile(a, q)) for k, q in (("p50", 50), ("p95", 95), ("max", 100))}
+            return {
+                k: float(np.percentile(a, q)) for k, q in (("p50", 50), ("p95", 95), ("max", 100))
+            }
 
         return stats(self.error_px), stats(self.angle_deg)
 
@@ -138,7 +141,11 @@ def preserved_error(cameras, i, bundle, exit_index=None):
         return Preserved(0, np.zeros(0), np.zeros(0))
     if i == 0:
         r = np.arange(len(v))
-        k = np.full(len(v), v.shape[1] - 1) if exit_index is None else np.clip(exit_index, 1, v.shape[1] - 1)
+        k = (
+            np.full(len(v), v.shape[1] - 1)
+            if exit_index is None
+            else np.clip(exit_index, 1, v.shape[1] - 1)
+        )
         point = v[r, k].astype(np.float64)
         d = point - v[r, k - 1]
         d /= np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-30)

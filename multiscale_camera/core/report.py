@@ -59,7 +59,9 @@ def measure(fld):
         exit_index = fld.exit_index(ix, iy) if i == 0 else None
         pres = preserved_error(rig.cameras, i, bundle, exit_index)
         err, angle = pres.summary()
-        cameras.append({"name": cam.name, "pixels": pres.pixels, "preserved_px": err, "angle_deg": angle})
+        cameras.append(
+            {"name": cam.name, "pixels": pres.pixels, "preserved_px": err, "angle_deg": angle}
+        )
     folds, _stride = fold_map(fld)
     return cameras, int(folds.sum())
 
@@ -105,4 +107,6 @@ def headline(report):
 
 def to_json(report):
     """The report as the JSON string stored in ``scene.multiscale.report``."""
-    return json.dumps(report, indent=1, default=lambda o: o.item() if isinstance(o, np.generic) else str(o))
+    return json.dumps(
+        report, indent=1, default=lambda o: o.item() if isinstance(o, np.generic) else str(o)
+    )

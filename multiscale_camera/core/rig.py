@@ -46,10 +46,15 @@ class Rig:
                 raise RigError(f"Camera '{cam.name}' renders {cam.width}x{cam.height}, not {w}x{h}")
         masks = np.asarray(self.masks)
         if masks.shape != (len(self.cameras), h, w) or masks.dtype != bool:
-            raise RigError(f"Masks must be bool of shape {(len(self.cameras), h, w)}, got {masks.dtype} {masks.shape}")
+            raise RigError(
+                f"Masks must be bool of shape {(len(self.cameras), h, w)}, "
+                f"got {masks.dtype} {masks.shape}"
+            )
         counts = masks.reshape(len(self.cameras), -1).sum(axis=1)
         if counts.sum() == 0:
-            raise RigError("Every mask is empty: paint white where each camera's view should be kept")
+            raise RigError(
+                "Every mask is empty: paint white where each camera's view should be kept"
+            )
         if counts[-1] == 0:
             raise RigError(
                 f"The mask of the last camera '{self.cameras[-1].name}' is empty: the smallest "

@@ -99,8 +99,9 @@ def isolated_voxels(constrained):
     return np.full(constrained.shape, not constrained.any())
 
 
-def solve_membership(values, constrained, tol=TOLERANCE, max_iterations=MAX_ITERATIONS,
-                     x0=None, dtype=np.float32):
+def solve_membership(
+    values, constrained, tol=TOLERANCE, max_iterations=MAX_ITERATIONS, x0=None, dtype=np.float32
+):
     """Smooth the constraint field M into the membership field N (eq. 5, hard constraints).
 
     Solves A_FF x_F = b (module docstring) by multigrid-preconditioned conjugate
@@ -188,8 +189,7 @@ def solve_membership(values, constrained, tol=TOLERANCE, max_iterations=MAX_ITER
     return SolveResult(x.astype(dtype), False, len(history), tuple(history))
 
 
-def explicit_diffusion(values, constrained, iterations, rate=MAX_RATE, x0=None,
-                       dtype=np.float32):
+def explicit_diffusion(values, constrained, iterations, rate=MAX_RATE, x0=None, dtype=np.float32):
     """The paper's explicit smoothing: N <- N - rate * A N on the free voxels.
 
     Constrained voxels keep their values (the reset after every step), faces are

@@ -251,8 +251,13 @@ class VectorFieldTracer(FieldTracer):
     def preserved_rays(self, i, u, v, step, vertices):
         """No ray is laid out analytically: Y only approximates R_i even in the masks, and
         tracing every ray keeps the method's error in sight. ``ok`` is all False."""
-        empty = Traced(np.zeros((0, 2, 3), np.float32), np.zeros((0, 2), np.float32),
-                       np.zeros(0, np.int32), np.zeros(0, np.int8), step)
+        empty = Traced(
+            np.zeros((0, 2, 3), np.float32),
+            np.zeros((0, 2), np.float32),
+            np.zeros(0, np.int32),
+            np.zeros(0, np.int8),
+            step,
+        )
         return np.zeros(len(u), dtype=bool), empty
 
 

@@ -15,7 +15,6 @@ class MultiscaleRenderEngine(bpy.types.RenderEngine):
     bl_use_preview = False
 
     def render(self, depsgraph):
-        scene = depsgraph.scene
         start = time.perf_counter()
         self.update_stats("", "Multiscale: building rays")
         try:
@@ -41,7 +40,9 @@ class MultiscaleRenderEngine(bpy.types.RenderEngine):
                 self.update_progress(row1 / height)
                 seconds = time.perf_counter() - start
                 self.update_stats(
-                    "", f"Multiscale: {row1}/{height} rows, {frame.casts / max(seconds, 1e-9) / 1e6:.2f} M casts/s"
+                    "",
+                    f"Multiscale: {row1}/{height} rows, "
+                    f"{frame.casts / max(seconds, 1e-9) / 1e6:.2f} M casts/s",
                 )
         except Cancelled:
             return

@@ -1,9 +1,9 @@
 """Operators ``multiscale.*``: editing the camera list, checking the rig, rendering."""
 
+import time
+
 import bpy
 from bpy.props import BoolProperty, EnumProperty
-
-import time
 
 from ..adapters.scene import rig_from_scene
 from ..core.errors import RigError, SolverDidNotConverge
@@ -127,7 +127,10 @@ class MULTISCALE_OT_compute_field(bpy.types.Operator):
         for notice in fld.notices + fld.warnings:
             self.report({"WARNING"}, notice)
         line = headline(report)
-        self.report({"INFO"}, f"{line} ({'built' if built else 'cached'}, {time.perf_counter() - start:.1f} s)")
+        self.report(
+            {"INFO"},
+            f"{line} ({'built' if built else 'cached'}, {time.perf_counter() - start:.1f} s)",
+        )
         return {"FINISHED"}
 
 
@@ -137,7 +140,9 @@ class MULTISCALE_OT_render(bpy.types.Operator):
     bl_idname = "multiscale.render"
     bl_label = "Render Multiscale"
 
-    write_still: BoolProperty(name="Write Image", default=False, description="Save the image to the output path")
+    write_still: BoolProperty(
+        name="Write Image", default=False, description="Save the image to the output path"
+    )
 
     def execute(self, context):
         scene = context.scene

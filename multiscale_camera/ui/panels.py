@@ -39,7 +39,9 @@ class MULTISCALE_PT_main(bpy.types.Panel):
         settings = context.scene.multiscale
         layout.label(text="Cameras, largest scale first:")
         row = layout.row()
-        row.template_list("MULTISCALE_UL_cameras", "", settings, "cameras", settings, "active_index", rows=3)
+        row.template_list(
+            "MULTISCALE_UL_cameras", "", settings, "cameras", settings, "active_index", rows=3
+        )
         col = row.column(align=True)
         col.operator("multiscale.camera_add", icon="ADD", text="")
         col.operator("multiscale.camera_remove", icon="REMOVE", text="")

@@ -19,7 +19,11 @@ METHOD_ITEMS = [
     ("IMAGE_BLEND", "Image Blend", "Blend each pixel's curved rays by harmonic mask weights"),
     ("LINEAR", "Linear", "Linear interpolation of ray directions between preserved regions"),
     ("VECTOR_FIELD", "Vector Field", "Smooth the tangent vectors directly (paper eq. 3)"),
-    ("SCALAR_FIELD", "Scalar Field", "Smooth a membership field and blend tangent fields (paper eq. 5, 6)"),
+    (
+        "SCALAR_FIELD",
+        "Scalar Field",
+        "Smooth a membership field and blend tangent fields (paper eq. 5, 6)",
+    ),
 ]
 
 # The most accurate method the code has (DESIGN.md).
@@ -44,15 +48,19 @@ def _poll_camera(_self, obj):
 
 class MultiscaleCameraItem(bpy.types.PropertyGroup):
     camera: PointerProperty(
-        name="Camera", type=bpy.types.Object, poll=_poll_camera,
+        name="Camera",
+        type=bpy.types.Object,
+        poll=_poll_camera,
         description="A perspective camera; the list runs from the largest scale to the smallest",
     )
     mask: PointerProperty(
-        name="Mask", type=bpy.types.Image,
+        name="Mask",
+        type=bpy.types.Image,
         description="White where this camera's view is preserved in the final image",
     )
     transfer_function: PointerProperty(
-        name="Transfer Function", type=bpy.types.Texture,
+        name="Transfer Function",
+        type=bpy.types.Texture,
         description="Colour ramp from density to colour and opacity, for volumes",
     )
 
@@ -61,24 +69,38 @@ class MultiscaleSettings(bpy.types.PropertyGroup):
     cameras: CollectionProperty(type=MultiscaleCameraItem)
     active_index: IntProperty(name="Active Camera", default=0, min=0)
     method: EnumProperty(
-        name="Method", items=METHOD_ITEMS, default=DEFAULT_METHOD,
+        name="Method",
+        items=METHOD_ITEMS,
+        default=DEFAULT_METHOD,
         description="How the bent rays are generated",
     )
     quality: EnumProperty(
-        name="Quality", items=QUALITY_ITEMS, default="STANDARD",
+        name="Quality",
+        items=QUALITY_ITEMS,
+        default="STANDARD",
         description="Accuracy target of the ray field",
     )
     accuracy_px: FloatProperty(
-        name="Accuracy", default=0.5, min=0.01, max=16.0, subtype="PIXEL",
+        name="Accuracy",
+        default=0.5,
+        min=0.01,
+        max=16.0,
+        subtype="PIXEL",
         description="Target preserved-ray error in pixels (used as is under Custom quality)",
     )
     beta: FloatProperty(
-        name="Beta", default=0.2, min=0.01, max=0.5,
-        description="Handle length of the Bezier guides, as a fraction of the distance between near planes",
+        name="Beta",
+        default=0.2,
+        min=0.01,
+        max=0.5,
+        description="Handle length of the Bezier guides, as a fraction of the distance "
+        "between near planes",
     )
     samples: IntProperty(name="Samples", default=1, min=1, max=256, description="Rays per pixel")
     shading: EnumProperty(name="Shading", items=SHADING_ITEMS, default="SOLID")
-    report: StringProperty(name="Report", default="", description="JSON report of the last field build")
+    report: StringProperty(
+        name="Report", default="", description="JSON report of the last field build"
+    )
 
 
 CLASSES = (MultiscaleCameraItem, MultiscaleSettings)

@@ -55,7 +55,10 @@ def two_camera_scene(scene, width=48, height=36):
     bpy.context.object.data.energy = 3.0
     c1 = add_camera(scene, "C1", (0, -14, 9), (0, 0, 1), clip_start=5.0)
     c2 = add_camera(scene, "C2", (0.5, -3.5, 4), (0.6, -0.6, 2.3), clip_start=1.5)
-    for cam, mask in ((c1, disk(width, height, 0.3 * width, inside=False)), (c2, disk(width, height, 0.15 * width))):
+    for cam, mask in (
+        (c1, disk(width, height, 0.3 * width, inside=False)),
+        (c2, disk(width, height, 0.15 * width)),
+    ):
         item = scene.multiscale.cameras.add()
         item.camera = cam
         item.mask = mask_image(f"{cam.name} mask", mask)

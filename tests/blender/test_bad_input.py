@@ -139,7 +139,9 @@ def test_scene_without_mesh_renders_world_with_notice(empty_scene, tmp_path, cap
     scene.world.node_tree.nodes["Background"].inputs["Strength"].default_value = 2.0
     passes = render_to(scene, tmp_path / "world.exr")
     assert "The scene has no visible mesh: only the world is rendered" in capfd.readouterr().out
-    np.testing.assert_allclose(passes["Combined"][..., :3], np.broadcast_to([0.1, 0.2, 0.3], (36, 48, 3)), atol=1e-6)
+    np.testing.assert_allclose(
+        passes["Combined"][..., :3], np.broadcast_to([0.1, 0.2, 0.3], (36, 48, 3)), atol=1e-6
+    )
     assert (passes["IndexOB"] == 0).all()
 
 

@@ -40,7 +40,9 @@ def test_field_is_reused_until_the_rig_changes(empty_scene):
     bpy.ops.multiscale.compute_field()
     assert json.loads(scene.multiscale.report)["cached"] is True
     # a new mask, a moved camera or another quality rebuild it
-    scene.multiscale.cameras[1].mask = mask_image("smaller", np.pad(np.ones((8, 8), bool), ((14, 14), (20, 20))))
+    scene.multiscale.cameras[1].mask = mask_image(
+        "smaller", np.pad(np.ones((8, 8), bool), ((14, 14), (20, 20)))
+    )
     assert pipeline.build_field(scene)[1]
     scene.multiscale.cameras[0].camera.location.z += 0.1
     bpy.context.view_layer.update()

@@ -1,6 +1,7 @@
 """Operators on the camera list, driven headless."""
 
 import bpy
+
 from .scenes import add_camera, two_camera_scene
 
 

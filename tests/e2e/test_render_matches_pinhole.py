@@ -63,13 +63,28 @@ def erode(mask, pixels=2):
 @pytest.mark.e2e
 @pytest.mark.parametrize("method", ["SCALAR_FIELD", "IMAGE_BLEND"])
 def test_indexob_matches_each_cameras_own_pinhole_ray(run_blender, tmp_path, method):
-    run_blender(["-b", "--factory-startup", "--python-exit-code", "1", "--python",
-                 "sample_blends/make_samples.py", "--", "--out", tmp_path, "--only", "two_camera"])
+    run_blender(
+        [
+            "-b",
+            "--factory-startup",
+            "--python-exit-code",
+            "1",
+            "--python",
+            "sample_blends/make_samples.py",
+            "--",
+            "--out",
+            tmp_path,
+            "--only",
+            "two_camera",
+        ]
+    )
     blend = tmp_path / "two_camera.blend"
     exr = tmp_path / "render.exr"
     ref = tmp_path / "reference.json"
     register = REGISTER.format(repo=str(REPO))
-    run_blender(["-b", blend, "--python-exit-code", "1", "--python-expr", register + REFERENCE, "--", ref])
+    run_blender(
+        ["-b", blend, "--python-exit-code", "1", "--python-expr", register + REFERENCE, "--", ref]
+    )
     render = register + (
         "scene = bpy.context.scene; scene.render.engine = 'MULTISCALE'; "
         f"scene.multiscale.method = {method!r}; "
@@ -79,13 +94,27 @@ def test_indexob_matches_each_cameras_own_pinhole_ray(run_blender, tmp_path, met
     run_blender(["-b", blend, "--python-exit-code", "1", "--python-expr", render])
     index = read_passes(exr)["IndexOB"][..., 0]
     reference = json.loads(ref.read_text())
-    masks = json.loads(run_blender(
-        ["-b", blend, "--python-exit-code", "1", "--python-expr", register + (
-            "import json, numpy as np; from multiscale_camera.adapters.masks import mask_from_image; "
-            "s = bpy.context.scene; w, h = s.render.resolution_x, s.render.resolution_y; "
-            "print('MASKS', json.dumps([mask_from_image(i.mask, w, h)[0].tolist() "
-            "for i in s.multiscale.cameras]))")]
-    ).stdout.split("MASKS ", 1)[1].splitlines()[0])
+    masks = json.loads(
+        run_blender(
+            [
+                "-b",
+                blend,
+                "--python-exit-code",
+                "1",
+                "--python-expr",
+                register
+                + (
+                    "import json, numpy as np; "
+                    "from multiscale_camera.adapters.masks import mask_from_image; "
+                    "s = bpy.context.scene; w, h = s.render.resolution_x, s.render.resolution_y; "
+                    "print('MASKS', json.dumps([mask_from_image(i.mask, w, h)[0].tolist() "
+                    "for i in s.multiscale.cameras]))"
+                ),
+            ]
+        )
+        .stdout.split("MASKS ", 1)[1]
+        .splitlines()[0]
+    )
     for (name, ref_index), mask in zip(reference.items(), masks):
         kept = erode(np.array(mask, dtype=bool))
         assert kept.sum() >= 200, f"{name}: only {kept.sum()} pixels to compare"

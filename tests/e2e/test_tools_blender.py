@@ -50,13 +50,15 @@ def test_python_expr_runs_in_factory_scene(run_blender):
 def test_python_file_sees_args_after_double_dash(run_blender, tmp_path):
     script = tmp_path / "script.py"
     report = tmp_path / "report.json"
-    script.write_text(textwrap.dedent(f"""
+    script.write_text(
+        textwrap.dedent(f"""
         import json, sys
         argv = sys.argv[sys.argv.index("--") + 1:]
         with open({str(report)!r}, "w") as f:
             json.dump({{"name": __name__, "file": __file__, "argv": argv,
                        "full": sys.argv}}, f)
-    """))
+    """)
+    )
     run_blender(["-b", "--factory-startup", "--python", script, "--", "a", "--b", "-f", "7"])
     data = json.loads(report.read_text())
     assert data["name"] == "__main__"
@@ -66,9 +68,16 @@ def test_python_file_sees_args_after_double_dash(run_blender, tmp_path):
 
 
 def test_exception_continues_without_exit_code(run_blender):
-    proc = run_blender(["-b", "--factory-startup",
-                        "--python-expr", "raise RuntimeError('boom')",
-                        "--python-expr", "print('still running')"])
+    proc = run_blender(
+        [
+            "-b",
+            "--factory-startup",
+            "--python-expr",
+            "raise RuntimeError('boom')",
+            "--python-expr",
+            "print('still running')",
+        ]
+    )
     assert "RuntimeError: boom" in proc.stderr
     assert "still running" in proc.stdout
 
@@ -76,17 +85,28 @@ def test_exception_continues_without_exit_code(run_blender):
 def test_exit_code_propagates(run_blender, tmp_path):
     script = tmp_path / "fail.py"
     script.write_text("raise ValueError('bad input')\n")
-    proc = run_blender(["-b", "--factory-startup", "--python-exit-code", "1",
-                        "--python", script, "--python-expr", "print('not reached')"],
-                       check=False)
+    proc = run_blender(
+        [
+            "-b",
+            "--factory-startup",
+            "--python-exit-code",
+            "1",
+            "--python",
+            script,
+            "--python-expr",
+            "print('not reached')",
+        ],
+        check=False,
+    )
     assert proc.returncode == 1
     assert "ValueError: bad input" in proc.stderr
     assert "not reached" not in proc.stdout
 
 
 def test_sys_exit_sets_exit_code(run_blender):
-    proc = run_blender(["-b", "--factory-startup", "--python-expr", "import sys; sys.exit(4)"],
-                       check=False)
+    proc = run_blender(
+        ["-b", "--factory-startup", "--python-expr", "import sys; sys.exit(4)"], check=False
+    )
     assert proc.returncode == 4
 
 
@@ -104,8 +124,18 @@ def test_missing_blend_fails(run_blender, tmp_path):
 def test_addons_enables(run_blender):
     # Blender's --addons loads them without adding them to the preferences.
     code = "import addon_utils; assert addon_utils.check('node_wrangler')[1]; print('ENABLED')"
-    proc = run_blender(["-b", "--factory-startup", "--addons", "node_wrangler",
-                        "--python-exit-code", "1", "--python-expr", code])
+    proc = run_blender(
+        [
+            "-b",
+            "--factory-startup",
+            "--addons",
+            "node_wrangler",
+            "--python-exit-code",
+            "1",
+            "--python-expr",
+            code,
+        ]
+    )
     assert "ENABLED" in proc.stdout
 
 

@@ -19,10 +19,19 @@ def look_at(eye, target, up=(0.0, 0.0, 1.0)):
 
 def camera(name, eye, target, width=64, height=48, lens=50.0, clip_start=1.0, **kw):
     return PinholeCamera(
-        name=name, matrix_world=look_at(eye, target), lens=lens, sensor_width=36.0,
-        sensor_height=24.0, sensor_fit=kw.pop("sensor_fit", "AUTO"), shift_x=kw.pop("shift_x", 0.0),
-        shift_y=kw.pop("shift_y", 0.0), clip_start=clip_start, clip_end=kw.pop("clip_end", 100.0),
-        width=width, height=height, **kw,
+        name=name,
+        matrix_world=look_at(eye, target),
+        lens=lens,
+        sensor_width=36.0,
+        sensor_height=24.0,
+        sensor_fit=kw.pop("sensor_fit", "AUTO"),
+        shift_x=kw.pop("shift_x", 0.0),
+        shift_y=kw.pop("shift_y", 0.0),
+        clip_start=clip_start,
+        clip_end=kw.pop("clip_end", 100.0),
+        width=width,
+        height=height,
+        **kw,
     )
 
 
@@ -54,10 +63,18 @@ def zoom_rig(width=160, height=120, turn_deg=20.0, ratio=4.0):
     camera 1's at 0.4 of its distance, camera 2's half way to the subject)."""
     target = (0.0, 0.0, 0.5)
     far = 20.0
-    c1 = camera("C1", orbit(target, far, 0, 25), target, width, height, clip_start=0.4 * far,
-                clip_end=200.0)
-    c2 = camera("C2", orbit(target, far / ratio, turn_deg, 25), target, width, height,
-                clip_start=0.5 * far / ratio, clip_end=200.0)
+    c1 = camera(
+        "C1", orbit(target, far, 0, 25), target, width, height, clip_start=0.4 * far, clip_end=200.0
+    )
+    c2 = camera(
+        "C2",
+        orbit(target, far / ratio, turn_deg, 25),
+        target,
+        width,
+        height,
+        clip_start=0.5 * far / ratio,
+        clip_end=200.0,
+    )
     return (c1, c2), disk_masks(width, height, 0.2 * width, 0.35 * width)
 
 
@@ -65,9 +82,15 @@ def three_camera_rig(width=192, height=108):
     """Three cameras, each about 2.5 times closer to the subject than the one before and
     turned 10 degrees further; near planes half way from each eye to the subject."""
     target = (0.0, 0.0, 0.5)
-    c1 = camera("C1", orbit(target, 24.0, 0, 25), target, width, height, clip_start=9.6, clip_end=200.0)
-    c2 = camera("C2", orbit(target, 10.0, 10, 25), target, width, height, clip_start=5.0, clip_end=200.0)
-    c3 = camera("C3", orbit(target, 4.0, 20, 25), target, width, height, clip_start=2.0, clip_end=200.0)
+    c1 = camera(
+        "C1", orbit(target, 24.0, 0, 25), target, width, height, clip_start=9.6, clip_end=200.0
+    )
+    c2 = camera(
+        "C2", orbit(target, 10.0, 10, 25), target, width, height, clip_start=5.0, clip_end=200.0
+    )
+    c3 = camera(
+        "C3", orbit(target, 4.0, 20, 25), target, width, height, clip_start=2.0, clip_end=200.0
+    )
     px, py = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
     r = np.hypot(px - width / 2, py - height / 2) / width
     masks = np.stack([r > 0.42, (r > 0.2) & (r < 0.3), r < 0.12])

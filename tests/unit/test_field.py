@@ -93,8 +93,16 @@ def test_streamline_matches_a_tight_adaptive_integration():
 
         count = int(traced.counts[r]) - 1
         s_end = step * (count - 1)
-        ref = solve_ivp(rhs, (0, s_end), traced.vertices[r, 0].astype(np.float64), method="DOP853",
-                        rtol=1e-9, atol=1e-9, t_eval=step * np.arange(count), max_step=grid.cell)
+        ref = solve_ivp(
+            rhs,
+            (0, s_end),
+            traced.vertices[r, 0].astype(np.float64),
+            method="DOP853",
+            rtol=1e-9,
+            atol=1e-9,
+            t_eval=step * np.arange(count),
+            max_step=grid.cell,
+        )
         got = traced.vertices[r, :count].astype(np.float64)
         err = np.linalg.norm(ref.y.T - got, axis=-1).max()
         # N is trilinear, so the field has kinks at cell faces and RK4 is not 4th order
@@ -176,10 +184,58 @@ def test_family_jacobian_matches_central_differences():
     rng = np.random.default_rng(0)
     for i in range(3):
         fam = Family(cams, i)
-        u, v, tau = rng.uniform(-20, 210, 300), rng.uniform(-20, 130, 300), rng.uniform(0, i + 0.9, 300)
+        u, v, tau = (
+            rng.uniform(-20, 210, 300),
+            rng.uniform(-20, 130, 300),
+            rng.uniform(0, i + 0.9, 300),
+        )
         _p, _t, ju, jv = fam.evaluate(u, v, tau, jacobian=True)
         h = 1e-4
         fu = (fam.evaluate(u + h, v, tau)[0] - fam.evaluate(u - h, v, tau)[0]) / (2 * h)
         fv = (fam.evaluate(u, v + h, tau)[0] - fam.evaluate(u, v - h, tau)[0]) / (2 * h)
         np.testing.assert_allclose(ju, fu, atol=1e-7 * np.abs(fu).max())
         np.testing.assert_allclose(jv, fv, atol=1e-7 * np.abs(fv).max())
+
+
+def test_a_solve_that_does_not_converge_is_reported(monkeypatch):
+    import multiscale_camera.core.methods as methods
+    from multiscale_camera.core.errors import SolverDidNotConverge
+
+    def stalled(values, constrained, **_kw):
+        result = solve_membership(values, constrained, max_iterations=1)
+        return type(result)(result.x, False, 1, result.residuals)
+
+    monkeypatch.setattr(methods, "solve_membership", stalled)
+    cams, masks = zoom_rig(64, 48)
+    with pytest.raises(SolverDidNotConverge) as info:
+        prepare(Rig(cams, masks), "SCALAR_FIELD", settings_for("PREVIEW"))
+    assert str(info.value).startswith("The membership solve stopped at relative residual ")
+    assert str(info.value).endswith("after 1 iterations; simplify the masks or lower the quality")
+
+
+def test_crossing_views_of_cameras_that_are_not_neighbours_are_named():
+    from multiscale_camera.core.validate import conflict_messages
+
+    overlaps = np.array([[0, 4, 9], [4, 0, 0], [9, 0, 0]])
+    messages = conflict_messages(["A", "B", "C"], overlaps)
+    assert messages == [
+        "4 voxels lie on preserved rays of both 'A' and 'B': their masks contradict each other "
+        "there and those voxels were left free (widen the gap between the two masks, or move a "
+        "near plane)",
+        "The preserved views of 'A' and 'C', which are not neighbours in the list, cross in 9 "
+        "voxels: rays there cannot be coherent (move one of the cameras, or shrink its mask)",
+    ]
+
+
+def test_non_neighbouring_preserved_views_that_touch_are_detected_without_nan():
+    from .rigs import three_camera_rig
+
+    cams, masks = three_camera_rig(96, 54)
+    # no ring for camera 2, and camera 1 keeps everything outside a hole barely wider
+    # than camera 3's disk: the preserved views of cameras 1 and 3 touch
+    px, py = np.meshgrid(np.arange(96) + 0.5, np.arange(54) + 0.5)
+    r = np.hypot(px - 48, py - 27) / 96
+    masks = np.stack([r > 0.125, np.zeros_like(r, bool), r < 0.12])
+    fld = prepare(Rig(cams, masks), "SCALAR_FIELD", settings_for("PREVIEW"))
+    assert any("which are not neighbours in the list, cross in" in w for w in fld.warnings), fld.warnings
+    assert not np.isnan(fld.traced.vertices).any()

@@ -6,7 +6,12 @@ from .rigs import camera, two_camera_rig
 
 
 def test_bezier_endpoints_and_tangents():
-    q = [np.array([[0.0, 0, 0]]), np.array([[1.0, 0, 0]]), np.array([[2.0, 1, 0]]), np.array([[3.0, 1, 0]])]
+    q = [
+        np.array([[0.0, 0, 0]]),
+        np.array([[1.0, 0, 0]]),
+        np.array([[2.0, 1, 0]]),
+        np.array([[3.0, 1, 0]]),
+    ]
     t = np.array([0.0, 1e-6, 1 - 1e-6, 1.0])
     b = bezier(*q, t)[0]
     np.testing.assert_allclose(b[0], q[0][0])
@@ -26,7 +31,9 @@ def test_curved_rays_start_on_camera1_and_reach_each_camera():
     # R_2 passes through p_2 and leaves along v_2: camera 2's own pinhole ray
     np.testing.assert_allclose(rays[1, :, 8], g.points[1], atol=1e-9)
     tail = rays[1, :, -1] - rays[1, :, -2]
-    np.testing.assert_allclose(tail / np.linalg.norm(tail, axis=-1, keepdims=True), g.directions[1], atol=1e-9)
+    np.testing.assert_allclose(
+        tail / np.linalg.norm(tail, axis=-1, keepdims=True), g.directions[1], atol=1e-9
+    )
     # R_1 never bends: every vertex lies on camera 1's pinhole ray
     pix, _ = cams[0].project(rays[0])
     np.testing.assert_allclose(pix[..., 0], np.broadcast_to(px[:, None], pix.shape[:2]), atol=1e-6)

@@ -18,7 +18,10 @@ def dense_reference(masks):
     for a, b in ((idx[:, 1:], idx[:, :-1]), (idx[1:, :], idx[:-1, :])):
         rows += [a.ravel(), b.ravel()]
         cols += [b.ravel(), a.ravel()]
-    adj = sp.csr_matrix((np.ones(sum(len(r) for r in rows)), (np.concatenate(rows), np.concatenate(cols))), (size, size))
+    adj = sp.csr_matrix(
+        (np.ones(sum(len(r) for r in rows)), (np.concatenate(rows), np.concatenate(cols))),
+        (size, size),
+    )
     lap = sp.diags(np.asarray(adj.sum(1)).ravel()) - adj
     fixed = masks.any(0).ravel()
     free = ~fixed

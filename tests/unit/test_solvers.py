@@ -84,8 +84,12 @@ def random_problem(shape, density, seed):
 
 
 PROBLEMS = [
-    ((12, 9, 7), "random"), ((17, 16, 15), "random"), ((33, 20, 25), "random"),
-    ((12, 9, 7), "slabs"), ((17, 16, 15), "slabs"), ((33, 20, 25), "slabs"),
+    ((12, 9, 7), "random"),
+    ((17, 16, 15), "random"),
+    ((33, 20, 25), "random"),
+    ((12, 9, 7), "slabs"),
+    ((17, 16, 15), "slabs"),
+    ((33, 20, 25), "slabs"),
 ]
 
 

@@ -103,8 +103,10 @@ def test_vector_field_leaves_the_perspective_projection_where_masks_are_small():
     settings = settings_for("STANDARD")
     vec = exit_deviation(prepare_vector_field(rig, settings))
     sca = exit_deviation(prepare_scalar_field(rig, settings))
-    stats = {name: (np.median(a[free]), np.percentile(a[free], 95), np.median(a[near]))
-             for name, a in (("VECTOR_FIELD", vec), ("SCALAR_FIELD", sca))}
+    stats = {
+        name: (np.median(a[free]), np.percentile(a[free], 95), np.median(a[near]))
+        for name, a in (("VECTOR_FIELD", vec), ("SCALAR_FIELD", sca))
+    }
     print("degrees off camera 1's projection (transition p50, p95; near its mask p50):", stats)
     # measured: VECTOR_FIELD 0.34, 7.2, 0.14; SCALAR_FIELD 0.004, 0.007, 0.004
     v50, v95, vnear = stats["VECTOR_FIELD"]
@@ -121,8 +123,9 @@ def test_preserved_rays_of_a_normal_rig():
     fld = prepare_vector_field(rig, settings_for("STANDARD"))
     vector = build_report(fld, "STANDARD")
     for name, rep in (("LINEAR", linear), ("VECTOR_FIELD", vector)):
-        per_camera = [(c["name"], c["preserved_px"]["p95"], c["angle_deg"]["p95"])
-                      for c in rep["cameras"]]
+        per_camera = [
+            (c["name"], c["preserved_px"]["p95"], c["angle_deg"]["p95"]) for c in rep["cameras"]
+        ]
         print(name, "p95 px, p95 deg:", per_camera, "folds", rep["folds"])
     # LINEAR lays out R_i itself: exact up to float32 vertices
     for cam in linear["cameras"]:
