@@ -237,5 +237,7 @@ def test_non_neighbouring_preserved_views_that_touch_are_detected_without_nan():
     r = np.hypot(px - 48, py - 27) / 96
     masks = np.stack([r > 0.125, np.zeros_like(r, bool), r < 0.12])
     fld = prepare(Rig(cams, masks), "SCALAR_FIELD", settings_for("PREVIEW"))
-    assert any("which are not neighbours in the list, cross in" in w for w in fld.warnings), fld.warnings
+    assert any("which are not neighbours in the list, cross in" in w for w in fld.warnings), (
+        fld.warnings
+    )
     assert not np.isnan(fld.traced.vertices).any()
