@@ -36,6 +36,8 @@ def make(name, out_dir):
     bpy.ops.wm.read_homefile(use_empty=True)
     BUILDERS[name](bpy.context.scene)
     path = os.path.join(out_dir, f"{name}.blend")
+    if os.path.exists(path):
+        os.remove(path)  # a fresh file, not a .blend1 backup of the old one
     bpy.ops.wm.save_as_mainfile(filepath=path, compress=True, relative_remap=True)
     print(f"wrote {path}")
     return path

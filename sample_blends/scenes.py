@@ -424,7 +424,7 @@ def build_demo(scene):
 
     cams = [
         _camera(scene, "Cam1 Square", TEAPOT, 35.0, 0.0, 35.0, clip_start=10.0),
-        _camera(scene, "Cam2 Stall", TEAPOT, 8.0, 6.0, 33.0, clip_start=4.0),
+        _camera(scene, "Cam2 Stall", TEAPOT, 8.0, 6.0, 33.0, clip_start=4.5),
         _camera(scene, "Cam3 Object", TEAPOT, 2.0, 12.0, 30.0, clip_start=1.4),
     ]
     # three scales 17x apart on one uniform grid: HIGH keeps every camera within 0.5 px

@@ -22,6 +22,13 @@ def dot3(a, b):
     return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
 
 
+# Newton has missed a point when its error is still above this fraction of camera i's
+# near distance: retry from camera 1's pixel (``solve``).
+RETRY_TOLERANCE = 1e-6
+RETRY_ITERATIONS = 12
+# A point still this far off (fraction of the near distance) after the retry is lost:
+# its tangent becomes camera 1's direction. Closer, Newton's tangent is kept.
+LOST_TOLERANCE = 1e-3
 # Newton stops when the point error is below this fraction of camera i's near distance.
 NEWTON_TOLERANCE = 1e-9
 
@@ -206,10 +213,55 @@ class Family:
                 break
             active, r, t = active[keep], r[keep], t[keep]
             step = solve3(ju[keep], jv[keep], t, -r)
+            # a step out of the family's domain (a direction at right angles to a view
+            # axis) would poison the parameters: leave those points where they are
+            step[~np.isfinite(step).all(axis=1)] = 0.0
             u[active] += step[:, 0]
             v[active] += step[:, 1]
             tau[active] = np.maximum(tau[active] + step[:, 2], 0.0)
         return u, v, tau, error, tangent
+
+    def solve(self, points, u, v, tau, iterations=8):
+        """``invert``, retried from camera 1's pixel where it misses.
+
+        Newton can miss from a poor start (a stale warm start, or ``start``'s guess off to
+        the side of a camera's view, where its projection runs wild); started from the
+        pixel of camera 1 that sees the point it converges. Points it still misses by more
+        than ``LOST_TOLERANCE`` keep camera 1's pinhole direction as their tangent, and are
+        counted.
+
+        Returns
+        -------
+        u, v, tau : (P,) float64. tangent : (P, 3) float64, unit and finite.
+        missed : int, points whose tangent is camera 1's direction.
+        """
+        points = np.asarray(points, dtype=np.float64)
+        u, v, tau, err, tangent = self.invert(points, u, v, tau, iterations)
+        miss = np.flatnonzero(~(err <= RETRY_TOLERANCE * self.scale))
+        if len(miss):
+            first = self.cameras[0]
+            x, y = first.project(points[miss])[0].T
+            # tau from the distances to the near planes, not where the missed run went
+            t0 = self.start(points[miss])[2]
+            u2, v2, t2, err2, tan2 = self.invert(points[miss], x, y, t0, RETRY_ITERATIONS)
+            better = err2 < np.nan_to_num(err[miss], nan=np.inf)
+            sel = miss[better]
+            u[sel], v[sel], tau[sel], err[sel], tangent[sel] = (
+                u2[better],
+                v2[better],
+                t2[better],
+                err2[better],
+                tan2[better],
+            )
+        norm = np.sqrt(dot3(tangent, tangent))
+        lost = ~(err <= LOST_TOLERANCE * self.scale) | ~(norm > 0)
+        out = tangent / np.where(lost, 1.0, norm)[:, None]
+        if lost.any():
+            rel = points[lost] - self.cameras[0].eye
+            out[lost] = rel / np.sqrt(dot3(rel, rel))[:, None]
+            bad = np.flatnonzero(lost)
+            u[bad], v[bad], tau[bad] = self.start(points[bad])
+        return u, v, tau, out, int(lost.sum())
 
 
 def solve3(a, b, c, r):

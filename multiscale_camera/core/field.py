@@ -422,6 +422,7 @@ class FieldTracer:
         self.families = [Family(rig.cameras, i, rig.beta) for i in range(len(rig.cameras))]
         self.cubic = cubic
         self.tangent_seconds = 0.0
+        self.missed = 0  # tangent evaluations Newton could not solve (see Family.solve)
 
     def _tangent(self, i, x, params, rows):
         """Unit tangent X_i at points ``x`` for rays ``rows``; updates ``params[i, rows]``."""
@@ -436,11 +437,11 @@ class FieldTracer:
         bend = np.flatnonzero(~beyond)
         if len(bend):
             r = rows[bend]
-            u, v, tau, _err, tangent = self.families[i].invert(
+            u, v, tau, out[bend], missed = self.families[i].solve(
                 x[bend], params[i, r, 0], params[i, r, 1], params[i, r, 2], WARM_ITERATIONS
             )
             params[i, r, 0], params[i, r, 1], params[i, r, 2] = u, v, tau
-            out[bend] = tangent / np.sqrt(dot3(tangent, tangent))[:, None]
+            self.missed += missed
         self.tangent_seconds += time.perf_counter() - start
         return out
 

@@ -389,6 +389,47 @@ def lattice_stride(rig, grid):
     return int(np.clip(grid.cell / px / 2, 1, MAX_STRIDE))
 
 
+def field_grid(fld, settings):
+    """The grid of a field method (``choose_grid``), with a warning on ``fld`` when the
+    voxel budget caps the cell the accuracy target asks for."""
+    choice = choose_grid(fld.rig, settings.accuracy_px, settings.max_voxels)
+    if choice.capped:
+        fld.warnings.append(
+            f"The accuracy target of {settings.accuracy_px:g} px wants "
+            f"{choice.wanted_cell:.3g}-unit cells; the voxel budget allows "
+            f"{choice.grid.cell:.3g}: transitions near the smallest camera may be coarser "
+            "than asked (raise the quality, or move that camera's near plane farther from "
+            "its eye)"
+        )
+    return choice.grid
+
+
+def trace_field(fld, tracer, fill, settings, should_stop):
+    """Trace a field method's rays on the adaptive lattice into ``fld`` (a TracedField
+    whose ``grid`` and ``membership`` are set) and record the stats and warnings."""
+    rig, grid = fld.rig, fld.grid
+    stride = lattice_stride(rig, grid)
+    cells = step_cells(settings.accuracy_px)
+    max_steps = int(np.ceil(np.linalg.norm(np.array(grid.shape)) / cells * 2)) + 8
+    lattice = _AdaptiveLattice(
+        tracer, rig, cells * grid.cell, max_steps, settings.accuracy_px, should_stop
+    )
+    traced, fld.index, fld.leaves, fld.leaf_of = lattice.run(stride)
+    fld.traced = traced
+    fld.grids.append(list(grid.shape))
+    fld.stats.update(
+        conflicts=fill.conflicts,
+        stalled=int((traced.reason == StopReason.STALLED).sum()),
+        unfinished=int((traced.reason == StopReason.REACHED_LIMIT).sum()),
+        stride=stride,
+        traced=int(len(traced.counts)),
+        cell=grid.cell,
+        newton_lost=int(getattr(tracer, "missed", 0)),
+    )
+    fld.warnings += conflict_messages([c.name for c in rig.cameras], fill.overlaps)
+    fld.warnings += guard_warnings(rig)
+
+
 def prepare_scalar_field(rig, settings=None, should_stop=None):
     """SCALAR_FIELD (paper eq. 4 to 6): a membership field solved on a grid blends
     exact per-camera tangent fields; rays are its RK4 streamlines."""
@@ -396,18 +437,9 @@ def prepare_scalar_field(rig, settings=None, should_stop=None):
     fld = TracedField(rig=rig, method="SCALAR_FIELD")
     fld.warnings += check_rig(rig)
     t0 = time.perf_counter()
-    choice = choose_grid(rig, settings.accuracy_px, settings.max_voxels)
-    grid = choice.grid
-    if choice.capped:
-        fld.warnings.append(
-            f"The accuracy target of {settings.accuracy_px:g} px wants "
-            f"{choice.wanted_cell:.3g}-unit "
-            f"cells; the voxel budget allows {grid.cell:.3g}: transitions near the smallest "
-            "camera may be coarser than asked (raise the quality, or move that camera's near "
-            "plane farther from its eye)"
-        )
+    fld.grid = field_grid(fld, settings)
     families = [Family(rig.cameras, i, rig.beta) for i in range(len(rig.cameras))]
-    fill = fill_membership(rig, grid, families)
+    fill = fill_membership(rig, fld.grid, families)
     t1 = time.perf_counter()
     if should_stop is not None and should_stop():
         raise Cancelled()
@@ -418,16 +450,10 @@ def prepare_scalar_field(rig, settings=None, should_stop=None):
             f"The membership solve stopped at relative residual {solve.residuals[-1]:.2e} after "
             f"{solve.iterations} iterations; simplify the masks or lower the quality"
         )
-    tracer = FieldTracer(rig, grid, solve.x, cubic=settings.cubic)
-    stride = lattice_stride(rig, grid)
-    cells = step_cells(settings.accuracy_px)
-    step = cells * grid.cell
-    max_steps = int(np.ceil(np.linalg.norm(np.array(grid.shape)) / cells * 2)) + 8
-    lattice = _AdaptiveLattice(tracer, rig, step, max_steps, settings.accuracy_px, should_stop)
-    traced, fld.index, fld.leaves, fld.leaf_of = lattice.run(stride)
+    fld.membership = solve.x
+    tracer = FieldTracer(rig, fld.grid, solve.x, cubic=settings.cubic)
+    trace_field(fld, tracer, fill, settings, should_stop)
     t3 = time.perf_counter()
-    fld.traced, fld.grid, fld.membership = traced, grid, solve.x
-    fld.grids.append(list(grid.shape))
     fld.seconds.update(
         fill=t1 - t0,
         solve=t2 - t1,
@@ -439,16 +465,6 @@ def prepare_scalar_field(rig, settings=None, should_stop=None):
         residual=float(solve.residuals[-1]) if solve.residuals else 0.0,
         converged=bool(solve.converged),
     )
-    fld.stats.update(
-        conflicts=fill.conflicts,
-        stalled=int((traced.reason == StopReason.STALLED).sum()),
-        unfinished=int((traced.reason == StopReason.REACHED_LIMIT).sum()),
-        stride=stride,
-        traced=int(len(traced.counts)),
-        cell=grid.cell,
-    )
-    fld.warnings += conflict_messages([c.name for c in rig.cameras], fill.overlaps)
-    fld.warnings += guard_warnings(rig)
     return fld
 
 

@@ -19,20 +19,19 @@ import numpy as np
 
 from .errors import Cancelled, SolverDidNotConverge
 from .family import Family
-from .field import FieldTracer, Traced, choose_grid, fill_membership, step_cells
+from .field import FieldTracer, Traced, fill_membership
 from .grid import FieldSampler
 from .guides import DEFAULT_SEGMENTS, build_guides, curved_rays
 from .methods import (
     RayField,
     Settings,
     TracedField,
-    _AdaptiveLattice,
+    field_grid,
     guard_warnings,
-    lattice_stride,
+    trace_field,
 )
 from .solvers import solve_membership
-from .trace import StopReason
-from .validate import check_rig, conflict_messages
+from .validate import check_rig
 
 # --- LINEAR ----------------------------------------------------------------------------
 
@@ -176,9 +175,8 @@ def unit_tangents(family, points):
 
     Beyond camera i's near plane, the pinhole direction of camera i; before camera 1's
     near plane, where the rays come from, camera 1's; in between, the guide tangent found
-    by inverting the family, from ``Family.start``'s guess and, where Newton misses from
-    there (points off to the side of camera i+1's view, whose projection is wild), from
-    camera 1's pixel.
+    by inverting the family from ``Family.start``'s guess (``Family.solve`` retries the
+    points Newton misses from there).
 
     Parameters
     ----------
@@ -197,14 +195,7 @@ def unit_tangents(family, points):
     if len(bend):
         pts = points[bend]
         u, v, tau = family.start(pts)
-        *_, err, tangent = family.invert(pts, u, v, tau, INVERT_ITERATIONS)
-        miss = np.flatnonzero(err > INVERT_TOLERANCE * family.scale)
-        if len(miss):
-            x, y = first.project(pts[miss])[0].T
-            *_, err2, t2 = family.invert(pts[miss], x, y, tau[miss], INVERT_ITERATIONS)
-            better = err2 < err[miss]
-            tangent[miss[better]] = t2[better]
-        out[bend] = tangent / np.linalg.norm(tangent, axis=-1, keepdims=True)
+        out[bend] = family.solve(pts, u, v, tau, INVERT_ITERATIONS)[3]
     return out
 
 
@@ -274,15 +265,7 @@ def prepare_vector_field(rig, settings=None, should_stop=None):
     fld = TracedField(rig=rig, method="VECTOR_FIELD")
     fld.warnings += check_rig(rig)
     t0 = time.perf_counter()
-    choice = choose_grid(rig, settings.accuracy_px, settings.max_voxels)
-    grid = choice.grid
-    if choice.capped:
-        fld.warnings.append(
-            f"The accuracy target of {settings.accuracy_px:g} px wants "
-            f"{choice.wanted_cell:.3g}-unit cells; the voxel budget allows {grid.cell:.3g}: "
-            "transitions near the smallest camera may be coarser than asked (raise the "
-            "quality, or move that camera's near plane farther from its eye)"
-        )
+    grid = fld.grid = field_grid(fld, settings)
     families = [Family(rig.cameras, i, rig.beta) for i in range(len(rig.cameras))]
     fill = fill_membership(rig, grid, families)
     t1 = time.perf_counter()
@@ -301,32 +284,14 @@ def prepare_vector_field(rig, settings=None, should_stop=None):
                 f"A vector field solve stopped at relative residual {s.residuals[-1]:.2e} after "
                 f"{s.iterations} iterations; simplify the masks or lower the quality"
             )
+    fld.membership = solves[0].x
     field = np.stack([s.x for s in solves[1:]], axis=-1)
-    tracer = VectorFieldTracer(rig, grid, solves[0].x, field)
-    stride = lattice_stride(rig, grid)
-    cells = step_cells(settings.accuracy_px)
-    max_steps = int(np.ceil(np.linalg.norm(np.array(grid.shape)) / cells * 2)) + 8
-    lattice = _AdaptiveLattice(
-        tracer, rig, cells * grid.cell, max_steps, settings.accuracy_px, should_stop
-    )
-    traced, fld.index, fld.leaves, fld.leaf_of = lattice.run(stride)
+    trace_field(fld, VectorFieldTracer(rig, grid, solves[0].x, field), fill, settings, should_stop)
     t4 = time.perf_counter()
-    fld.traced, fld.grid, fld.membership = traced, grid, solves[0].x
-    fld.grids.append(list(grid.shape))
     fld.seconds.update(fill=t1 - t0, tangents=t2 - t1, solve=t3 - t2, trace=t4 - t3)
     fld.solver.update(
         iterations=max(s.iterations for s in solves),
         residual=max((s.residuals[-1] for s in solves if s.residuals), default=0.0),
         converged=True,
     )
-    fld.stats.update(
-        conflicts=fill.conflicts,
-        stalled=int((traced.reason == StopReason.STALLED).sum()),
-        unfinished=int((traced.reason == StopReason.REACHED_LIMIT).sum()),
-        stride=stride,
-        traced=int(len(traced.counts)),
-        cell=grid.cell,
-    )
-    fld.warnings += conflict_messages([c.name for c in rig.cameras], fill.overlaps)
-    fld.warnings += guard_warnings(rig)
     return fld

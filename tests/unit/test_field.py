@@ -241,3 +241,23 @@ def test_non_neighbouring_preserved_views_that_touch_are_detected_without_nan():
         fld.warnings
     )
     assert not np.isnan(fld.traced.vertices).any()
+
+
+def test_stale_warm_start_gives_no_nan_tangent():
+    cams, masks = zoom_rig(64, 48)
+    rig = Rig(cams, masks)
+    grid, _fill, n = field_for(rig)
+    tracer = FieldTracer(rig, grid, n)
+    fam = tracer.families[1]
+    rng = np.random.default_rng(7)
+    u, v, tau = rng.uniform(0, 64, 200), rng.uniform(0, 48, 200), rng.uniform(0.1, 0.9, 200)
+    points, tangent = fam.evaluate(u, v, tau)
+    # warm starts far off: pixels thousands away, as a ray that wandered would leave them
+    tracer.params = np.zeros((2, 200, 3))
+    tracer.params[1, :, 0] = rng.uniform(-5000, 5000, 200)
+    tracer.params[1, :, 1] = rng.uniform(-5000, 5000, 200)
+    got = tracer._tangent(1, points, tracer.params, np.arange(200))
+    assert np.isfinite(got).all()
+    expected = tangent / np.linalg.norm(tangent, axis=-1, keepdims=True)
+    solved = np.abs(got - expected).max(axis=1) < 1e-6
+    assert solved.all() and tracer.missed == 0

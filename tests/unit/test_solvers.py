@@ -4,6 +4,7 @@ import scipy.ndimage as ndi
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from bench.solvers import cones  # the benchmark's membership-like problem
 from multiscale_camera.core import solvers
 from multiscale_camera.core.solvers import (
     ISOLATED_VALUE,
@@ -58,22 +59,6 @@ def slabs(shape, axis=0):
         idx[axis] = slice(int(start * n), max(int(stop * n), int(start * n) + 1))
         constrained[tuple(idx)] = True
         values[tuple(idx)] = value
-    return values, constrained
-
-
-def cones(n):
-    """Three cone segments along z valued 1, 2, 3 (~18% of the voxels), as in bench/."""
-    c = (np.arange(n) + 0.5) / n
-    x, y, z = np.meshgrid(c, c, c, indexing="ij", sparse=True)
-    r = np.hypot(x - 0.5, y - 0.5)
-    radius = 0.55 - 0.4 * z
-    values = np.zeros((n, n, n))
-    constrained = np.zeros((n, n, n), bool)
-    segments = ((1, (0, 0.3), (0.55, 1)), (2, (0.4, 0.6), (0.25, 0.6)), (3, (0.75, 1), (0, 0.35)))
-    for value, (z0, z1), (r0, r1) in segments:
-        m = (z >= z0) & (z < z1) & (r >= r0 * radius) & (r < r1 * radius)
-        constrained |= m
-        values[m] = value
     return values, constrained
 
 
