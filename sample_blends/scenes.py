@@ -409,9 +409,10 @@ def build_demo(scene):
 
     Cameras, largest scale first, all aimed at the teapot from the front (-y) and
     above: "Cam1 Square" 35 m away, "Cam2 Stall" 8 m, "Cam3 Object" 2 m (50 mm
-    lenses, about 4-5x zoom per step). The near planes sit 10 m, 4 m and 1.4 m from
+    lenses, about 4-5x zoom per step). The near planes sit 10 m, 4.5 m and 1.4 m from
     the eyes: the smallest camera's near plane is then a seventh of the first one's
-    width, which one uniform grid resolves at the default quality.
+    width, which one uniform grid resolves; and camera 2's near distance exceeds beta
+    times the 21 m between the first two near planes, so no guide is shortened.
     """
     width, height = DEMO_SIZE
     _setup_render(scene, width, height)

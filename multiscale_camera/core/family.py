@@ -25,7 +25,7 @@ def dot3(a, b):
 # Newton has missed a point when its error is still above this fraction of camera i's
 # near distance: retry from camera 1's pixel (``solve``).
 RETRY_TOLERANCE = 1e-6
-RETRY_ITERATIONS = 12
+RETRY_ITERATIONS = 8
 # A point still this far off (fraction of the near distance) after the retry is lost:
 # its tangent becomes camera 1's direction. Closer, Newton's tangent is kept.
 LOST_TOLERANCE = 1e-3
