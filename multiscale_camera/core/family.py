@@ -29,6 +29,9 @@ RETRY_ITERATIONS = 8
 # A point still this far off (fraction of the near distance) after the retry is lost:
 # its tangent becomes camera 1's direction. Closer, Newton's tangent is kept.
 LOST_TOLERANCE = 1e-3
+# The pixel columns of Newton's Jacobian are refreshed every this many iterations (the
+# tau column always): from a warm start one step away they hardly change.
+JACOBIAN_EVERY = 2
 # Newton stops when the point error is below this fraction of camera i's near distance.
 NEWTON_TOLERANCE = 1e-9
 
@@ -200,7 +203,7 @@ class Family:
         tol = NEWTON_TOLERANCE * self.scale
         for it in range(iterations + 1):
             last = it == iterations
-            if last:
+            if last or it % JACOBIAN_EVERY:
                 p, t = self.evaluate(u[active], v[active], tau[active])
             else:
                 p, t, ju, jv = self.evaluate(u[active], v[active], tau[active], jacobian=True)
@@ -211,8 +214,8 @@ class Family:
             keep = err > tol
             if last or not keep.any():
                 break
-            active, r, t = active[keep], r[keep], t[keep]
-            step = solve3(ju[keep], jv[keep], t, -r)
+            active, r, t, ju, jv = active[keep], r[keep], t[keep], ju[keep], jv[keep]
+            step = solve3(ju, jv, t, -r)
             # a step out of the family's domain (a direction at right angles to a view
             # axis) would poison the parameters: leave those points where they are
             step[~np.isfinite(step).all(axis=1)] = 0.0
