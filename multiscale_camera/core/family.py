@@ -23,8 +23,9 @@ def dot3(a, b):
 
 
 # Newton has missed a point when its error is still above this fraction of camera i's
-# near distance: retry from camera 1's pixel (``solve``).
-RETRY_TOLERANCE = 1e-6
+# near distance (its tangent then errs by about as much, relatively): retry from camera
+# 1's pixel (``solve``). Warm starts end far below it; a diverged run far above.
+RETRY_TOLERANCE = 1e-4
 RETRY_ITERATIONS = 8
 # A point still this far off (fraction of the near distance) after the retry is lost:
 # its tangent becomes camera 1's direction. Closer, Newton's tangent is kept.
