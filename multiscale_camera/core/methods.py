@@ -11,6 +11,7 @@ so the renderer works tile by tile with bounded memory.
 - SCALAR_FIELD: eq. 4 to 6, a smoothed membership blends exact tangent fields.
 """
 
+import abc
 import time
 from dataclasses import dataclass, field
 
@@ -68,7 +69,7 @@ def settings_for(quality, accuracy_px=0.5):
 
 
 @dataclass
-class RayField:
+class RayField(abc.ABC):
     """A prepared ray generator (base of every method's field).
 
     Attributes
@@ -93,9 +94,9 @@ class RayField:
     stats: dict = field(default_factory=dict)
     notices: list = field(default_factory=list)
 
+    @abc.abstractmethod
     def rays(self, ix, iy):
         """Rays for pixels ``(ix, iy)`` ((P,) int arrays, row 0 at the top): a RayBundle."""
-        raise NotImplementedError
 
     def exit_index(self, ix, iy):
         """(P,) int: the vertex where each pixel's ray leaves the modelled volume (the
