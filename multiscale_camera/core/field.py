@@ -126,16 +126,6 @@ def _dilate(a):
     return out
 
 
-def _exit_distance(grid, origins, directions):
-    """(P,) distance along unit ``directions`` from ``origins`` to where they leave the box."""
-    lo, hi = grid.bounds
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t1 = (lo - origins) / directions
-        t2 = (hi - origins) / directions
-    far = np.where(np.isnan(t1), np.inf, np.maximum(t1, t2)).min(axis=1)
-    return np.maximum(far, 0.0)
-
-
 def splat_camera(grid, family, mask, chunk=200_000):
     """Voxels near camera i's preserved rays (eq. 4's support for one camera).
 
@@ -348,7 +338,6 @@ def arc_length_rays(family, u, v, step, vertices):
     cam = family.cameras[-1]
     p_i = cam.near_points(cam.directions(u, v))
     v_i = cam.directions(u, v)
-    out = np.empty((r, vertices, 3))
     if family.i == 0:
         return p_i[:, None] + v_i[:, None] * s[None, :, None]
     taus = np.linspace(0.0, family.i, family.i * ARC_SAMPLES + 1)
@@ -358,14 +347,21 @@ def arc_length_rays(family, u, v, step, vertices):
         [np.zeros((r, 1)), np.cumsum(np.linalg.norm(np.diff(pts, axis=1), axis=-1), axis=1)], axis=1
     )
     bend = cum[:, -1]
-    grid_t = np.arange(len(taus), dtype=np.float64)
-    for row in range(r):
-        inside = s <= bend[row]
-        f = np.interp(s[inside], cum[row], grid_t)
-        lo = np.minimum(f.astype(np.int64), len(taus) - 2)
-        w = (f - lo)[:, None]
-        out[row, inside] = pts[row, lo] * (1 - w) + pts[row, lo + 1] * w
-        out[row, ~inside] = p_i[row] + v_i[row] * (s[~inside] - bend[row])[:, None]
+    # every ray's arc lengths, offset so all rays fit one increasing sequence: one
+    # searchsorted finds each vertex's guide sample
+    span = bend.max() + 1.0
+    flat = (cum + span * np.arange(r)[:, None]).ravel()
+    want = np.minimum(s[None, :], bend[:, None]) + span * np.arange(r)[:, None]
+    hi = np.clip(np.searchsorted(flat, want.ravel()), 1, flat.size - 1).reshape(r, vertices)
+    k = len(taus)
+    hi = np.clip(hi - np.arange(r)[:, None] * k, 1, k - 1)
+    rows = np.arange(r)[:, None]
+    c0, c1 = cum[rows, hi - 1], cum[rows, hi]
+    w = ((np.minimum(s[None, :], bend[:, None]) - c0) / np.maximum(c1 - c0, 1e-300))[..., None]
+    out = pts[rows, hi - 1] * (1 - w) + pts[rows, hi] * w
+    beyond = s[None, :] > bend[:, None]
+    straight = p_i[:, None] + v_i[:, None] * (s[None, :] - bend[:, None])[..., None]
+    out[beyond] = straight[beyond]
     return out
 
 
