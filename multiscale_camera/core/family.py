@@ -225,7 +225,7 @@ class Family:
             tau[active] = np.maximum(tau[active] + step[:, 2], 0.0)
         return u, v, tau, error, tangent
 
-    def solve(self, points, u, v, tau, iterations=8):
+    def solve(self, points, u, v, tau, iterations=8, scale=None):
         """``invert``, retried from camera 1's pixel where it misses.
 
         Newton can miss from a poor start (a stale warm start, or ``start``'s guess off to
@@ -234,14 +234,20 @@ class Family:
         than ``LOST_TOLERANCE`` keep camera 1's pinhole direction as their tangent, and are
         counted.
 
+        ``scale``: (P,) float64 world lengths, the local scale the tolerances are
+        fractions of (nested grids pass their scale field: far upstream of a small
+        camera, a fraction of its own near distance would ask for far more than the
+        cells there resolve); default camera i's near distance.
+
         Returns
         -------
         u, v, tau : (P,) float64. tangent : (P, 3) float64, unit and finite.
         missed : int, points whose tangent is camera 1's direction.
         """
         points = np.asarray(points, dtype=np.float64)
+        scale = self.scale if scale is None else scale
         u, v, tau, err, tangent = self.invert(points, u, v, tau, iterations)
-        miss = np.flatnonzero(~(err <= RETRY_TOLERANCE * self.scale))
+        miss = np.flatnonzero(~(err <= RETRY_TOLERANCE * scale))
         if len(miss):
             first = self.cameras[0]
             x, y = first.project(points[miss])[0].T
@@ -258,7 +264,7 @@ class Family:
                 tan2[better],
             )
         norm = np.sqrt(dot3(tangent, tangent))
-        lost = ~(err <= LOST_TOLERANCE * self.scale) | ~(norm > 0)
+        lost = ~(err <= LOST_TOLERANCE * scale) | ~(norm > 0)
         out = tangent / np.where(lost, 1.0, norm)[:, None]
         if lost.any():
             rel = points[lost] - self.cameras[0].eye

@@ -157,7 +157,10 @@ def splat_camera(grid, family, mask, chunk=200_000):
     pick = np.linspace(0, len(xs) - 1, min(len(xs), 64)).astype(int)
     probe_u, probe_v = xs[pick] + 0.5, ys[pick] + 0.5
     for j in range(family.i):
-        t0, t1 = float(j), float(j + 1)
+        window = _stage_window(grid, family, j, w, h)
+        if window is None:
+            continue
+        t0, t1 = window
         taus = np.linspace(t0, t1, 5)
         uu = np.repeat(probe_u, len(taus))
         vv = np.repeat(probe_v, len(taus))
@@ -186,6 +189,46 @@ def splat_camera(grid, family, mask, chunk=200_000):
     near, around = straight_claims(grid, cam, mask)
     core = claimed | near
     return core, (_dilate(claimed) | around) & ~core
+
+
+# Samples per side of the pixel lattice, and per guide stage, that locate the part of a
+# stage inside a grid's box.
+WINDOW_LATTICE = 17
+WINDOW_TAUS = 65
+
+
+def _stage_window(grid, family, j, w, h):
+    """The tau interval of guide stage j (tau in [j, j + 1]) whose curves come within
+    reach of ``grid``'s box, or None: the part of the stage worth splatting. A lattice of
+    the whole image's curves is tested against the box grown by the lattice's own
+    spacing, so no curve between lattice points is missed.
+
+    Returns
+    -------
+    (t0, t1) floats or None.
+    """
+    lu, lv = np.meshgrid(np.linspace(0, w, WINDOW_LATTICE), np.linspace(0, h, WINDOW_LATTICE))
+    taus = np.linspace(j, j + 1, WINDOW_TAUS)
+    n = lu.size
+    pts, _ = family.evaluate(
+        np.repeat(lu.ravel(), len(taus)), np.repeat(lv.ravel(), len(taus)), np.tile(taus, n)
+    )
+    pts = pts.reshape(WINDOW_LATTICE, WINDOW_LATTICE, len(taus), 3)
+    # the largest gap between neighbouring lattice points, at each tau
+    across_u = np.linalg.norm(np.diff(pts, axis=1), axis=-1).max(axis=(0, 1))
+    across_v = np.linalg.norm(np.diff(pts, axis=0), axis=-1).max(axis=(0, 1))
+    along = np.linalg.norm(np.diff(pts, axis=2), axis=-1).max(axis=(0, 1))
+    gap = np.maximum(across_u, across_v)
+    gap[1:] = np.maximum(gap[1:], along)
+    gap[:-1] = np.maximum(gap[:-1], along)
+    lo, hi = grid.bounds
+    reach = (gap + grid.cell)[None, None, :, None]
+    near = ((pts >= lo - reach) & (pts <= hi + reach)).all(axis=-1).any(axis=(0, 1))
+    if not near.any():
+        return None
+    hits = np.flatnonzero(near)
+    first, last = max(hits[0] - 1, 0), min(hits[-1] + 1, len(taus) - 1)
+    return float(taus[first]), float(taus[last])
 
 
 def _square_dilations(mask, levels):
@@ -267,6 +310,7 @@ class Fill:
     constrained : (nx, ny, nz) bool. conflicts : int, voxels that preserved rays of two
     cameras pass through (left free). per_camera : tuple of int, core voxels each camera
     keeps. overlaps : (N, N) int64, voxels preserved rays of both i and j pass through.
+    cores : tuple of (nx, ny, nz) bool, each camera's core voxels.
     """
 
     values: np.ndarray
@@ -274,6 +318,21 @@ class Fill:
     conflicts: int
     per_camera: tuple
     overlaps: np.ndarray
+    cores: tuple = ()
+
+    @property
+    def conflict_mask(self):
+        """(nx, ny, nz) bool: voxels two cameras' cores claim."""
+        return np.sum(self.cores, axis=0) > 1 if self.cores else np.zeros_like(self.constrained)
+
+    def overlaps_in(self, region):
+        """(N, N) int64: ``overlaps`` counted inside ``region`` ((nx, ny, nz) bool) only."""
+        n = len(self.cores)
+        out = np.zeros((n, n), dtype=np.int64)
+        for i in range(n):
+            for j in range(i + 1, n):
+                out[i, j] = out[j, i] = int((self.cores[i] & self.cores[j] & region).sum())
+        return out
 
 
 def fill_membership(rig, grid, families):
@@ -312,6 +371,7 @@ def fill_membership(rig, grid, families):
         int((cores > 1).sum()),
         tuple(int((c & constrained).sum()) for c in per),
         overlaps,
+        tuple(per),
     )
 
 
@@ -365,6 +425,96 @@ def arc_length_rays(family, u, v, step, vertices):
     return out
 
 
+def scheduled_rays(family, u, v, step, vertices, contains, chunk=4096):
+    """Camera i's curved rays R_i with vertex k at the k-th step of a step function.
+
+    The layout of traces whose step follows the local cell (nested grids): from each
+    vertex x the next lies ``step(x)`` further along the curve, so analytic and traced
+    rays can be mixed and interpolated. Vertices lie exactly on R_i: arc length maps to
+    the family's tau through a dense table, and the point is evaluated at that tau.
+    A ray's vertices stop advancing after its first vertex outside ``contains`` (the
+    rest repeat it; the caller runs them on straight).
+
+    Parameters
+    ----------
+    family : Family. u, v : (R,) float pixel coordinates.
+    step : callable, (P, 3) float64 world points -> (P,) float64 lengths, world units.
+    vertices : int, K. contains : callable, (P, 3) -> (P,) bool, the modelled volume.
+    chunk : int, rays laid out together (bounds the (chunk, K, 3) work arrays).
+
+    Returns
+    -------
+    (R, K, 3) float64, world units.
+    """
+    out = np.empty((len(u), vertices, 3))
+    for s in range(0, len(u), chunk):
+        out[s : s + chunk] = _scheduled_chunk(
+            family, u[s : s + chunk], v[s : s + chunk], step, vertices, contains
+        )
+    return out
+
+
+def _scheduled_chunk(family, u, v, step, vertices, contains):
+    r = len(u)
+    cam = family.cameras[-1]
+    v_i = cam.directions(u, v)
+    p_i = cam.near_points(v_i)
+    out = np.empty((r, vertices, 3))
+    if family.i == 0:
+        out[:, 0] = p_i
+        bend = np.zeros(r)
+        taus = cum = None
+    else:
+        taus = np.linspace(0.0, family.i, family.i * ARC_SAMPLES + 1)
+        pts, _ = family.evaluate(np.repeat(u, len(taus)), np.repeat(v, len(taus)), np.tile(taus, r))
+        pts = pts.reshape(r, len(taus), 3)
+        cum = np.concatenate(
+            [np.zeros((r, 1)), np.cumsum(np.linalg.norm(np.diff(pts, axis=1), axis=-1), axis=1)],
+            axis=1,
+        )
+        bend = cum[:, -1]
+        out[:, 0] = pts[:, 0]
+    s = np.zeros(r)
+    seg = np.zeros(r, dtype=np.int64)  # dense sample before each ray's arc length
+    live = np.arange(r)
+    for k in range(1, vertices):
+        if not len(live):
+            break
+        x = out[live, k - 1]
+        s[live] += step(x)
+        sl = s[live]
+        on_curve = sl < bend[live]
+        nxt = np.empty((len(live), 3))
+        straight = ~on_curve
+        if straight.any():
+            rows = live[straight]
+            nxt[straight] = p_i[rows] + v_i[rows] * (sl[straight] - bend[rows])[:, None]
+        if on_curve.any():
+            rows = live[on_curve]
+            target = sl[on_curve]
+            j = seg[rows]
+            last = cum.shape[1] - 2
+            while True:
+                ahead = (j < last) & (cum[rows, j + 1] <= target)
+                if not ahead.any():
+                    break
+                j[ahead] += 1
+            seg[rows] = j
+            c0, c1 = cum[rows, j], cum[rows, j + 1]
+            t = taus[j] + (taus[j + 1] - taus[j]) * (target - c0) / np.maximum(c1 - c0, 1e-300)
+            nxt[on_curve], _ = family.evaluate(u[rows], v[rows], t)
+        out[live, k] = nxt
+        left = ~contains(nxt)
+        if left.any():
+            # past the first vertex outside, run straight on at the last step's length
+            gone = live[left]
+            d = nxt[left] - x[left]
+            more = np.arange(1, vertices - k)
+            out[gone, k + 1 :] = nxt[left][:, None] + d[:, None] * more[None, :, None]
+            live = live[~left]
+    return out
+
+
 def blend_weights(nval, count, cubic=False):
     """Eq. 6's weights w(N, i) for i = 1..count.
 
@@ -392,7 +542,8 @@ class Traced:
     membership : (R, K) float32, N at each vertex.
     counts : (R,) int32, vertices actually traced (the rest are the straight run-on).
     reason : (R,) int8, ``StopReason`` values.
-    step : float, world units.
+    step : float, world units; or None when the step followed the local cell size of
+        nested grids (vertex k is then the k-th step's end, at no common arc length).
     """
 
     vertices: np.ndarray
@@ -409,12 +560,21 @@ class FieldTracer:
     ----------
     rig : Rig. grid : Grid. membership : (nx, ny, nz) float32, the solved N.
     cubic : bool, monotone cubic blending weights.
+    domain : ``nested.NestedDomain`` or None: when given, N is read from it (``grid``
+        and ``membership`` are then its coarsest level) and the modelled volume is its
+        outer box.
     """
 
-    def __init__(self, rig, grid, membership, cubic=False):
+    def __init__(self, rig, grid, membership, cubic=False, domain=None):
         self.rig = rig
         self.grid = grid
-        self.n_of = FieldSampler(grid, membership)
+        self.domain = domain
+        if domain is None:
+            self.n_of = FieldSampler(grid, membership)
+            self.contains = grid.contains
+        else:
+            self.n_of = domain.sample
+            self.contains = domain.contains
         self.families = [Family(rig.cameras, i, rig.beta) for i in range(len(rig.cameras))]
         self.cubic = cubic
         self.tangent_seconds = 0.0
@@ -433,8 +593,11 @@ class FieldTracer:
         bend = np.flatnonzero(~beyond)
         if len(bend):
             r = rows[bend]
+            scale = None
+            if self.domain is not None and self.domain.scale is not None:
+                scale = self.domain.scale(x[bend])
             u, v, tau, out[bend], missed = self.families[i].solve(
-                x[bend], params[i, r, 0], params[i, r, 1], params[i, r, 2], WARM_ITERATIONS
+                x[bend], params[i, r, 0], params[i, r, 1], params[i, r, 2], WARM_ITERATIONS, scale
             )
             params[i, r, 0], params[i, r, 1], params[i, r, 2] = u, v, tau
             self.missed += missed
@@ -472,7 +635,7 @@ class FieldTracer:
         -------
         (P,) float64, arc length to the first plane crossed within ``step``, else ``step``.
         """
-        first = np.full(len(x), float(step))
+        first = np.broadcast_to(np.asarray(step, dtype=np.float64), (len(x),)).copy()
         for cam in self.rig.cameras[1:]:
             f = cam.forward
             dist = cam.clip_start - dot3(x - cam.eye, f)
@@ -493,9 +656,12 @@ class FieldTracer:
         -------
         ok : (R,) bool, rays that qualify. traced : Traced of those rays.
         """
-        verts = arc_length_rays(self.families[i], u, v, step, vertices)
+        if callable(step):
+            verts = scheduled_rays(self.families[i], u, v, step, vertices, self.contains)
+        else:
+            verts = arc_length_rays(self.families[i], u, v, step, vertices)
         r, k = verts.shape[:2]
-        inside = self.grid.contains(verts.reshape(-1, 3)).reshape(r, k)
+        inside = self.contains(verts.reshape(-1, 3)).reshape(r, k)
         # the tracer keeps the first point outside the grid as a ray's last vertex
         count = np.where(inside.all(axis=1), k, np.argmin(inside, axis=1) + 1).astype(np.int32)
         membership = self.n_of(verts.reshape(-1, 3)).reshape(r, k)
@@ -511,7 +677,7 @@ class FieldTracer:
             membership[sel, :keep],
             count[sel],
             reason[sel],
-            step,
+            None if callable(step) else step,
         )
 
     def trace(self, u0, v0, step, max_steps, should_stop=None):
@@ -540,7 +706,7 @@ class FieldTracer:
             step,
             max_steps,
             stall_speed=STALL_SPEED,
-            inside=self.grid.contains,
+            inside=self.contains,
             should_stop=should_stop,
             with_rays=True,
             split=self.near_plane_split,
@@ -561,11 +727,16 @@ class FieldTracer:
         # so vertex k of every ray lies at the same arc length
         ks = np.arange(k)[None, :]
         after = ks >= count[:, None]
-        run = (ks - (count[:, None] - 1)) * step
+        spacing = step(last)[:, None] if callable(step) else step
+        run = (ks - (count[:, None] - 1)) * spacing
         verts = np.where(after[..., None], last[:, None] + d[:, None] * run[..., None], verts)
         membership = self.n_of(verts.reshape(-1, 3)).reshape(r, k)
         return Traced(
-            verts.astype(np.float32), membership, lines.counts.astype(np.int32), lines.reason, step
+            verts.astype(np.float32),
+            membership,
+            lines.counts.astype(np.int32),
+            lines.reason,
+            None if callable(step) else step,
         )
 
 
@@ -577,11 +748,10 @@ def run_on(traced, vertices):
     if extra <= 0:
         return traced
     d = (v[:, -1] - v[:, -2]).astype(np.float64)
-    d /= np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-30)
-    tail = (
-        v[:, -1:].astype(np.float64)
-        + d[:, None] * (traced.step * np.arange(1, extra + 1))[None, :, None]
-    )
+    if traced.step is not None:
+        d *= traced.step / np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-30)
+    # with a step that follows the local cell, the last segment's own length runs on
+    tail = v[:, -1:].astype(np.float64) + d[:, None] * np.arange(1, extra + 1)[None, :, None]
     return Traced(
         np.concatenate([v, tail.astype(np.float32)], axis=1),
         np.concatenate([m, np.repeat(m[:, -1:], extra, axis=1)], axis=1),

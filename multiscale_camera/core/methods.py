@@ -14,6 +14,7 @@ so the renderer works tile by tile with bounded memory.
 import abc
 import time
 from dataclasses import dataclass, field
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -21,7 +22,9 @@ from .bundle import RayBundle
 from .errors import Cancelled, RigError, SolverDidNotConverge
 from .family import Family
 from .field import (
+    CELLS_ACROSS_NEAR_PER_PX,
     MAX_STRIDE,
+    MIN_CELLS_ACROSS_NEAR,
     FieldTracer,
     choose_grid,
     fill_membership,
@@ -31,6 +34,7 @@ from .field import (
 )
 from .guides import DEFAULT_SEGMENTS, build_guides, curved_rays
 from .harmonic import mask_weights
+from .nested import NestedDomain, ScaleField, choose_levels, solve_levels
 from .solvers import solve_membership
 from .trace import StopReason
 from .validate import check_rig, conflict_messages
@@ -43,11 +47,16 @@ class Settings:
     accuracy_px : float, target preserved error in pixels.
     max_voxels : int, the grid's voxel budget.
     cubic : bool, monotone cubic blending weights (SCALAR_FIELD).
+    nested : bool or None, SCALAR_FIELD on nested grids that refine toward the smaller
+        cameras (``nested``); False: one uniform grid, as the paper; None (default):
+        nested only where one uniform grid within the budget cannot have the cells the
+        accuracy target asks for (scale ratios beyond about 10x).
     """
 
     accuracy_px: float = 0.5
     max_voxels: int = 160**3
     cubic: bool = False
+    nested: bool = None
 
 
 # Quality presets: accuracy target in pixels and voxel budget (about 0.1, 0.4 and
@@ -182,8 +191,11 @@ class TracedField(RayField):
 
     traced : field.Traced, all traced rays. index : (H, W) int32, the traced ray of a
     pixel or -1. leaves : (L, 4) int32 cells (x0, y0, x1, y1) in pixels, corners
-    included. leaf_of : (H, W) int32, the leaf holding each pixel. grid : Grid.
-    membership : (nx, ny, nz) float32.
+    included. leaf_of : (H, W) int32, the leaf holding each pixel. grid : Grid (with
+    nested grids, the coarsest). membership : (nx, ny, nz) float32 on ``grid``.
+    domain : nested.NestedDomain or None, the membership of every level.
+    step : float, world units, or a callable (P, 3) points -> (P,) lengths: the trace's
+    step (``rk4_streamlines``), so rays can be traced again as the field traced them.
     """
 
     traced: object = None
@@ -192,6 +204,12 @@ class TracedField(RayField):
     leaf_of: np.ndarray = None
     grid: object = None
     membership: np.ndarray = None
+    domain: object = None
+    step: object = None
+
+    def tracer(self, cubic=False):
+        """A FieldTracer of this field's membership (for tracing further rays)."""
+        return FieldTracer(self.rig, self.grid, self.membership, cubic=cubic, domain=self.domain)
 
     def _corners(self, ix, iy):
         x0, y0, x1, y1 = self.leaves[self.leaf_of[iy, ix]].T
@@ -405,26 +423,35 @@ def field_grid(fld, settings):
     return choice.grid
 
 
-def trace_field(fld, tracer, fill, settings, should_stop):
+def trace_field(fld, tracer, fill, settings, should_stop, levels=None):
     """Trace a field method's rays on the adaptive lattice into ``fld`` (a TracedField
-    whose ``grid`` and ``membership`` are set) and record the stats and warnings."""
+    whose ``grid`` and ``membership`` are set) and record the stats and warnings.
+
+    ``levels``: the tuple of nested grids (coarsest first) when ``tracer`` reads N from
+    them; the step then follows the local cell (``NestedDomain.cell_at``)."""
     rig, grid = fld.rig, fld.grid
-    stride = lattice_stride(rig, grid)
+    grids = levels or (grid,)
+    stride = lattice_stride(rig, grids[-1])
     cells = step_cells(settings.accuracy_px)
-    max_steps = int(np.ceil(np.linalg.norm(np.array(grid.shape)) / cells * 2)) + 8
-    lattice = _AdaptiveLattice(
-        tracer, rig, cells * grid.cell, max_steps, settings.accuracy_px, should_stop
-    )
+    max_steps = int(sum(np.ceil(np.linalg.norm(np.array(g.shape)) / cells * 2) for g in grids)) + 8
+    if levels:
+        domain = tracer.domain
+        step = lambda x: cells * domain.cell_at(x)  # noqa: E731
+    else:
+        step = cells * grid.cell
+    fld.step = step
+    lattice = _AdaptiveLattice(tracer, rig, step, max_steps, settings.accuracy_px, should_stop)
     traced, fld.index, fld.leaves, fld.leaf_of = lattice.run(stride)
     fld.traced = traced
-    fld.grids.append(list(grid.shape))
+    fld.grids.extend(list(g.shape) for g in grids)
     fld.stats.update(
         conflicts=fill.conflicts,
         stalled=int((traced.reason == StopReason.STALLED).sum()),
         unfinished=int((traced.reason == StopReason.REACHED_LIMIT).sum()),
         stride=stride,
         traced=int(len(traced.counts)),
-        cell=grid.cell,
+        cell=grids[-1].cell,
+        levels=len(grids),
         newton_lost=int(getattr(tracer, "missed", 0)),
     )
     fld.warnings += conflict_messages([c.name for c in rig.cameras], fill.overlaps)
@@ -435,6 +462,11 @@ def prepare_scalar_field(rig, settings=None, should_stop=None):
     """SCALAR_FIELD (paper eq. 4 to 6): a membership field solved on a grid blends
     exact per-camera tangent fields; rays are its RK4 streamlines."""
     settings = settings or Settings()
+    nested = settings.nested
+    if nested is None:
+        nested = choose_grid(rig, settings.accuracy_px, settings.max_voxels).capped
+    if nested and len(rig.cameras) > 1:
+        return _prepare_nested(rig, settings, should_stop)
     fld = TracedField(rig=rig, method="SCALAR_FIELD")
     fld.warnings += check_rig(rig)
     t0 = time.perf_counter()
@@ -467,6 +499,65 @@ def prepare_scalar_field(rig, settings=None, should_stop=None):
         converged=bool(solve.converged),
     )
     return fld
+
+
+def _prepare_nested(rig, settings, should_stop):
+    """SCALAR_FIELD on nested grids (``nested``): the same equations, with cells that
+    shrink with the bundle toward the smaller cameras."""
+    fld = TracedField(rig=rig, method="SCALAR_FIELD")
+    fld.warnings += check_rig(rig)
+    t0 = time.perf_counter()
+    outer = choose_grid(rig, settings.accuracy_px, 1 << 62).grid
+    across = max(MIN_CELLS_ACROSS_NEAR, CELLS_ACROSS_NEAR_PER_PX / settings.accuracy_px)
+    import os
+
+    across *= float(os.environ.get("ACROSS", "1"))
+    levels = choose_levels(rig, settings.accuracy_px, settings.max_voxels, across, outer.bounds)
+    if levels.capped:
+        fld.warnings.append(
+            f"The accuracy target of {settings.accuracy_px:g} px wants "
+            f"{levels.wanted_cell:.3g}-unit cells at the smallest camera; the voxel budget "
+            f"allows {levels.grids[-1].cell:.3g}: its transitions may be coarser than asked "
+            "(raise the quality)"
+        )
+    families = [Family(rig.cameras, i, rig.beta) for i in range(len(rig.cameras))]
+    solved = solve_levels(rig, levels.grids, families, fill_membership, should_stop)
+    t1 = time.perf_counter()
+    if not solved.converged:
+        raise SolverDidNotConverge(
+            f"The membership solve stopped at relative residual {solved.residual:.2e} after "
+            f"{solved.iterations} iterations; simplify the masks or lower the quality"
+        )
+    fld.grid, fld.membership = levels.grids[0], solved.fields[0]
+    domain = fld.domain = NestedDomain(levels.grids, solved.fields, ScaleField(rig.cameras), across)
+    tracer = FieldTracer(rig, fld.grid, fld.membership, cubic=settings.cubic, domain=domain)
+    fill = _composite_fill(levels.grids, solved.fills)
+    trace_field(fld, tracer, fill, settings, should_stop, levels=levels.grids)
+    t2 = time.perf_counter()
+    fld.seconds.update(
+        fill=t1 - t0,  # fill and solve interleave level by level; "solve" holds none
+        solve=0.0,
+        tangents=tracer.tangent_seconds,
+        trace=t2 - t1 - tracer.tangent_seconds,
+    )
+    fld.solver.update(
+        iterations=solved.iterations, residual=solved.residual, converged=solved.converged
+    )
+    return fld
+
+
+def _composite_fill(grids, fills):
+    """The conflicts and overlaps of nested fills, each level counted only where no
+    finer level's box takes over (a coarse level cannot separate what a finer one does)."""
+    conflicts, overlaps = 0, None
+    for lev, (grid, fill) in enumerate(zip(grids, fills)):
+        own = np.ones(grid.shape, dtype=bool)
+        if lev + 1 < len(grids):
+            own &= ~grids[lev + 1].contains(grid.centres(flat=True)).reshape(grid.shape)
+        conflicts += int((fill.conflict_mask & own).sum())
+        o = fill.overlaps_in(own)
+        overlaps = o if overlaps is None else overlaps + o
+    return SimpleNamespace(conflicts=conflicts, overlaps=overlaps)
 
 
 def _trace_pixels(tracer, rig, ix, iy, step, max_steps, should_stop):

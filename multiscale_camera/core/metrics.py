@@ -158,13 +158,40 @@ def preserved_error(cameras, i, bundle, exit_index=None):
     return Preserved(len(v), err, np.degrees(np.arccos(cos)))
 
 
+def _chord_lengths(v):
+    """(R, K) float64: arc length along each polyline of ``v`` (R, K, 3) at its vertices."""
+    seg = np.sqrt(np.einsum("rkc,rkc->rk", np.diff(v, axis=1), np.diff(v, axis=1)))
+    return np.concatenate([np.zeros((len(v), 1)), np.cumsum(seg, axis=1)], axis=1)
+
+
+def _at_lengths(v, cum, targets):
+    """Points of polylines ``v`` (R, K, 3) at arc lengths ``targets`` (R, M), clamped
+    to each polyline's ends: (R, M, 3) float64, and (R, M) int, the vertex before each."""
+    r, k = cum.shape
+    span = max(float(cum[:, -1].max()), float(np.max(targets, initial=0.0))) + 1.0
+    offset = span * np.arange(r)[:, None]
+    flat = (cum + offset).ravel()
+    want = np.clip(targets, 0.0, cum[:, -1:]) + offset
+    hi = np.searchsorted(flat, want.ravel(), side="right").reshape(targets.shape)
+    hi = np.clip(hi - np.arange(r)[:, None] * k, 1, k - 1)
+    rows = np.arange(r)[:, None]
+    c0, c1 = cum[rows, hi - 1], cum[rows, hi]
+    w = ((want - offset - c0) / np.maximum(c1 - c0, 1e-300))[..., None]
+    return v[rows, hi - 1] * (1 - w) + v[rows, hi] * w, hi - 1
+
+
 def quad_folds(vertices, active):
     """Quads of neighbouring rays that fold along the bending stretch.
 
+    The quad of pixels (y, x), (y, x+1), (y+1, x+1), (y+1, x) is compared at equal arc
+    lengths from camera 1's near plane: at each vertex of ray (y, x), the points of the
+    other three rays as far along their own polylines. (Vertex k of neighbouring rays
+    need not lie at the same arc length: with nested grids the step follows the local
+    cell, and a ray that heads for a smaller camera takes shorter steps.)
+
     Parameters
     ----------
-    vertices : (Hy, Wx, K, 3) float array: rays on a pixel lattice, vertex k of every ray
-        at the same step of the march.
+    vertices : (Hy, Wx, K, 3) float array: rays on a pixel lattice.
     active : (Hy, Wx, K) bool: whether vertex k is inside the bending stretch.
 
     Returns
@@ -172,9 +199,25 @@ def quad_folds(vertices, active):
     (Hy - 1, Wx - 1) bool: True where the quad's orientation ever differs from its
     orientation on camera 1's near plane.
     """
+    hy, wx, k = vertices.shape[:3]
     v = vertices.astype(np.float64)
-    a, b, c, d = v[:-1, :-1], v[:-1, 1:], v[1:, 1:], v[1:, :-1]
-    live = active[:-1, :-1] & active[:-1, 1:] & active[1:, 1:] & active[1:, :-1]
+    cum = _chord_lengths(v.reshape(-1, k, 3)).reshape(hy, wx, k)
+
+    def at(sl_y, sl_x):
+        """The rays of one corner of every quad, at the arc lengths of corner a."""
+        rays = v[sl_y, sl_x].reshape(-1, k, 3)
+        pts, idx = _at_lengths(rays, cum[sl_y, sl_x].reshape(-1, k), ref)
+        on = np.take_along_axis(active[sl_y, sl_x].reshape(-1, k), idx, axis=1)
+        return pts.reshape(hy - 1, wx - 1, k, 3), on.reshape(hy - 1, wx - 1, k)
+
+    a = v[:-1, :-1]
+    ref = cum[:-1, :-1].reshape(-1, k)
+    (b, on_b), (c, on_c), (d, on_d) = (
+        at(slice(None, -1), slice(1, None)),
+        at(slice(1, None), slice(1, None)),
+        at(slice(1, None), slice(None, -1)),
+    )
+    live = active[:-1, :-1] & on_b & on_c & on_d
     tangent = np.zeros_like(a)
     for p in (a, b, c, d):
         step = np.diff(p, axis=2, append=p[:, :, -1:] + (p[:, :, -1:] - p[:, :, -2:-1]))

@@ -141,7 +141,10 @@ def rk4_streamlines(
         It may be called with any P up to ``chunk`` and with points outside the
         region (intermediate stages of a step that leaves it).
     seeds : (R, 3) float, world units: the first vertex of each ray.
-    step : float, world units: arc length per step.
+    step : float, world units: arc length per step; or a callable, (P, 3) float64
+        points -> (P,) float64 positive lengths, the step to take from each point (a
+        step that follows the field's local scale; it needs a finite ``max_steps`` and
+        no ``max_length``). Vertex k is then the k-th step's end.
     max_steps : int, steps after which a ray stops with REACHED_LIMIT; may be
         ``np.inf`` when ``max_length`` is finite.
     max_length : float, world units: arc length after which a ray stops with
@@ -173,7 +176,10 @@ def rk4_streamlines(
     seeds = np.asarray(seeds, dtype=np.float64)
     if seeds.ndim != 2 or seeds.shape[1] != 3:
         raise ValueError(f"Seeds must be (R, 3), got {seeds.shape}")
-    if not step > 0:
+    if callable(step):
+        if np.isfinite(max_length) or not np.isfinite(max_steps):
+            raise ValueError("A step function needs a finite max_steps and no max_length")
+    elif not step > 0:
         raise ValueError(f"Step must be a positive length, got {step}")
     if int(record_every) < 1:
         raise ValueError(f"record_every must be at least 1, got {record_every}")
@@ -183,7 +189,7 @@ def rk4_streamlines(
         max_steps = np.ceil(max(max_length, 0.0) / step) + 1
     tracer = _Tracer(
         velocity,
-        float(step),
+        step if callable(step) else float(step),
         max(int(max_steps), 0),
         float(max_length),
         float(stall_speed),
@@ -243,7 +249,7 @@ class _Tracer:
         self.b = [(j, c) for j, c in enumerate(tableau.b) if c != 0.0]
         self.cancelled = False
         steps = max_steps
-        if np.isfinite(max_length):
+        if np.isfinite(max_length) and not callable(step):
             steps = min(steps, int(np.ceil(max(max_length, 0.0) / step)) + 1)
         # Seed, every n-th step, last point inside and the final point.
         self.most_vertices = steps // record_every + 3
@@ -298,14 +304,14 @@ class _Tracer:
                 ids, x, s, k0 = ids[keep], x[keep], s[keep], k0[keep]
                 if not len(ids):
                     break
-            h = np.minimum(self.step, self.max_length - s)
+            h = self._lengths(x, s)
             x_new = self._split_step(x, k0, h, ids + first)
             s += h
             left = np.zeros(len(ids), dtype=bool)
             if self.inside is not None:
                 left = ~np.asarray(self.inside(x_new), dtype=bool)
             limit = ~left & (
-                (n_step == self.max_steps) | (s >= self.max_length - LENGTH_TOLERANCE * self.step)
+                (n_step == self.max_steps) | (s >= self.max_length - LENGTH_TOLERANCE * h)
             )
             if left.any():
                 reason[ids[left]] = StopReason.LEFT_GRID
@@ -327,11 +333,18 @@ class _Tracer:
         length[ids] = s  # rays cut short by cancelling
         return rec.trimmed(), rec.counts, reason, length
 
+    def _lengths(self, x, s):
+        """(P,) float64: the length of the next step from points ``x`` at arc lengths
+        ``s``."""
+        if callable(self.step):
+            return np.asarray(self.step(x), dtype=np.float64)
+        return np.minimum(self.step, self.max_length - s)
+
     def _split_step(self, x, k0, h, rays):
         """One step of length h (P,), cut in two where ``split`` asks."""
         if self.split is None:
             return self._step(x, k0, h[:, None], rays)
-        first = np.clip(self.split(x, k0, rays, self.step), 0.0, h)
+        first = np.clip(self.split(x, k0, rays, h), 0.0, h)
         cut = (first > 1e-9 * h) & (first < (1.0 - 1e-9) * h)
         out = np.empty_like(x)
         whole = ~cut

@@ -95,3 +95,59 @@ def three_camera_rig(width=192, height=108):
     r = np.hypot(px - width / 2, py - height / 2) / width
     masks = np.stack([r > 0.42, (r > 0.2) & (r < 0.3), r < 0.12])
     return (c1, c2, c3), masks
+
+
+def _chain(distances, clips, turns, width, height, target=(0.0, 0.0, 0.5)):
+    """Cameras looking at ``target`` from ``distances``, turned ``turns`` degrees about it,
+    with near planes at ``clips``."""
+    return tuple(
+        camera(
+            f"C{n + 1}",
+            orbit(target, d, t, 25),
+            target,
+            width,
+            height,
+            clip_start=c,
+            clip_end=200.0,
+        )
+        for n, (d, c, t) in enumerate(zip(distances, clips, turns))
+    )
+
+
+def _rings(width, height):
+    px, py = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
+    r = np.hypot(px - width / 2, py - height / 2) / width
+    return np.stack([r > 0.42, (r > 0.2) & (r < 0.3), r < 0.12])
+
+
+def zoom25_rig(width=192, height=108):
+    """Three cameras, each five times closer than the one before (25x from the first
+    near plane to the last), turned 10 degrees further each."""
+    d = 24.0
+    cams = _chain(
+        (d, d / 5, d / 25), (0.4 * d, 0.4 * d / 5, 0.4 * d / 25), (0, 10, 20), width, height
+    )
+    return cams, _rings(width, height)
+
+
+def zoom1000_rig(width=192, height=108):
+    """The galleon's scale: three cameras, each about 31.6 times closer than the one
+    before, 1000x from the first near plane to the last."""
+    d, k = 24.0, 1000.0**0.5
+    cams = _chain(
+        (d, d / k, d / k**2), (0.4 * d, 0.4 * d / k, 0.4 * d / k**2), (0, 10, 20), width, height
+    )
+    return cams, _rings(width, height)
+
+
+def turn100_rig(width=192, height=108):
+    """Two cameras, the second four times closer and turned 100 degrees about the subject:
+    past what the guides can bend (validation refuses it)."""
+    cams = _chain((20.0, 5.0), (8.0, 2.5), (0, 100), width, height)
+    return cams, disk_masks(width, height, 0.2 * width, 0.35 * width)
+
+
+def contradictory_rig(width=192, height=108):
+    """Two cameras at 4x whose masks overlap: the same pixels asked of both."""
+    cams = _chain((20.0, 5.0), (8.0, 2.5), (0, 20), width, height)
+    return cams, disk_masks(width, height, 0.3 * width, 0.25 * width)

@@ -1,5 +1,7 @@
 """The scalar-field method against independent references."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
@@ -124,17 +126,18 @@ def test_zoom_rig_scalar_field_meets_the_accuracy_target():
     assert not any(np.isnan(fld.traced.vertices).ravel())
 
 
-def test_interpolated_rays_agree_with_directly_traced_ones():
+@pytest.mark.parametrize("nested", [False, True])
+def test_interpolated_rays_agree_with_directly_traced_ones(nested):
     cams, masks = zoom_rig(160, 120)
     rig = Rig(cams, masks)
-    fld = prepare(rig, "SCALAR_FIELD", settings_for("STANDARD"))
+    fld = prepare(rig, "SCALAR_FIELD", replace(settings_for("STANDARD"), nested=nested))
     rng = np.random.default_rng(5)
     ix, iy = rng.integers(0, 159, 300), rng.integers(0, 120, 300)
     got = fld.rays(ix, iy).vertices.astype(np.float64)
-    tracer = FieldTracer(rig, fld.grid, fld.membership)
+    tracer = fld.tracer()
     k = got.shape[1] - 1
-    ref = tracer.trace(ix + 0.5, iy + 0.5, fld.traced.step, k)
-    right = tracer.trace(ix + 1.5, iy + 0.5, fld.traced.step, k)
+    ref = tracer.trace(ix + 0.5, iy + 0.5, fld.step, k)
+    right = tracer.trace(ix + 1.5, iy + 0.5, fld.step, k)
     n = min(got.shape[1], ref.vertices.shape[1], right.vertices.shape[1])
     a, b, g = (x[:, :n].astype(np.float64) for x in (ref.vertices, right.vertices, got))
     t = np.diff(a, axis=1, append=2 * a[:, -1:] - a[:, -2:-1])
@@ -197,8 +200,10 @@ def test_family_jacobian_matches_central_differences():
         np.testing.assert_allclose(jv, fv, atol=1e-7 * np.abs(fv).max())
 
 
-def test_a_solve_that_does_not_converge_is_reported(monkeypatch):
+@pytest.mark.parametrize("nested", [False, True])
+def test_a_solve_that_does_not_converge_is_reported(monkeypatch, nested):
     import multiscale_camera.core.methods as methods
+    import multiscale_camera.core.nested as nested_grids
     from multiscale_camera.core.errors import SolverDidNotConverge
 
     def stalled(values, constrained, **_kw):
@@ -206,9 +211,10 @@ def test_a_solve_that_does_not_converge_is_reported(monkeypatch):
         return type(result)(result.x, False, 1, result.residuals)
 
     monkeypatch.setattr(methods, "solve_membership", stalled)
+    monkeypatch.setattr(nested_grids, "solve_membership", stalled)
     cams, masks = zoom_rig(64, 48)
     with pytest.raises(SolverDidNotConverge) as info:
-        prepare(Rig(cams, masks), "SCALAR_FIELD", settings_for("PREVIEW"))
+        prepare(Rig(cams, masks), "SCALAR_FIELD", replace(settings_for("PREVIEW"), nested=nested))
     assert str(info.value).startswith("The membership solve stopped at relative residual ")
     assert str(info.value).endswith("after 1 iterations; simplify the masks or lower the quality")
 

@@ -1,0 +1,330 @@
+"""Nested grids: boxes that refine toward the smaller cameras along their bundle.
+
+The rays of a multiscale image converge from camera 1's near plane to the last
+camera's: the bundle's width w(tau) falls by the rig's scale ratio, up to 1000x on the
+paper's galleon. A uniform grid fine enough for the narrow end would need the ratio
+squared times more cells across camera 1's near plane than it has. Here level L has
+cells of c_0 / 2**L and covers the bundle from where it has narrowed enough to need them
+on (``choose_levels``): every level holds about the same number of cells across the
+bundle, so the cost grows with the logarithm of the ratio, not its square.
+
+Membership (eq. 5) is solved level by level, coarsest first (``solve_levels``): level L
+holds its boundary voxels at level L-1's values (its centres are also level L-1's, the
+grids are aligned) and its own fill (eq. 4) inside. N(x) is read from the finest level
+whose box holds x, blended into its parent across a band of ``BAND_CELLS`` cells inside
+the box's faces (``NestedDomain.sample``): continuous everywhere, so streamlines cross
+levels without kinks.
+
+Where cells are needed, and how long the trace's steps are, both follow one smooth
+scale: ``ScaleField``, the width of the nearest camera's frustum at a point. The step
+must vary smoothly in space: neighbouring rays interpolated vertex by vertex need their
+k-th vertices at corresponding places, and a step that jumped at a box's face would
+put them out of step wherever one ray crosses the face and its neighbour does not.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .grid import FieldSampler, Grid
+from .guides import DEFAULT_SEGMENTS, build_guides, curved_rays
+from .solvers import solve_membership
+
+# Level L starts where the cell the bundle asks for falls below this many times level
+# L-1's cell: before level L-1 becomes too coarse, so the hand-over band lies where the
+# parent still resolves the bundle.
+START_RATIO = 1.4
+# Width, in a level's cells, of the band inside its faces where its membership and step
+# blend into its parent's.
+BAND_CELLS = 3.0
+# Cells of a level kept between its box and the bundle, and parent cells between a box
+# and its parent's faces (beyond the parent's own band).
+MARGIN_CELLS = 2
+# The cell the trace's step is measured in is the scale field over the cells wanted
+# across it, over this (an environment override serves calibration runs).
+STEP_SCALE = float(__import__("os").environ.get("MS_STEP_SCALE", "2.0"))
+# Samples per guide stage for the bundle's width profile.
+PROFILE_SEGMENTS = 4 * DEFAULT_SEGMENTS
+
+
+@dataclass(frozen=True)
+class Levels:
+    """The nested grids of a rig.
+
+    grids : tuple of Grid, coarsest first; grids[L + 1] lies inside grids[L], its cell
+        half as large, its centres a superset of grids[L]'s within its box.
+    wanted_cell : float, world units: the finest cell the accuracy target asks for.
+    capped : bool, whether the voxel budget forced coarser cells.
+    """
+
+    grids: tuple
+    wanted_cell: float
+    capped: bool
+
+    @property
+    def voxels(self):
+        return sum(g.size for g in self.grids)
+
+
+class ScaleField:
+    """The scale of the multiscale image at a point: the width of the view of the
+    camera whose eye is nearest, as seen at that distance (never nearer than its near
+    plane). On camera i's near plane it is camera i's near-plane width; along the
+    bundle it shrinks toward the smaller cameras as the bundle does; it is continuous,
+    with kinks only where two cameras are equally near.
+
+    Parameters
+    ----------
+    cameras : sequence of PinholeCamera.
+    """
+
+    def __init__(self, cameras):
+        self.eyes = np.array([c.eye for c in cameras], dtype=np.float64)
+        self.spread = np.array([c.view_plane()[1] - c.view_plane()[0] for c in cameras])
+        self.near = np.array([c.clip_start for c in cameras], dtype=np.float64)
+
+    def __call__(self, points):
+        """(P,) float64, world units, at ``points`` (P, 3) world units."""
+        p = np.asarray(points, dtype=np.float64)
+        out = np.full(len(p), np.inf)
+        for eye, spread, near in zip(self.eyes, self.spread, self.near):
+            d = p - eye
+            dist = np.sqrt(d[:, 0] ** 2 + d[:, 1] ** 2 + d[:, 2] ** 2)
+            np.minimum(out, spread * np.maximum(dist, near), out=out)
+        return out
+
+
+def bundle_profile(rig, lattice=17):
+    """Where the image's rays run, and how wide their bundle is, along the chain.
+
+    The last camera's family bends through every near plane: its curves span the bundle
+    of the final image (other families leave it straight, into their own frusta).
+
+    Returns
+    -------
+    taus : (T,) float64, curve parameter (stage j is [j, j + 1]; past the last near
+        plane, n - 1 + the fraction of the tail's length run straight on, up to n).
+    points : (T, P, 3) float64, world units: the curves of a lattice x lattice pixel grid.
+    width : (T,) float64, world units: the bundle's scale there (the smallest
+        ``ScaleField`` value of its points). It falls along the chain and grows again
+        past the last near plane, where the last camera's frustum widens.
+    """
+    cams = rig.cameras
+    w, h = rig.size
+    px, py = np.meshgrid(np.linspace(0, w, lattice), np.linspace(0, h, lattice))
+    g = build_guides(cams, px.ravel(), py.ravel(), rig.beta)
+    n = len(cams)
+    rays = curved_rays(g, PROFILE_SEGMENTS)[-1]  # (P, K, 3)
+    # the tail: up to a quarter of the last stage's chord past the last near plane (the
+    # uniform grid's box), sampled geometrically from a hundredth of the last camera's
+    # near distance, so the levels can follow the frustum as it widens again
+    length = 0.25 * np.linalg.norm(g.points[-1] - g.points[-2], axis=-1)
+    near = cams[-1].clip_start
+    frac = np.geomspace(0.01 * near / max(length.max(), 0.02 * near), 1.0, 48)
+    tail = g.points[-1][:, None] + g.directions[-1][:, None] * (length[:, None] * frac)[..., None]
+    pts = np.concatenate([rays[:, : 1 + (n - 1) * PROFILE_SEGMENTS], tail], axis=1)
+    pts = pts.transpose(1, 0, 2)
+    taus = np.concatenate([np.linspace(0, n - 1, 1 + (n - 1) * PROFILE_SEGMENTS), n - 1 + frac])
+    width = ScaleField(cams)(pts.reshape(-1, 3)).reshape(pts.shape[:2]).min(axis=1)
+    return taus, pts, width
+
+
+def _aligned_child(parent, lo, hi):
+    """The grid of half the parent's cell covering [lo, hi], its centres on the parent's
+    half-cell lattice (so every parent centre inside it is one of its centres) and its
+    box inside the parent's, MARGIN_CELLS + band parent cells from its faces."""
+    cell = parent.cell / 2.0
+    p_lo, p_hi = parent.bounds
+    keep = (MARGIN_CELLS + BAND_CELLS) * parent.cell
+    lo = np.maximum(lo, p_lo + keep)
+    hi = np.minimum(hi, p_hi - keep)
+    hi = np.maximum(hi, lo)
+    # round outwards to parent centres
+    first = np.floor((lo - parent.origin) / parent.cell)
+    last = np.ceil((hi - parent.origin) / parent.cell)
+    first = np.maximum(first, 0)
+    last = np.minimum(last, np.array(parent.shape) - 1)
+    last = np.maximum(last, first + 1)
+    origin = parent.origin + first * parent.cell
+    shape = tuple(int(n) for n in (2 * (last - first) + 1))
+    return Grid(origin, cell, shape)
+
+
+def choose_levels(rig, accuracy_px, max_voxels, cells_across, outer_box):
+    """Nested grids for ``rig`` from its accuracy target.
+
+    Parameters
+    ----------
+    rig : Rig. accuracy_px : float, target preserved error in pixels (recorded only;
+        ``cells_across`` carries it). max_voxels : int, budget for all levels together.
+    cells_across : float, cells wanted across the bundle's width at every depth.
+    outer_box : (lo, hi) two (3,) float arrays, world units: the region level 0 covers.
+
+    Returns
+    -------
+    Levels
+    """
+    taus, pts, width = bundle_profile(rig)
+    wanted = width / cells_across  # the cell each part of the bundle asks for
+    finest = wanted.min()
+    lo, hi = outer_box
+    scale = 1.0
+    capped = False
+    while True:
+        c0 = wanted[0] * scale
+        levels = int(max(0, np.ceil(np.log2(c0 / (finest * scale)) - 1e-9)))
+        boxes = []
+        for lev in range(1, levels + 1):
+            parent_cell = c0 / 2 ** (lev - 1)
+            need = wanted * scale < START_RATIO * parent_cell
+            # one sample either side of where the level is needed
+            need[:-1] |= need[1:].copy()
+            need[1:] |= need[:-1].copy()
+            sel = pts[need].reshape(-1, 3)
+            pad = MARGIN_CELLS * parent_cell / 2 + BAND_CELLS * parent_cell / 2
+            boxes.append((sel.min(0) - pad, sel.max(0) + pad))
+        # a child box must sit inside its parent: grow parents around their children,
+        # finest first, before laying out the aligned grids coarsest first
+        boxes.insert(0, (np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)))
+        for lev in range(len(boxes) - 2, -1, -1):
+            child_lo, child_hi = boxes[lev + 1]
+            keep = (MARGIN_CELLS + BAND_CELLS + 1) * c0 / 2**lev
+            b_lo, b_hi = boxes[lev]
+            boxes[lev] = (np.minimum(b_lo, child_lo - keep), np.maximum(b_hi, child_hi + keep))
+        grids = [Grid.from_bounds(*boxes[0], c0)]
+        for box_lo, box_hi in boxes[1:]:
+            grids.append(_aligned_child(grids[-1], box_lo, box_hi))
+        total = sum(g.size for g in grids)
+        if total <= max_voxels:
+            return Levels(tuple(grids), float(finest), capped)
+        scale *= 1.1
+        capped = True
+
+
+def _ramp(grid, points, band):
+    """(P,) float64 in [0, 1]: 0 outside the box of ``grid``'s centres and on its faces,
+    rising smoothly (smoothstep) to 1 at ``band`` world units inside."""
+    lo, hi = grid.bounds
+    p = np.asarray(points, dtype=np.float64)
+    inside = None
+    for a in range(3):  # per column: a reduction over a length-3 axis is slow
+        c = p[:, a]
+        d = np.minimum(c - lo[a], hi[a] - c)
+        inside = d if inside is None else np.minimum(inside, d, out=inside)
+    s = np.clip(inside / band, 0.0, 1.0)
+    s[np.isnan(s)] = 0.0
+    return s * s * (3.0 - 2.0 * s)
+
+
+class NestedDomain:
+    """Membership on nested grids, read as one continuous field.
+
+    Parameters
+    ----------
+    grids : sequence of Grid, coarsest first (``Levels.grids``).
+    fields : sequence of (nx, ny, nz) float arrays, the membership on each grid.
+    """
+
+    def __init__(self, grids, fields, scale=None, cells_across=1.0):
+        self.grids = tuple(grids)
+        self.scale = scale
+        self.cells_across = float(cells_across)
+        self.samplers = [FieldSampler(g, f) for g, f in zip(grids, fields)]
+        self.fields = [s.rows[:, 0].reshape(g.shape) for s, g in zip(self.samplers, grids)]
+        self.bands = [BAND_CELLS * g.cell for g in self.grids]
+        self.log_cells = [np.log(g.cell) for g in self.grids]
+
+    @property
+    def finest_cell(self):
+        return self.grids[-1].cell
+
+    def contains(self, points):
+        """(P,) bool: inside the outermost box (the modelled volume)."""
+        return self.grids[0].contains(points)
+
+    def _blend(self, points, coarse, finer):
+        """Start from ``coarse`` (P,) and blend in ``finer(level, sel)`` (values on the
+        points ``sel`` of level ``level``) by each level's ramp, coarsest first."""
+        out = coarse
+        # the boxes are nested: only points inside a level's box can be inside its child's
+        cand = np.arange(len(points))
+        for lev in range(1, len(self.grids)):
+            r = _ramp(self.grids[lev], points[cand], self.bands[lev])
+            keep = r > 0
+            cand, r = cand[keep], r[keep]
+            if not len(cand):
+                break
+            out[cand] += r * (finer(lev, cand) - out[cand])
+        return out
+
+    def sample(self, points):
+        """Membership N at ``points`` ((P, 3) world units): (P,) float32."""
+        points = np.asarray(points, dtype=np.float64)
+        out = self.samplers[0](points).astype(np.float64)
+        return self._blend(points, out, lambda lev, sel: self.samplers[lev](points[sel])).astype(
+            np.float32
+        )
+
+    def cell_at(self, points):
+        """The cell the accuracy target asks for at ``points`` ((P, 3) world units):
+        (P,) float64, world units, the ``ScaleField`` over the cells wanted across it,
+        halved (where a level takes over, its cells are between 1/1.4 and 1/2.8 of it:
+        ``START_RATIO``); the coarsest level's cell where there is no scale field."""
+        points = np.asarray(points, dtype=np.float64)
+        if self.scale is None:
+            return np.full(len(points), self.grids[0].cell)
+        return self.scale(points) / (STEP_SCALE * self.cells_across)
+
+
+@dataclass(frozen=True)
+class LevelSolve:
+    """The membership of every level and how its solves went.
+
+    fields : list of (nx, ny, nz) float32. fills : list of field.Fill.
+    iterations : int, the most PCG iterations of a level. residual : float, the worst
+    final relative residual. converged : bool, every level converged.
+    """
+
+    fields: list
+    fills: list
+    iterations: int
+    residual: float
+    converged: bool
+
+
+def solve_levels(rig, grids, families, fill_membership, should_stop=None):
+    """Fill and solve every level, coarsest first; a finer level's boundary voxels hold
+    its parent's membership (Dirichlet), its own constraints hold inside.
+
+    Parameters
+    ----------
+    rig : Rig. grids : sequence of Grid, coarsest first. families : list of Family.
+    fill_membership : callable (rig, grid, families) -> Fill (``field.fill_membership``).
+    should_stop : optional callable, asked between levels.
+
+    Returns
+    -------
+    LevelSolve
+    """
+    from .errors import Cancelled
+
+    fields, fills, its, res, ok = [], [], 0, 0.0, True
+    for lev, grid in enumerate(grids):
+        if should_stop is not None and should_stop():
+            raise Cancelled()
+        fill = fill_membership(rig, grid, families)
+        values, constrained, x0 = fill.values, fill.constrained, None
+        if lev:
+            parent = FieldSampler(grids[lev - 1], fields[-1])
+            x0 = parent(grid.centres(flat=True)).reshape(grid.shape)
+            shell = np.ones(grid.shape, dtype=bool)
+            shell[1:-1, 1:-1, 1:-1] = False
+            values = np.where(shell, x0, values).astype(np.float32)
+            constrained = constrained | shell
+        solve = solve_membership(values, constrained, x0=x0)
+        fields.append(solve.x)
+        fills.append(fill)
+        its = max(its, solve.iterations)
+        res = max(res, float(solve.residuals[-1]) if solve.residuals else 0.0)
+        ok = ok and bool(solve.converged)
+    return LevelSolve(fields, fills, its, res, ok)
