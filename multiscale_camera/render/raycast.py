@@ -1,11 +1,10 @@
-"""First hit along bent rays: each polyline's segments are cast in order on one BVH.
+"""First hit along bent rays: each ray's straight segments (``core.sampling.Segments``)
+are cast in order on one BVH until one hits.
 
-Polylines are simplified first: straight runs (collinear vertices) become one segment,
-so a ray that does not bend costs one cast, and a bend keeps a vertex each time its
-accumulated turning grows by a fraction of its whole turn. The bending stretch holds no
-geometry in a well-made rig, and beyond it the rays run straight, so what a pixel shows
-is untouched. The loop over casts is the only per-ray Python in the renderer;
-everything around it is numpy.
+Segments that miss the scene's bounding box are culled before any cast, and the rest
+are clipped to it, so a ray pays only for the stretch that can meet geometry. The loop
+over casts is the only per-ray Python in the renderer: one flat ``zip`` over prepared
+lists, checking ``should_stop`` every ``CASTS_PER_CHECK`` segments.
 """
 
 from dataclasses import dataclass
@@ -14,71 +13,8 @@ import numpy as np
 
 from ..core.errors import Cancelled
 
-# Turning below this (radians) is float32 noise of the stored vertices, not a bend.
-NOISE = 1e-4
-# A bent ray keeps a vertex each time its accumulated turning grows by 1/BEND_SEGMENTS of
-# its whole turn (a guide is then followed within about 1% of its length), or by
-# MIN_QUANTUM radians for a ray that hardly turns (its chords then stray by at most
-# MIN_QUANTUM / 8 of their length, 2.5e-4).
-BEND_SEGMENTS = 16
-MIN_QUANTUM = 2e-3
-# How many rays between two calls of ``should_stop``: a fraction of a second of work.
-RAYS_PER_CHECK = 2048
-
-
-@dataclass(frozen=True)
-class Segments:
-    """The bundle's polylines as a flat list of straight segments.
-
-    origin, direction : (S, 3) float64 (direction unit), world units.
-    length : (S,) float64; a ray's last segment includes the bundle's reach.
-    ray : (S,) int64, the ray each segment belongs to; ``offsets`` (R+1,) int64 index
-        each ray's run of segments. ``before`` (S,) float64: arc length of the ray
-        before the segment.
-    """
-
-    origin: np.ndarray
-    direction: np.ndarray
-    length: np.ndarray
-    ray: np.ndarray
-    offsets: np.ndarray
-    before: np.ndarray
-
-
-def polyline_segments(bundle):
-    """Flatten a ``RayBundle`` into merged straight segments (``Segments``)."""
-    v = bundle.vertices.astype(np.float64)
-    r, k = v.shape[:2]
-    d = np.diff(v, axis=1)
-    n = np.linalg.norm(d, axis=-1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        u = d / n[..., None]
-    turn = np.arccos(np.clip(np.nan_to_num((u[:, :-1] * u[:, 1:]).sum(-1), nan=1.0), -1.0, 1.0))
-    total = np.cumsum(turn, axis=1)
-    quantum = np.maximum(total[:, -1:] / BEND_SEGMENTS, MIN_QUANTUM)
-    band = np.floor(total / quantum)
-    keep = np.ones((r, k), dtype=bool)
-    # keep the vertex where the accumulated turning enters a new band, and the last
-    # vertex of every bend, so the straight run after it starts exactly there
-    entered = np.diff(band, axis=1, prepend=0) > 0
-    bending = turn > NOISE
-    ends = bending & np.append(~bending[:, 1:], np.ones((r, 1), bool), axis=1)
-    keep[:, 1:-1] = entered | ends
-    rid, kid = np.nonzero(keep)
-    pts = v[rid, kid]
-    same = rid[1:] == rid[:-1]
-    origin = pts[:-1][same]
-    vec = pts[1:][same] - origin
-    length = np.linalg.norm(vec, axis=-1)
-    direction = vec / np.where(length > 0, length, 1.0)[:, None]
-    ray = rid[:-1][same]
-    counts = np.bincount(ray, minlength=r)
-    offsets = np.concatenate([[0], np.cumsum(counts)])
-    cum = np.cumsum(length)
-    before = cum - length - np.repeat(cum[offsets[:-1]] - length[offsets[:-1]], counts)
-    length = length.copy()
-    length[offsets[1:] - 1] += bundle.reach
-    return Segments(origin, direction, length, ray, offsets, before)
+# Segments between two calls of ``should_stop``: a few milliseconds of casting.
+CASTS_PER_CHECK = 4096
 
 
 @dataclass(frozen=True)
@@ -100,52 +36,94 @@ class Hits:
     casts: int
 
 
-def march(tree, bundle, should_stop=None):
-    """Cast every ray's segments in order on ``tree`` (a mathutils BVHTree) until one hits.
+def clip_to_box(origin, direction, length, lo, hi):
+    """Slab test of segments against an axis-aligned box.
 
     Parameters
     ----------
-    tree : mathutils.bvhtree.BVHTree in world space, or None for an empty scene.
-    bundle : RayBundle of R rays.
+    origin, direction : (S, 3) float64 (direction unit). length : (S,) float64.
+    lo, hi : (3,) float64 box corners, or None for no box (nothing is culled).
+
+    Returns
+    -------
+    inside : (S,) bool, whether the segment meets the box.
+    t0, t1 : (S,) float64, the stretch of each segment inside the box.
+    """
+    n = len(origin)
+    if lo is None:
+        return np.ones(n, bool), np.zeros(n), np.asarray(length, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / direction
+        ta = (lo - origin) * inv
+        tb = (hi - origin) * inv
+    near = np.minimum(ta, tb)
+    far = np.maximum(ta, tb)
+    # a zero direction component inside the slab gives nan: no constraint on that axis
+    near = np.where(np.isnan(near), -np.inf, near)
+    far = np.where(np.isnan(far), np.inf, far)
+    t0 = np.maximum(near.max(axis=1), 0.0)
+    t1 = np.minimum(far.min(axis=1), length)
+    return t0 <= t1, t0, t1
+
+
+def march(tree, seg, bounds=None, should_stop=None):
+    """Cast every ray's segments in order on ``tree`` until one hits.
+
+    Parameters
+    ----------
+    tree : mathutils.bvhtree.BVHTree in world space (anything with its ``ray_cast``),
+        or None for an empty scene.
+    seg : core.sampling.Segments of R rays.
+    bounds : ((3,), (3,)) float64 box holding every triangle (padded), or None.
     should_stop : callable returning True to abandon the march (raises ``Cancelled``).
 
     Returns
     -------
     Hits
     """
-    seg = polyline_segments(bundle)
-    nrays = len(bundle)
+    nrays = len(seg)
     hit_seg = np.full(nrays, -1, dtype=np.int64)
     hit_tri = np.full(nrays, -1, dtype=np.int64)
     hit_dist = np.zeros(nrays)
     casts = 0
     if tree is not None and nrays:
-        origin, direction, length = seg.origin.tolist(), seg.direction.tolist(), seg.length.tolist()
-        offsets = seg.offsets.tolist()
+        lo, hi = bounds if bounds is not None else (None, None)
+        inside, t0, t1 = clip_to_box(seg.origin, seg.direction, seg.length, lo, hi)
+        sel = np.flatnonzero(inside)
+        start = seg.origin[sel] + seg.direction[sel] * t0[sel, None]
+        origins = start.tolist()
+        directions = seg.direction[sel].tolist()
+        lengths = (t1[sel] - t0[sel]).tolist()
+        rays = seg.ray[sel].tolist()
+        ids = sel.tolist()
         cast = tree.ray_cast
         found_seg, found_tri, found_dist, found_ray = [], [], [], []
-        for start in range(0, nrays, RAYS_PER_CHECK):
+        done = -1
+        for a in range(0, len(ids), CASTS_PER_CHECK):
             if should_stop is not None and should_stop():
                 raise Cancelled()
-            stop = min(start + RAYS_PER_CHECK, nrays)
-            casts += offsets[stop] - offsets[start]
-            for r in range(start, stop):
-                for s in range(offsets[r], offsets[r + 1]):
-                    _loc, _nor, index, dist = cast(origin[s], direction[s], length[s])
-                    if index is not None:
-                        found_ray.append(r)
-                        found_seg.append(s)
-                        found_tri.append(index)
-                        found_dist.append(dist)
-                        casts -= offsets[r + 1] - s - 1
-                        break
+            b = a + CASTS_PER_CHECK
+            for o, d, n, r, s in zip(
+                origins[a:b], directions[a:b], lengths[a:b], rays[a:b], ids[a:b]
+            ):
+                if r == done:
+                    continue
+                result = cast(o, d, n)
+                if result[2] is not None:
+                    done = r
+                    found_ray.append(r)
+                    found_seg.append(s)
+                    found_tri.append(result[2])
+                    found_dist.append(result[3])
         if found_ray:
             rows = np.array(found_ray)
             hit_seg[rows] = found_seg
             hit_tri[rows] = found_tri
-            hit_dist[rows] = found_dist
-    else:
-        casts = 0
+            hit_dist[rows] = np.array(found_dist) + t0[np.array(found_seg)]
+        # casts made: every culled-in segment up to and including a ray's hit
+        cast_ray = seg.ray[sel]
+        limit = np.where(hit_seg >= 0, hit_seg, np.iinfo(np.int64).max)[cast_ray]
+        casts = int((sel <= limit).sum())
     hit = hit_seg >= 0
     last = seg.offsets[1:] - 1
     s = np.where(hit, hit_seg, last)
