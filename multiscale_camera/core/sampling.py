@@ -390,7 +390,14 @@ class RaySampler:
         px, py = sx - 0.5, sy - 0.5
         cx = np.clip(np.floor(px), 0, w - 2).astype(np.int64)
         cy = np.clip(np.floor(py), 0, h - 2).astype(np.int64)
-        leaf = self.cell_of[cy, cx]
+        leaf = self.cell_of[cy, cx].copy()
+        # a pixel centre takes the leaf the field itself gives it (on a leaf's edge the
+        # neighbouring leaf may hold an extra traced ray there)
+        centre = (px == np.floor(px)) & (py == np.floor(py))
+        if centre.any():
+            jx = np.clip(px[centre], 0, w - 1).astype(np.int64)
+            jy = np.clip(py[centre], 0, h - 1).astype(np.int64)
+            leaf[centre] = fld.leaf_of[jy, jx]
         x0, y0, x1, y1 = fld.leaves[leaf].T.astype(np.int64)
         fx = (px - x0) / np.maximum(x1 - x0, 1)
         fy = (py - y0) / np.maximum(y1 - y0, 1)
