@@ -3,10 +3,14 @@ are cast in order on one BVH until one hits.
 
 Segments that miss the scene's bounding box are culled before any cast, and the rest
 are clipped to it, so a ray pays only for the stretch that can meet geometry. The loop
-over casts is the only per-ray Python in the renderer: one flat ``zip`` over prepared
-lists, checking ``should_stop`` every ``CASTS_PER_CHECK`` segments.
+over casts is the only per-ray Python in the renderer: the segments are cast in waves
+(every ray's first segment, then the next segment of the rays still unhit, ...), each a
+list comprehension over prepared lists, checking ``should_stop`` every
+``CASTS_PER_CHECK`` casts.
 """
 
+import contextlib
+import gc
 from dataclasses import dataclass
 
 import numpy as np
@@ -15,6 +19,21 @@ from ..core.errors import Cancelled
 
 # Segments between two calls of ``should_stop``: a few milliseconds of casting.
 CASTS_PER_CHECK = 4096
+
+
+@contextlib.contextmanager
+def gc_paused():
+    """Pause Python's cyclic garbage collector: converting arrays to lists and casting
+    create millions of short-lived containers, and the collections they set off cost
+    more than the casts themselves (measured: ``tolist`` of 100k x 3 floats 70 ms with
+    the collector, 28 ms without). Reference counting still frees everything."""
+    enabled = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if enabled:
+            gc.enable()
 
 
 @dataclass(frozen=True)
@@ -87,43 +106,35 @@ def march(tree, seg, bounds=None, should_stop=None):
     hit_dist = np.zeros(nrays)
     casts = 0
     if tree is not None and nrays:
-        lo, hi = bounds if bounds is not None else (None, None)
-        inside, t0, t1 = clip_to_box(seg.origin, seg.direction, seg.length, lo, hi)
-        sel = np.flatnonzero(inside)
-        start = seg.origin[sel] + seg.direction[sel] * t0[sel, None]
-        origins = start.tolist()
-        directions = seg.direction[sel].tolist()
-        lengths = (t1[sel] - t0[sel]).tolist()
-        rays = seg.ray[sel].tolist()
-        ids = sel.tolist()
-        cast = tree.ray_cast
-        found_seg, found_tri, found_dist, found_ray = [], [], [], []
-        done = -1
-        for a in range(0, len(ids), CASTS_PER_CHECK):
-            if should_stop is not None and should_stop():
-                raise Cancelled()
-            b = a + CASTS_PER_CHECK
-            for o, d, n, r, s in zip(
-                origins[a:b], directions[a:b], lengths[a:b], rays[a:b], ids[a:b]
-            ):
-                if r == done:
-                    continue
-                result = cast(o, d, n)
-                if result[2] is not None:
-                    done = r
-                    found_ray.append(r)
-                    found_seg.append(s)
-                    found_tri.append(result[2])
-                    found_dist.append(result[3])
-        if found_ray:
-            rows = np.array(found_ray)
-            hit_seg[rows] = found_seg
-            hit_tri[rows] = found_tri
-            hit_dist[rows] = np.array(found_dist) + t0[np.array(found_seg)]
-        # casts made: every culled-in segment up to and including a ray's hit
-        cast_ray = seg.ray[sel]
-        limit = np.where(hit_seg >= 0, hit_seg, np.iinfo(np.int64).max)[cast_ray]
-        casts = int((sel <= limit).sum())
+        with gc_paused():
+            lo, hi = bounds if bounds is not None else (None, None)
+            inside, t0, t1 = clip_to_box(seg.origin, seg.direction, seg.length, lo, hi)
+            sel = np.flatnonzero(inside)  # grouped by ray, in order along each ray
+            count = np.bincount(seg.ray[sel], minlength=nrays)
+            first = np.concatenate([[0], np.cumsum(count)[:-1]])
+            pending = np.flatnonzero(count)
+            wave = 0
+            # wave j casts the j-th segment (inside the box) of every ray not hit yet, so
+            # only segments that are cast get converted to Python numbers
+            while len(pending):
+                s = sel[first[pending] + wave]
+                results = _cast_all(
+                    tree.ray_cast,
+                    (seg.origin[s] + seg.direction[s] * t0[s, None]).tolist(),
+                    seg.direction[s].tolist(),
+                    (t1[s] - t0[s]).tolist(),
+                    should_stop,
+                )
+                casts += len(s)
+                got = np.array([r[2] is not None for r in results], dtype=bool)
+                if got.any():
+                    rows = pending[got]
+                    found = [results[i] for i in np.flatnonzero(got).tolist()]
+                    hit_seg[rows] = s[got]
+                    hit_tri[rows] = [r[2] for r in found]
+                    hit_dist[rows] = np.array([r[3] for r in found]) + t0[s[got]]
+                wave += 1
+                pending = pending[~got & (count[pending] > wave)]
     hit = hit_seg >= 0
     last = seg.offsets[1:] - 1
     s = np.where(hit, hit_seg, last)
@@ -131,3 +142,18 @@ def march(tree, seg, bounds=None, should_stop=None):
     location = seg.origin[s] + seg.direction[s] * t[:, None]
     distance = np.where(hit, seg.before[s] + t, np.inf)
     return Hits(hit, hit_tri, distance, location, seg.direction[s], casts)
+
+
+def _cast_all(cast, origins, directions, lengths, should_stop):
+    """``cast`` over prepared lists, consulting ``should_stop`` every CASTS_PER_CHECK."""
+    if len(origins) <= CASTS_PER_CHECK:
+        if should_stop is not None and should_stop():
+            raise Cancelled()
+        return [cast(o, d, n) for o, d, n in zip(origins, directions, lengths)]
+    out = []
+    for a in range(0, len(origins), CASTS_PER_CHECK):
+        if should_stop is not None and should_stop():
+            raise Cancelled()
+        b = a + CASTS_PER_CHECK
+        out += [cast(o, d, n) for o, d, n in zip(origins[a:b], directions[a:b], lengths[a:b])]
+    return out
