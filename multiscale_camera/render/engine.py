@@ -5,7 +5,7 @@ import time
 import bpy
 
 from ..core.errors import Cancelled, RigError, SolverDidNotConverge
-from . import pipeline
+from . import pipeline, workers
 
 
 class MultiscaleRenderEngine(bpy.types.RenderEngine):
@@ -29,14 +29,12 @@ class MultiscaleRenderEngine(bpy.types.RenderEngine):
         width, height = frame.size
         for name, channels, chan_id, _kind in pipeline.PASSES[1:]:
             self.add_pass(name, channels, chan_id)
-        step = pipeline.rows_per_tile(width, samples=frame.samples)
         loop_start = time.perf_counter()
+        processes = workers.worker_count(frame.processes)
         try:
-            for row0 in range(0, height, step):
-                if self.test_break():
-                    return
-                row1 = min(row0 + step, height)
-                passes = pipeline.render_rows(frame, row0, row1, self.test_break)
+            for (row0, row1), passes in workers.render_tiles(
+                frame, pipeline.tiles(frame), processes, self.test_break
+            ):
                 # each tile goes into the Render Result as soon as it is done
                 self.write_rows(passes, row0, row1, height, width)
                 self.update_progress(row1 / height)

@@ -44,6 +44,7 @@ class Frame:
     notices : list of str, for the user. seconds : dict, stage timings.
     sampler : core.sampling.RaySampler. bounds : ((3,), (3,)) float64 padded scene box
         or None. samples : int, rays per pixel. filter_width : float, pixels.
+    processes : int, worker processes for the tiles (0: one per core).
     casts, shadow_casts, rays : int, counted as the render goes.
     """
 
@@ -61,6 +62,7 @@ class Frame:
     bounds: tuple = None
     samples: int = 1
     filter_width: float = 1.5
+    processes: int = 0
     casts: int = 0
     shadow_casts: int = 0
     rays: int = 0
@@ -165,6 +167,7 @@ def prepare_frame(depsgraph, should_stop=None):
         bounds=bounds,
         samples=max(1, int(settings.samples)),
         filter_width=float(getattr(scene.render, "filter_size", 1.5)),
+        processes=int(scene.render.threads) if scene.render.threads_mode == "FIXED" else 0,
     )
 
 
@@ -239,6 +242,13 @@ def render_rows(frame, row0, row1, should_stop=None):
         "IndexOB": index.reshape(*shape, 1),
         "Membership": centre.membership.astype(np.float32).reshape(*shape, 1),
     }
+
+
+def tiles(frame):
+    """[(row0, row1), ...] covering the image, ``rows_per_tile`` rows each."""
+    width, height = frame.size
+    step = rows_per_tile(width, samples=frame.samples)
+    return [(r, min(r + step, height)) for r in range(0, height, step)]
 
 
 def rows_per_tile(width, rays=16384, samples=1):
