@@ -321,3 +321,68 @@ def test_film_transparency_premultiplies_misses(empty_scene, tmp_path, samples):
     rgba = render_to(scene, tmp_path / "alpha.exr")["Combined"]
     np.testing.assert_allclose(rgba[..., 0], rgba[..., 3], atol=1e-6)
     assert rgba[..., 3].min() == 0.0 and rgba[..., 3].max() == 1.0
+
+
+def gradient_image(name, width=32, height=16):
+    """A float equirectangular image whose colour encodes its own pixel position."""
+    img = bpy.data.images.new(name, width, height, float_buffer=True)
+    yy, xx = np.mgrid[0:height, 0:width]
+    rgba = np.ones((height, width, 4), np.float32)
+    rgba[..., 0] = xx / width
+    rgba[..., 1] = yy / height
+    rgba[..., 2] = 0.25 + 0.5 * ((xx + yy) % 2)
+    img.pixels.foreach_set(rgba.ravel())
+    img.pack()
+    return img
+
+
+def test_misses_show_the_world_texture_along_the_ray(empty_scene, tmp_path):
+    scene = empty_scene
+    width, height = 48, 36
+    scene.render.resolution_x, scene.render.resolution_y = width, height
+    scene.render.resolution_percentage = 100
+    cam = add_camera(scene, "C1", (0, 0, 0), (1.0, 0.4, 0.3), clip_start=0.5, lens=20.0)
+    item = scene.multiscale.cameras.add()
+    item.camera = cam
+    item.mask = mask_image("all", np.ones((height, width), bool))
+    scene.camera = cam
+    scene.render.engine = "MULTISCALE"
+    scene.world = bpy.data.worlds.new("env")
+    if bpy.app.version < (5, 0, 0):
+        scene.world.use_nodes = True
+    nodes, links = scene.world.node_tree.nodes, scene.world.node_tree.links
+    env = nodes.new("ShaderNodeTexEnvironment")
+    env.image = gradient_image("sky")
+    links.new(env.outputs["Color"], nodes["Background"].inputs["Color"])
+    nodes["Background"].inputs["Strength"].default_value = 2.0
+    bpy.context.view_layer.update()
+    combined = render_to(scene, tmp_path / "env.exr")["Combined"][..., :3]
+    tr, br, bl, tl = (cam.matrix_world @ v for v in cam.data.view_frame(scene=scene))
+    eye = cam.matrix_world.translation
+    ref = np.zeros((height, width, 3))
+    for y in range(height):
+        left, right = tl.lerp(bl, (y + 0.5) / height), tr.lerp(br, (y + 0.5) / height)
+        for x in range(width):
+            d = (left.lerp(right, (x + 0.5) / width) - eye).normalized()
+            u = -math.atan2(d.y, d.x) / (2 * math.pi) + 0.5
+            v = math.atan2(d.z, math.hypot(d.x, d.y)) / math.pi + 0.5
+            ref[y, x] = texture_lookup(env.image, u, v) * 2.0
+    assert np.ptp(ref[..., 0]) > 0.3 and np.ptp(ref[..., 1]) > 0.3
+    assert psnr(combined, ref) >= 40.0
+
+
+def test_srgb_byte_images_are_read_as_linear(empty_scene):
+    from multiscale_camera.adapters.textures import read_image
+
+    img = bpy.data.images.new("paint", 2, 2)
+    img.pixels.foreach_set(np.full(16, 0.5, np.float32))
+    assert img.colorspace_settings.name == "sRGB" and not img.is_float
+    stored = np.empty(16, np.float32)
+    img.pixels.foreach_get(stored)
+    expected = ((stored[0] + 0.055) / 1.055) ** 2.4
+    np.testing.assert_allclose(read_image(img), expected, rtol=1e-5)
+    data = bpy.data.images.new("data", 2, 2)
+    data.colorspace_settings.name = "Non-Color"  # (regenerates a generated image's pixels)
+    data.pixels.foreach_set(np.full(16, 0.5, np.float32))
+    data.pixels.foreach_get(stored)
+    np.testing.assert_allclose(read_image(data), stored[0], rtol=1e-6)
