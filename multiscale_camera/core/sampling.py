@@ -203,15 +203,9 @@ def segments_from_points(points, ray, nrays, reach, start_depth, membership):
     counts = np.bincount(sray, minlength=nrays)
     offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
     cum = np.cumsum(length)
-    first = offsets[:-1]
-    base = (
-        np.repeat(
-            cum[np.minimum(first, len(cum) - 1)] - length[np.minimum(first, len(cum) - 1)], counts
-        )
-        if len(cum)
-        else cum
-    )
-    before = cum - length - base
+    first = np.minimum(offsets[:-1], max(len(cum) - 1, 0))
+    # arc length before each segment, restarting at every ray's first segment
+    before = cum - length - np.repeat((cum - length)[first] if len(cum) else cum, counts)
     length = length.copy()
     length[offsets[1:] - 1] += np.asarray(reach, dtype=np.float64)
     return Segments(
@@ -224,17 +218,6 @@ def segments_from_points(points, ray, nrays, reach, start_depth, membership):
         np.asarray(start_depth, dtype=np.float64),
         np.asarray(membership, dtype=np.float32),
     )
-
-
-def bundle_segments(bundle, last, membership, eyes, angles, tol_px):
-    """``Segments`` of a RayBundle (any method's rays), simplified within ``tol_px``.
-
-    last : (R,) int, each ray's last vertex index. membership : (R,) float32 for the pass.
-    """
-    keep = simplify(bundle.vertices, last, eyes, angles, tol_px)
-    rid, kid = np.nonzero(keep)
-    pts = bundle.vertices[rid, kid].astype(np.float64)
-    return segments_from_points(pts, rid, len(bundle), bundle.reach, bundle.start_depth, membership)
 
 
 # --- sample positions ---------------------------------------------------------------

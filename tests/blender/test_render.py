@@ -11,6 +11,7 @@ from mathutils import Vector
 from mathutils.geometry import barycentric_transform, intersect_point_tri
 
 from multiscale_camera.adapters.masks import mask_from_image
+from multiscale_camera.render.pipeline import MISS_DEPTH
 from tests.exr import read_passes
 
 from .scenes import add_camera, add_mesh, mask_image, two_camera_scene
@@ -175,7 +176,9 @@ class Reference:
         return albedo * (ambient + total / math.pi) + emission
 
     def render(self, cam, width, height, pixels):
-        """{(x, y): colour} for the given pixels of camera ``cam``'s straight rays."""
+        """{(x, y): colour} for the given pixels of camera ``cam``'s straight rays; the
+        distances from the eye to the hits go to ``self.depth`` {(x, y): float}."""
+        self.depth = {}
         tr, br, bl, tl = (cam.matrix_world @ v for v in cam.data.view_frame(scene=self.scene))
         eye = cam.matrix_world.translation
         axis = (cam.matrix_world.to_quaternion() @ Vector((0, 0, -1))).normalized()
@@ -187,6 +190,7 @@ class Reference:
             origin = eye + d * (cam.data.clip_start / d.dot(axis))
             hit, loc, nor, face, obj, matrix = self.scene.ray_cast(self.depsgraph, origin, d)
             out[x, y] = self.shade(d, loc, nor, face, obj, matrix) if hit else Vector(WORLD)
+            self.depth[x, y] = (loc - eye).length if hit else MISS_DEPTH
         return out
 
 
@@ -209,7 +213,8 @@ def test_one_sample_matches_each_cameras_straight_render(empty_scene, tmp_path):
     scene = empty_scene
     width, height = 96, 72
     shaded_scene(scene, width, height)
-    combined = render_to(scene, tmp_path / "shaded.exr")["Combined"][..., :3]
+    passes = render_to(scene, tmp_path / "shaded.exr")
+    combined = passes["Combined"][..., :3]
     reference = Reference(scene, bpy.context.evaluated_depsgraph_get())
     for item in scene.multiscale.cameras:
         kept = erode(mask_from_image(item.mask, width, height)[0])
@@ -223,6 +228,10 @@ def test_one_sample_matches_each_cameras_straight_render(empty_scene, tmp_path):
         # the scene exercises texture, emission, smooth normals, shadows and both lights
         assert np.ptp(ref, axis=0).min() > 0.05
         assert score >= 40.0, f"{item.camera.name}: PSNR {score:.1f} dB"
+        if item.camera.name == "C1":
+            # camera 1's preserved rays are straight from its eye: Depth is the distance
+            depth = np.array([reference.depth[x, y] for x, y in zip(xs.tolist(), ys.tolist())])
+            np.testing.assert_allclose(passes["Depth"][ys, xs, 0], depth, rtol=1e-4)
 
 
 EDGE_PLANE = 20.0
