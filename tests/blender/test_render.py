@@ -395,3 +395,24 @@ def test_srgb_byte_images_are_read_as_linear(empty_scene):
     data.pixels.foreach_set(np.full(16, 0.5, np.float32))
     data.pixels.foreach_get(stored)
     np.testing.assert_allclose(read_image(data), stored[0], rtol=1e-6)
+
+
+def test_default_simplification_is_invisible(empty_scene, tmp_path):
+    scene = empty_scene
+    two_camera_scene(scene, 96, 72)
+    exact_settings = scene.multiscale
+    exact_settings.simplify_px = 0.0  # every bending vertex kept: the polylines as traced
+    exact = render_to(scene, tmp_path / "exact.exr")
+    exact_settings.property_unset("simplify_px")
+    assert scene.multiscale.simplify_px == 0.25
+    default = render_to(scene, tmp_path / "default.exr")
+    score = psnr(default["Combined"][..., :3], exact["Combined"][..., :3])
+    agree = (default["IndexOB"] == exact["IndexOB"]).mean()
+    print(f"default simplification: PSNR {score:.1f} dB, IndexOB agreement {agree:.4f}")
+    assert score >= 40.0
+    assert agree >= 0.999
+    # the comparison can tell: a coarse tolerance does change the picture
+    scene.multiscale.simplify_px = 8.0
+    coarse = render_to(scene, tmp_path / "coarse.exr")
+    print(f"8 px: PSNR {psnr(coarse['Combined'][..., :3], exact['Combined'][..., :3]):.1f} dB")
+    assert psnr(coarse["Combined"][..., :3], exact["Combined"][..., :3]) < score
