@@ -11,6 +11,7 @@ never call bpy: ``render_rows`` works on the frame's numpy arrays and the tree.
 
 import multiprocessing
 import os
+import signal
 import sys
 
 from ..core.errors import Cancelled
@@ -44,6 +45,13 @@ def worker_count(requested=0):
         return os.cpu_count() or 1
 
 
+def _worker_init():
+    """A worker ends when the pool terminates it, whatever handlers the host installed,
+    and leaves Ctrl+C to the parent."""
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 def _render_tile(rows):
     frame = _FRAME
     before = frame.casts, frame.shadow_casts, frame.rays
@@ -75,7 +83,7 @@ def render_tiles(frame, tiles, processes, should_stop=None):
             yield (row0, row1), pipeline.render_rows(frame, row0, row1, should_stop)
         return
     _FRAME = frame
-    pool = ctx.Pool(processes)
+    pool = ctx.Pool(processes, initializer=_worker_init)
     try:
         for rows, passes, counts in pool.imap(_render_tile, tiles):
             frame.casts += counts[0]
