@@ -350,7 +350,6 @@ class RaySampler:
             np.minimum.reduce([tol[c] for c in rows]),
             np.maximum.reduce([last[c] for c in rows]),
         )
-        self.leaf_last = np.maximum.reduce([last[c] for c in rows])
         w, h = self.size
         # the lattice leaf holding each unit square between four pixel centres
         cell_of = np.zeros((h - 1, w - 1), dtype=np.int32)
