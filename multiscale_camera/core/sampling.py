@@ -23,6 +23,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .errors import Cancelled
+
 # Turning below this (radians) is float32 noise of the stored vertices, not a bend.
 NOISE = 1e-4
 # Default simplification tolerance, pixels: chords stray from the polyline by at most
@@ -91,13 +93,14 @@ def box_distance(points, bounds):
     return np.sqrt((d * d).sum(-1))
 
 
-def polyline_measures(vertices, eyes, angles, tol_px, bounds=None):
+def polyline_measures(vertices, eyes, angles, tol_px, bounds=None, should_stop=None):
     """Per-vertex quantities the simplification reads.
 
     Parameters
     ----------
     vertices : (R, K, 3) float array, world units. eyes, angles : ``camera_footprints``.
     tol_px : float, pixels. bounds : ((3,), (3,)) box holding all geometry, or None.
+    should_stop : callable, consulted once per chunk of rays (raises ``Cancelled``).
 
     Returns
     -------
@@ -113,6 +116,7 @@ def polyline_measures(vertices, eyes, angles, tol_px, bounds=None):
     turn = np.zeros((r, max(k - 2, 0)), np.float32)
     tol = np.zeros((r, k), np.float32)
     for a in range(0, r, CHUNK):
+        _check(should_stop)
         v = np.asarray(vertices[a : a + CHUNK], dtype=np.float64)
         d = v[:, 1:] - v[:, :-1]
         n = np.sqrt((d * d).sum(-1))
@@ -128,14 +132,15 @@ def polyline_measures(vertices, eyes, angles, tol_px, bounds=None):
     return seglen, turn, tol
 
 
-def greedy_keep(seglen, turn, tol, last):
+def greedy_keep(seglen, turn, tol, last, should_stop=None):
     """Which vertices to keep so every chord strays by at most ``tol`` (world units).
 
     Parameters
     ----------
     seglen : (R, K-1), turn : (R, K-2), tol : (R, K) float arrays (``polyline_measures``,
         tol = tolerance in pixels times the footprint). last : (R,) int, the last vertex
-        of each ray (kept; later ones dropped).
+        of each ray (kept; later ones dropped). should_stop : callable, consulted every
+        16 vertices (raises ``Cancelled``).
 
     Returns
     -------
@@ -155,6 +160,8 @@ def greedy_keep(seglen, turn, tol, last):
         theta = np.zeros(r)
         allowed = np.minimum(tol[:, 0], tol[:, 1]).astype(np.float64)
         for j in range(1, k - 1):
+            if j % 16 == 0:
+                _check(should_stop)
             # the chord from the anchor would now run past vertex j to j + 1
             length2 = length + seglen[:, j]
             theta2 = theta + turn[:, j - 1]
@@ -166,6 +173,11 @@ def greedy_keep(seglen, turn, tol, last):
             allowed = np.where(cut, np.minimum(tol[:, j], tol[:, j + 1]), allowed2)
     keep &= np.arange(k)[None, :] <= last[:, None]
     return keep
+
+
+def _check(should_stop):
+    if should_stop is not None and should_stop():
+        raise Cancelled()
 
 
 def simplify(vertices, last, eyes, angles, tol_px, bounds=None):
@@ -313,9 +325,10 @@ class RaySampler:
     ----------
     field : RayField. tol_px : float, simplification tolerance in pixels.
     bounds : ((3,), (3,)) float64 box holding all geometry, or None.
+    should_stop : callable, consulted while the lattice is simplified (raises ``Cancelled``).
     """
 
-    def __init__(self, field, tol_px=DEFAULT_TOLERANCE_PX, bounds=None):
+    def __init__(self, field, tol_px=DEFAULT_TOLERANCE_PX, bounds=None, should_stop=None):
         self.field = field
         self.tol = float(tol_px)
         self.bounds = bounds
@@ -328,16 +341,16 @@ class RaySampler:
         self.lattice = traced is not None and getattr(field, "leaves", None) is not None
         self.lattice = self.lattice and w >= 2 and h >= 2
         if self.lattice:
-            self._prepare_lattice()
+            self._prepare_lattice(should_stop)
 
-    def _prepare_lattice(self):
+    def _prepare_lattice(self, should_stop=None):
         fld = self.field
         traced = fld.traced
         counts = traced.counts.astype(np.int64)
         k = traced.vertices.shape[1]
         last = np.minimum(counts, k - 1)
         seglen, turn, tol = polyline_measures(
-            traced.vertices, self.eyes, self.angles, self.tol, self.bounds
+            traced.vertices, self.eyes, self.angles, self.tol, self.bounds, should_stop
         )
         # one schedule per lattice leaf, safe for all four corners (and so for every ray
         # interpolated between them): their largest turns and lengths, smallest footprint
@@ -349,6 +362,7 @@ class RaySampler:
             np.maximum.reduce([turn[c] for c in rows]),
             np.minimum.reduce([tol[c] for c in rows]),
             np.maximum.reduce([last[c] for c in rows]),
+            should_stop,
         )
         w, h = self.size
         # the lattice leaf holding each unit square between four pixel centres

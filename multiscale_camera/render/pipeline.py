@@ -146,7 +146,7 @@ def prepare_frame(depsgraph, should_stop=None):
     t3 = time.perf_counter()
     settings = scene.multiscale
     tol = getattr(settings, "simplify_px", DEFAULT_TOLERANCE_PX)
-    sampler = sampler_for(ray_field, tol, bounds)
+    sampler = sampler_for(ray_field, tol, bounds, should_stop)
     t4 = time.perf_counter()
     return Frame(
         rig=rig,
@@ -171,7 +171,7 @@ def prepare_frame(depsgraph, should_stop=None):
     )
 
 
-def sampler_for(ray_field, tol_px, bounds):
+def sampler_for(ray_field, tol_px, bounds, should_stop=None):
     """The field's RaySampler at ``tol_px`` pixels for geometry inside ``bounds``, built
     once per field, tolerance and bounds."""
     cache = ray_field.__dict__.setdefault("_samplers", {})
@@ -179,7 +179,7 @@ def sampler_for(ray_field, tol_px, bounds):
     key = (round(float(tol_px), 6), box)
     if key not in cache:
         cache.clear()
-        cache[key] = RaySampler(ray_field, key[0], bounds)
+        cache[key] = RaySampler(ray_field, key[0], bounds, should_stop)
     return cache[key]
 
 

@@ -184,3 +184,21 @@ def test_sub_pixel_rays_interpolate_the_neighbouring_pixels(traced_field):
         assert off < 0.05 * np.linalg.norm(rays.vertices[0, -1] - last)
         # both paths give the same ray beyond the bend
         np.testing.assert_allclose(seg.direction[-1], ref.direction[-1], atol=2e-3)
+
+
+def test_lattice_simplification_hears_a_stop_request(traced_field):
+    from multiscale_camera.core.errors import Cancelled
+
+    calls = []
+
+    def stop_on_third_call():
+        calls.append(1)
+        return len(calls) >= 3
+
+    with pytest.raises(Cancelled):
+        sampling.RaySampler(traced_field, 0.25, should_stop=stop_on_third_call)
+    assert len(calls) == 3
+    # the greedy pass over a 119-vertex lattice consults it every 16 vertices
+    seen = []
+    sampling.RaySampler(traced_field, 0.25, should_stop=lambda: seen.append(1) and False)
+    assert len(seen) >= traced_field.traced.vertices.shape[1] // 16
