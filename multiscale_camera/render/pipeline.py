@@ -185,7 +185,7 @@ def sampler_for(ray_field, tol_px, bounds, should_stop=None):
 
 def _cast_and_shade(frame, seg, should_stop):
     """(hits, shaded) for ``Segments``; counts the casts on ``frame``."""
-    hits = march(frame.tree, seg, frame.bounds, should_stop)
+    hits = march(frame.tree, seg, should_stop, frame.bounds)
     shaded = shade(
         frame.geometry, hits, frame.lights, frame.world, frame.tree, frame.scale, should_stop
     )

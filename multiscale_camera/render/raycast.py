@@ -15,7 +15,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..core.bundle import RayBundle
 from ..core.errors import Cancelled
+from ..core.sampling import greedy_keep, polyline_measures, segments_from_points
 
 # Segments between two calls of ``should_stop``: a few milliseconds of casting.
 CASTS_PER_CHECK = 4096
@@ -85,21 +87,24 @@ def clip_to_box(origin, direction, length, lo, hi):
     return t0 <= t1, t0, t1
 
 
-def march(tree, seg, bounds=None, should_stop=None):
+def march(tree, seg, should_stop=None, bounds=None):
     """Cast every ray's segments in order on ``tree`` until one hits.
 
     Parameters
     ----------
     tree : mathutils.bvhtree.BVHTree in world space (anything with its ``ray_cast``),
         or None for an empty scene.
-    seg : core.sampling.Segments of R rays.
-    bounds : ((3,), (3,)) float64 box holding every triangle (padded), or None.
+    seg : core.sampling.Segments of R rays (from ``RaySampler.segments``), or a
+        RayBundle, whose polylines are then cast exactly (``bundle_segments``).
     should_stop : callable returning True to abandon the march (raises ``Cancelled``).
+    bounds : ((3,), (3,)) float64 box holding every triangle (padded), or None.
 
     Returns
     -------
     Hits
     """
+    if isinstance(seg, RayBundle):
+        seg = bundle_segments(seg)
     nrays = len(seg)
     hit_seg = np.full(nrays, -1, dtype=np.int64)
     hit_tri = np.full(nrays, -1, dtype=np.int64)
@@ -142,6 +147,24 @@ def march(tree, seg, bounds=None, should_stop=None):
     location = seg.origin[s] + seg.direction[s] * t[:, None]
     distance = np.where(hit, seg.before[s] + t, np.inf)
     return Hits(hit, hit_tri, distance, location, seg.direction[s], casts)
+
+
+def bundle_segments(bundle):
+    """``Segments`` of a RayBundle's polylines, exact: straight runs merged, every
+    bending vertex kept. Membership is taken at each ray's last vertex."""
+    r, k = bundle.vertices.shape[:2]
+    eyes, angles = np.zeros((1, 3)), np.zeros(1)
+    seglen, turn, tol = polyline_measures(bundle.vertices, eyes, angles, 0.0)
+    keep = greedy_keep(seglen, turn, tol, np.full(r, k - 1))
+    rid, kid = np.nonzero(keep)
+    return segments_from_points(
+        bundle.vertices[rid, kid].astype(np.float64),
+        rid,
+        r,
+        bundle.reach,
+        bundle.start_depth,
+        bundle.membership[:, -1],
+    )
 
 
 def _cast_all(cast, origins, directions, lengths, should_stop):
