@@ -76,14 +76,19 @@ def render_tiles(frame, tiles, processes, should_stop=None):
     global _FRAME
     width, height = frame.size
     ctx = fork_context()
-    if processes <= 1 or ctx is None or width * height * frame.samples < MIN_RAYS:
+    pool = None
+    if processes > 1 and ctx is not None and width * height * frame.samples >= MIN_RAYS:
+        _FRAME = frame
+        try:
+            pool = ctx.Pool(processes, initializer=_worker_init)
+        except OSError:  # no processes to be had (limits, sandbox): render here
+            _FRAME = None
+    if pool is None:
         for row0, row1 in tiles:
             if should_stop is not None and should_stop():
                 raise Cancelled()
             yield (row0, row1), pipeline.render_rows(frame, row0, row1, should_stop)
         return
-    _FRAME = frame
-    pool = ctx.Pool(processes, initializer=_worker_init)
     try:
         for rows, passes, counts in pool.imap(_render_tile, tiles):
             frame.casts += counts[0]

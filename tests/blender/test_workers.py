@@ -67,3 +67,19 @@ def test_without_fork_tiles_render_in_process(empty_scene, monkeypatch):
     out = collect(frame, 4)
     assert sorted(out) == pipeline.tiles(frame)
     assert frame.rays == 64 * 48
+
+
+def test_when_no_process_can_start_tiles_render_in_process(empty_scene, monkeypatch):
+    two_camera_scene(empty_scene, 64, 48)
+    monkeypatch.setattr(workers, "MIN_RAYS", 0)
+
+    class NoPool:
+        def Pool(self, *args, **kwargs):  # noqa: N802 (multiprocessing's name)
+            raise OSError(11, "Resource temporarily unavailable")
+
+    monkeypatch.setattr(workers, "fork_context", lambda: NoPool())
+    frame = frame_of(empty_scene)
+    out = collect(frame, 2)
+    assert sorted(out) == pipeline.tiles(frame)
+    assert frame.rays == 64 * 48
+    assert workers._FRAME is None
