@@ -4,7 +4,8 @@
 #   make test     build, then run tests/ (unit, blender, e2e) with $(BLENDER)
 #   make samples  write sample_blends/*.blend
 #   make demo     install the linux zip in a throwaway user folder, render demo.blend to out/
-#   make bench    speed and accuracy of the solver and of every method: bench/*.json
+#   make bench    speed and accuracy of the solver, of every method and of the renderer:
+#                 bench/*.json
 #   make lint     ruff
 #
 # BLENDER defaults to tools/blender (Blender's command line on the bpy wheel);
@@ -34,7 +35,7 @@ SAMPLE_SCRIPTS := $(wildcard sample_blends/*.py)
 RUN_SAMPLES := $(BLENDER) -b --factory-startup --python-exit-code 1 \
 	--python sample_blends/make_samples.py
 
-.PHONY: venv build test samples demo bench lint clean distclean
+.PHONY: venv build test samples demo bench bench-render lint clean distclean
 
 venv: $(VENV_STAMP)
 
@@ -78,9 +79,14 @@ demo: build sample_blends/demo.blend
 # Speed and accuracy figures (minutes, not part of `make test`): the membership solver
 # against the paper's explicit diffusion (capped at 8 minutes a size: a capped run gives
 # a lower bound on the ratio), then every method at every quality at 1920x1080.
-bench: venv
+bench: venv bench-render
 	$(PY) bench/solvers.py --sizes 64 128 256 320 --diffusion-sizes 64 128 --cap 480
 	$(PY) bench/methods.py --width 1920 --height 1080
+
+# The renderer on a 100k-triangle scene at 1920x1080: raw BVH rate, engine cast rate,
+# render time, cancel latency: bench/render.json.
+bench-render: venv
+	$(PY) bench/render.py --width 1920 --height 1080 --triangles 100000
 
 lint: venv
 	$(PY) -m ruff check .

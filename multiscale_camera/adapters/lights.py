@@ -6,6 +6,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .meshes import uses_nodes
+from .textures import environment_mean, equirectangular_uv, texture_from_node
 
 
 @dataclass(frozen=True)
@@ -66,3 +67,50 @@ def world_colour(scene):
                 colour = np.array(node.inputs["Color"].default_value[:3], dtype=np.float32)
                 return colour * float(node.inputs["Strength"].default_value)
     return np.array(world.color[:3], dtype=np.float32)
+
+
+@dataclass(frozen=True)
+class World:
+    """The world background, as the solid shading sees it.
+
+    colour : (3,) float32 linear colour times strength (without a texture).
+    texture : adapters.textures.Texture of an Environment Texture node feeding the
+        Background colour (equirectangular), or None. strength : float.
+    """
+
+    colour: np.ndarray
+    texture: object = None
+    strength: float = 1.0
+
+    def radiance(self, directions):
+        """(P, 3) float64 background radiance along world directions (P, 3)."""
+        if self.texture is None:
+            return np.broadcast_to(self.colour.astype(np.float64), (len(directions), 3))
+        return self.texture.sample(equirectangular_uv(directions)) * self.strength
+
+    def ambient(self):
+        """(3,) float64: radiance a white diffuse surface reflects under this world alone
+        (its average over the sphere; unoccluded)."""
+        if self.texture is None:
+            return self.colour.astype(np.float64)
+        return environment_mean(self.texture) * self.strength
+
+
+def scene_world(scene, notices):
+    """The scene's ``World`` (black without a world); an unreadable environment image
+    adds a notice to ``notices`` (list of str)."""
+    colour = world_colour(scene)
+    world = scene.world
+    if world is None or not uses_nodes(world):
+        return World(colour)
+    for node in world.node_tree.nodes:
+        if node.type != "BACKGROUND":
+            continue
+        strength = float(node.inputs["Strength"].default_value)
+        for link in node.inputs["Color"].links:
+            if link.from_node.type == "TEX_ENVIRONMENT":
+                texture = texture_from_node(link.from_node, notices)
+                if texture is not None:
+                    return World(colour, texture, strength)
+        break
+    return World(colour)

@@ -5,7 +5,7 @@ import time
 import bpy
 
 from ..core.errors import Cancelled, RigError, SolverDidNotConverge
-from . import pipeline
+from . import pipeline, workers
 
 
 class MultiscaleRenderEngine(bpy.types.RenderEngine):
@@ -29,27 +29,24 @@ class MultiscaleRenderEngine(bpy.types.RenderEngine):
         width, height = frame.size
         for name, channels, chan_id, _kind in pipeline.PASSES[1:]:
             self.add_pass(name, channels, chan_id)
-        step = pipeline.rows_per_tile(width)
+        loop_start = time.perf_counter()
+        processes = workers.worker_count(frame.processes)
         try:
-            for row0 in range(0, height, step):
-                if self.test_break():
-                    return
-                row1 = min(row0 + step, height)
-                passes = pipeline.render_rows(frame, row0, row1, self.test_break)
+            for (row0, row1), passes in workers.render_tiles(
+                frame, pipeline.tiles(frame), processes, self.test_break
+            ):
+                # each tile goes into the Render Result as soon as it is done
                 self.write_rows(passes, row0, row1, height, width)
                 self.update_progress(row1 / height)
-                seconds = time.perf_counter() - start
-                self.update_stats(
-                    "",
-                    f"Multiscale: {row1}/{height} rows, "
-                    f"{frame.casts / max(seconds, 1e-9) / 1e6:.2f} M casts/s",
-                )
+                self.update_stats("", stats_line(frame, row1, height, loop_start))
         except Cancelled:
             return
         seconds = time.perf_counter() - start
+        frame.seconds["render"] = time.perf_counter() - loop_start
         print(
-            f"Multiscale: {width}x{height}, {frame.casts} segment casts, "
-            f"{seconds:.2f} s ({', '.join(f'{k} {v:.2f} s' for k, v in frame.seconds.items())})"
+            f"Multiscale: {width}x{height}, {frame.samples} samples, {frame.rays} rays, "
+            f"{frame.casts} segment casts, {frame.shadow_casts} shadow casts, {seconds:.2f} s "
+            f"({', '.join(f'{k} {v:.2f} s' for k, v in frame.seconds.items())})"
         )
 
     def write_rows(self, passes, row0, row1, height, width):
@@ -71,6 +68,15 @@ class MultiscaleRenderEngine(bpy.types.RenderEngine):
     def update_render_passes(self, scene=None, renderlayer=None):
         for name, channels, chan_id, kind in pipeline.PASSES:
             self.register_pass(scene, renderlayer, name, channels, chan_id, kind)
+
+
+def stats_line(frame, row, height, since):
+    """The engine's status text: rows done, rays and segment casts per second."""
+    seconds = max(time.perf_counter() - since, 1e-9)
+    return (
+        f"Multiscale: {row}/{height} rows | {frame.rays / seconds / 1e6:.2f} M rays/s | "
+        f"{frame.casts / seconds / 1e6:.2f} M segment casts/s"
+    )
 
 
 # Blender's own property panels that should show for this engine too.

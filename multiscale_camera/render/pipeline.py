@@ -6,11 +6,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..adapters.lights import scene_lights, world_colour
+from ..adapters.lights import scene_lights, scene_world
 from ..adapters.meshes import scene_geometry
 from ..adapters.scene import rig_from_scene
 from ..core.fingerprint import field_key
 from ..core.methods import prepare, settings_for
+from ..core.sampling import DEFAULT_TOLERANCE_PX, RaySampler, sample_offsets
 from .raycast import march
 from .shade import shade
 
@@ -25,6 +26,11 @@ PASSES = (
 # Depth written where a ray hits nothing, as Blender's own engines do.
 MISS_DEPTH = 1e10
 NO_MESH = "The scene has no visible mesh: only the world is rendered"
+NO_LIGHTS = "The scene has no lights: surfaces are lit by the world colour alone"
+# Bounds padding, a fraction of the scene's size: float32 BVH boxes round outwards.
+BOUNDS_PAD = 1e-4
+# Seed of the sub-pixel jitter: renders are deterministic.
+SAMPLE_SEED = 0
 
 
 @dataclass
@@ -32,10 +38,14 @@ class Frame:
     """Everything a render needs, prepared once per frame.
 
     rig : Rig. field : RayField. geometry : SceneGeometry. tree : BVHTree or None.
-    lights : list of Light. world : (3,) float32 linear colour.
+    lights : list of Light. world : adapters.lights.World.
     transparent : bool, film transparency (misses get alpha 0).
     scale : float, diagonal of the scene's bounds, world units.
     notices : list of str, for the user. seconds : dict, stage timings.
+    sampler : core.sampling.RaySampler. bounds : ((3,), (3,)) float64 padded scene box
+        or None. samples : int, rays per pixel. filter_width : float, pixels.
+    processes : int, worker processes for the tiles (0: one per core).
+    casts, shadow_casts, rays : int, counted as the render goes.
     """
 
     rig: object
@@ -48,7 +58,14 @@ class Frame:
     scale: float
     notices: list = field(default_factory=list)
     seconds: dict = field(default_factory=dict)
+    sampler: object = None
+    bounds: tuple = None
+    samples: int = 1
+    filter_width: float = 1.5
+    processes: int = 0
     casts: int = 0
+    shadow_casts: int = 0
+    rays: int = 0
 
     @property
     def size(self):
@@ -109,31 +126,89 @@ def prepare_frame(depsgraph, should_stop=None):
     t2 = t1
     geometry = scene_geometry(depsgraph)
     notices = list(ray_field.notices) + list(ray_field.warnings)
+    bounds = None
     if len(geometry):
         tree = BVHTree.FromPolygons(
             geometry.vertices.tolist(), geometry.triangles.tolist(), all_triangles=True
         )
-        scale = float(np.linalg.norm(geometry.vertices.max(0) - geometry.vertices.min(0)))
+        lo, hi = geometry.vertices.min(0), geometry.vertices.max(0)
+        scale = float(np.linalg.norm(hi - lo))
+        pad = BOUNDS_PAD * max(scale, 1e-6) + 1e-6
+        bounds = (lo - pad, hi + pad)
     else:
         tree, scale = None, 1.0
         notices.append(NO_MESH)
+    notices += geometry.notices
+    lights = scene_lights(depsgraph)
+    if not lights and len(geometry):
+        notices.append(NO_LIGHTS)
+    world = scene_world(scene, notices)
     t3 = time.perf_counter()
+    settings = scene.multiscale
+    tol = getattr(settings, "simplify_px", DEFAULT_TOLERANCE_PX)
+    sampler = sampler_for(ray_field, tol, bounds, should_stop)
+    t4 = time.perf_counter()
     return Frame(
         rig=rig,
         field=ray_field,
         geometry=geometry,
         tree=tree,
-        lights=scene_lights(depsgraph),
-        world=world_colour(scene),
+        lights=lights,
+        world=world,
         transparent=bool(scene.render.film_transparent),
         scale=max(scale, 1e-6),
         notices=notices,
-        seconds={"field" if built else "field (cached)": t1 - t0, "geometry": t3 - t2},
+        seconds={
+            "field" if built else "field (cached)": t1 - t0,
+            "geometry": t3 - t2,
+            "simplify": t4 - t3,
+        },
+        sampler=sampler,
+        bounds=bounds,
+        samples=max(1, int(settings.samples)),
+        filter_width=float(getattr(scene.render, "filter_size", 1.5)),
+        processes=int(scene.render.threads) if scene.render.threads_mode == "FIXED" else 0,
     )
+
+
+def sampler_for(ray_field, tol_px, bounds, should_stop=None):
+    """The field's RaySampler at ``tol_px`` pixels for geometry inside ``bounds``, built
+    once per field, tolerance and bounds."""
+    cache = ray_field.__dict__.setdefault("_samplers", {})
+    box = None if bounds is None else tuple(np.round(np.concatenate(bounds), 9).tolist())
+    key = (round(float(tol_px), 6), box)
+    if key not in cache:
+        cache.clear()
+        cache[key] = RaySampler(ray_field, key[0], bounds, should_stop)
+    return cache[key]
+
+
+def _cast_and_shade(frame, seg, should_stop):
+    """(hits, shaded) for ``Segments``; counts the casts on ``frame``."""
+    hits = march(frame.tree, seg, should_stop, frame.bounds)
+    shaded = shade(
+        frame.geometry, hits, frame.lights, frame.world, frame.tree, frame.scale, should_stop
+    )
+    frame.casts += hits.casts
+    frame.shadow_casts += shaded.casts
+    frame.rays += len(seg)
+    return hits, shaded
+
+
+def _rgba(frame, hits, shaded):
+    """(R, 4) float32 Combined (premultiplied by alpha under film transparency)."""
+    alpha = np.where(hits.hit | (not frame.transparent), 1.0, 0.0).astype(np.float32)
+    colour = shaded.colour * alpha[:, None] if frame.transparent else shaded.colour
+    return np.concatenate([colour, alpha[:, None]], axis=1)
 
 
 def render_rows(frame, row0, row1, should_stop=None):
     """Render image rows ``row0 .. row1 - 1`` (row 0 at the top).
+
+    Combined averages ``frame.samples`` rays per pixel (sub-pixel rays jittered under
+    the pixel filter, see ``core.sampling.sample_offsets``); one sample is the pixel's
+    own ray. Depth, Normal, IndexOB and Membership come from the pixel's own ray (its
+    centre), unfiltered, as data passes are.
 
     Returns
     -------
@@ -141,37 +216,44 @@ def render_rows(frame, row0, row1, should_stop=None):
 
     Raises
     ------
-    raycast.Cancelled when ``should_stop`` says so.
+    Cancelled when ``should_stop`` says so.
     """
     width = frame.size[0]
     iy, ix = np.mgrid[row0:row1, 0:width]
-    bundle = frame.field.rays(ix.ravel(), iy.ravel())
-    hits = march(frame.tree, bundle, should_stop)
-    frame.casts += hits.casts
-    colour, normal = shade(frame.geometry, hits, frame.lights, frame.world, frame.tree, frame.scale)
+    ix, iy = ix.ravel(), iy.ravel()
+    centre = frame.sampler.segments(ix + 0.5, iy + 0.5, ix, iy)
+    hits, shaded = _cast_and_shade(frame, centre, should_stop)
+    combined = _rgba(frame, hits, shaded)
+    if frame.samples > 1:
+        off = sample_offsets(ix, iy, frame.samples, frame.filter_width, SAMPLE_SEED)
+        sx = ((ix + 0.5)[:, None] + off[..., 0]).ravel()
+        sy = ((iy + 0.5)[:, None] + off[..., 1]).ravel()
+        seg = frame.sampler.segments(sx, sy)
+        s_hits, s_shaded = _cast_and_shade(frame, seg, should_stop)
+        combined = _rgba(frame, s_hits, s_shaded).reshape(len(ix), frame.samples, 4).mean(1)
     shape = (row1 - row0, width)
-    alpha = np.where(hits.hit | (not frame.transparent), 1.0, 0.0).astype(np.float32)
-    if frame.transparent:
-        colour = colour * alpha[:, None]
-    # Membership: where the ray leaves the bending stretch (DESIGN.md), not at the hit
-    leave = frame.field.exit_index(ix.ravel(), iy.ravel())
-    if leave is None:
-        leave = np.full(len(bundle), bundle.vertices.shape[1] - 1)
-    leave = np.clip(leave, 0, bundle.vertices.shape[1] - 1)
-    membership = bundle.membership[np.arange(len(bundle)), leave]
     index = np.zeros(len(hits.hit), dtype=np.float32)
     index[hits.hit] = frame.geometry.pass_index[hits.triangle[hits.hit]]
-    depth = np.where(hits.hit, bundle.start_depth + hits.distance, MISS_DEPTH)
+    depth = np.where(hits.hit, centre.start_depth + hits.distance, MISS_DEPTH)
     return {
-        "Combined": np.concatenate([colour, alpha[:, None]], axis=1).reshape(*shape, 4),
+        "Combined": combined.astype(np.float32).reshape(*shape, 4),
         "Depth": depth.astype(np.float32).reshape(*shape, 1),
-        "Normal": normal.reshape(*shape, 3),
+        "Normal": shaded.normal.reshape(*shape, 3),
         "IndexOB": index.reshape(*shape, 1),
-        "Membership": membership.astype(np.float32).reshape(*shape, 1),
+        "Membership": centre.membership.astype(np.float32).reshape(*shape, 1),
     }
 
 
-def rows_per_tile(width, rays=16384):
-    """Rows in a tile of about ``rays`` rays: small enough to show progress and to stop
-    within a fraction of a second, large enough that numpy overhead stays negligible."""
-    return max(1, rays // max(width, 1))
+def tiles(frame):
+    """[(row0, row1), ...] covering the image, ``rows_per_tile`` rows each."""
+    width, height = frame.size
+    step = rows_per_tile(width, samples=frame.samples)
+    return [(r, min(r + step, height)) for r in range(0, height, step)]
+
+
+def rows_per_tile(width, rays=16384, samples=1):
+    """Rows in a tile of about ``rays`` rays (``samples`` per pixel, plus the pixel's own
+    ray): small enough to show progress and to stop within a fraction of a second,
+    large enough that numpy overhead stays negligible."""
+    per_pixel = 1 + (samples if samples > 1 else 0)
+    return max(1, rays // max(width * per_pixel, 1))

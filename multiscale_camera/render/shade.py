@@ -1,11 +1,17 @@
-"""Solid shading of first hits: base colour times (world ambient + Lambert from the lights),
-with straight shadow rays. Radiometry follows Cycles' conventions: a diffuse surface of
+"""Solid shading of first hits: base colour (a value or an image texture at the hit's UV)
+times (world ambient + Lambert from the lights, on smooth normals where the faces are
+smooth), plus emission, with straight shadow rays; misses show the world along the
+ray's last direction. Radiometry follows Cycles' conventions: a diffuse surface of
 albedo a under irradiance E has radiance a E / pi; a point light of power P radiates
 P / (4 pi) W/sr, an area light P / pi cos(theta) W/sr, a sun gives E = strength."""
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
+
+from ..core.errors import Cancelled
+from .raycast import CASTS_PER_CHECK, gc_paused
 
 # Shadow-ray origins are lifted off the surface by this fraction of the scene's size,
 # enough to clear float32 BVH precision, far below anything visible.
@@ -58,53 +64,124 @@ def irradiance(light, points, normals):
     return (cos * falloff)[:, None] * light.colour, to_light, distance
 
 
-def shade(geometry, hits, lights, world, tree, scale):
-    """Linear RGB radiance of every hit.
+def barycentric(geometry, triangles, points):
+    """(P, 3) float64 barycentric weights of ``points`` (P, 3) on the given triangles."""
+    tri = geometry.triangles[triangles]
+    a, b, c = (geometry.vertices[tri[:, i]] for i in range(3))
+    v0, v1, v2 = b - a, c - a, points - a
+    d00, d01, d11 = (v0 * v0).sum(-1), (v0 * v1).sum(-1), (v1 * v1).sum(-1)
+    d20, d21 = (v2 * v0).sum(-1), (v2 * v1).sum(-1)
+    den = d00 * d11 - d01 * d01
+    den = np.where(np.abs(den) > 1e-300, den, 1.0)
+    v = (d11 * d20 - d01 * d21) / den
+    w = (d00 * d21 - d01 * d20) / den
+    return np.stack([1.0 - v - w, v, w], axis=1)
+
+
+def albedo_and_emission(geometry, triangles, weights):
+    """(albedo (P, 3), emission (P, 3)) float64 of hits on ``triangles`` at barycentric
+    ``weights``: the material's base colour value, or its image texture at the hit's UV."""
+    albedo = geometry.colour[triangles].astype(np.float64)
+    emission = np.zeros((len(triangles), 3))
+    if geometry.material is None or not geometry.materials:
+        return albedo, emission
+    mat = geometry.material[triangles]
+    for m in np.unique(mat).tolist():
+        material = geometry.materials[m]
+        sel = np.flatnonzero(mat == m)
+        if material.texture is not None:
+            uv = (geometry.uv[triangles[sel]] * weights[sel, :, None]).sum(1)
+            albedo[sel] = material.texture.sample(uv)
+        if np.any(material.emission):
+            emission[sel] = material.emission
+    return albedo, emission
+
+
+def shading_normals(geometry, triangles, weights, geometric):
+    """(P, 3) float64 unit shading normals: corner normals interpolated at ``weights``
+    (equal to the face normal on flat faces); ``geometric`` where none are stored."""
+    if geometry.normals is None or len(geometry.normals) == 0:
+        return geometric
+    n = (geometry.normals[triangles].astype(np.float64) * weights[:, :, None]).sum(1)
+    length = np.linalg.norm(n, axis=-1, keepdims=True)
+    return np.where(length > 1e-12, n / np.maximum(length, 1e-30), geometric)
+
+
+@dataclass(frozen=True)
+class Shaded:
+    """colour : (R, 3) float32 linear RGB. normal : (R, 3) float32 world-space shading
+    normal (zero for misses). casts : int, shadow rays cast."""
+
+    colour: np.ndarray
+    normal: np.ndarray
+    casts: int
+
+
+def shade(geometry, hits, lights, world, tree, scale, should_stop=None):
+    """Linear RGB radiance of every ray.
 
     Parameters
     ----------
     geometry : SceneGeometry. hits : Hits of R rays. lights : list of Light.
-    world : (3,) float32, world colour (also the ambient light).
+    world : adapters.lights.World (its radiance for misses; its average as ambient light).
     tree : BVHTree for shadow rays. scale : float, scene size in world units.
+    should_stop : callable, consulted every ``CASTS_PER_CHECK`` shadow rays.
 
     Returns
     -------
-    colour : (R, 3) float32 linear RGB (the world colour for misses).
-    normal : (R, 3) float32 world-space geometric normal (zero for misses).
+    Shaded
     """
     nrays = len(hits.hit)
-    colour = np.tile(np.asarray(world, dtype=np.float32), (nrays, 1))
+    colour = np.zeros((nrays, 3), dtype=np.float32)
     normal = np.zeros((nrays, 3), dtype=np.float32)
+    miss = np.flatnonzero(~hits.hit)
+    if len(miss):
+        colour[miss] = world.radiance(hits.direction[miss])
     idx = np.flatnonzero(hits.hit)
     if len(idx) == 0:
-        return colour, normal
+        return Shaded(colour, normal, 0)
     tri = hits.triangle[idx]
-    n = face_normals(geometry, tri)
-    normal[idx] = n
-    facing = np.where(((n * hits.direction[idx]).sum(-1) > 0)[:, None], -n, n)
     points = hits.location[idx]
-    albedo = geometry.colour[tri].astype(np.float64)
+    n = face_normals(geometry, tri)
+    weights = barycentric(geometry, tri, points)
+    smooth = shading_normals(geometry, tri, weights, n)
+    normal[idx] = smooth
+    back = ((n * hits.direction[idx]).sum(-1) > 0)[:, None]
+    facing = np.where(back, -n, n)
+    facing_smooth = np.where(back, -smooth, smooth)
+    albedo, emission = albedo_and_emission(geometry, tri, weights)
     light_sum = np.zeros((len(idx), 3))
     lifted = points + facing * (SHADOW_OFFSET * scale)
+    casts = 0
     for light in lights:
-        e, to_light, distance = irradiance(light, points, facing)
-        lit = e.max(axis=-1) > 0
+        e, to_light, distance = irradiance(light, points, facing_smooth)
+        # light from behind the surface itself never reaches it
+        lit = (e.max(axis=-1) > 0) & ((facing * to_light).sum(-1) > 0)
         if light.shadow and tree is not None:
-            lit &= ~_occluded(tree, lifted, to_light, distance, lit)
+            blocked = _occluded(tree, lifted, to_light, distance, lit, should_stop)
+            casts += int(lit.sum())
+            lit &= ~blocked
         light_sum += e * lit[:, None]
-    colour[idx] = albedo * (np.asarray(world, dtype=np.float64) + light_sum / math.pi)
-    return colour, normal
+    colour[idx] = albedo * (world.ambient() + light_sum / math.pi) + emission
+    return Shaded(colour, normal, casts)
 
 
-def _occluded(tree, origins, directions, distances, which):
+def _occluded(tree, origins, directions, distances, which, should_stop=None):
     """(P,) bool: whether a straight shadow ray from each origin hits anything before
     ``distances`` (only rays where ``which`` is True are cast)."""
     blocked = np.zeros(len(origins), dtype=bool)
     sel = np.flatnonzero(which)
-    o = origins[sel].tolist()
-    d = np.ascontiguousarray(directions[sel]).tolist()
-    far = np.minimum(distances[sel], 1e30).tolist()
+    with gc_paused():
+        o = origins[sel].tolist()
+        d = np.ascontiguousarray(directions[sel]).tolist()
+        far = np.minimum(distances[sel], 1e30).tolist()
     cast = tree.ray_cast
-    hit = [cast(o[i], d[i], far[i])[2] is not None for i in range(len(sel))]
+    hit = []
+    with gc_paused():
+        for a in range(0, len(sel), CASTS_PER_CHECK):
+            if should_stop is not None and should_stop():
+                raise Cancelled()
+            b = a + CASTS_PER_CHECK
+            hit += [cast(p, q, f)[2] is not None for p, q, f in zip(o[a:b], d[a:b], far[a:b])]
     blocked[sel] = hit
     return blocked

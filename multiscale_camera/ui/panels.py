@@ -59,6 +59,8 @@ class MULTISCALE_PT_main(bpy.types.Panel):
         if settings.quality == "CUSTOM":
             col.prop(settings, "accuracy_px")
         col.prop(settings, "beta")
+        col.prop(settings, "samples")
+        col.prop(settings, "simplify_px")
         row = layout.row(align=True)
         row.operator("multiscale.validate", icon="CHECKMARK")
         row.operator("multiscale.compute_field", icon="FORCE_MAGNETIC")

@@ -98,6 +98,15 @@ class MultiscaleSettings(bpy.types.PropertyGroup):
     )
     samples: IntProperty(name="Samples", default=1, min=1, max=256, description="Rays per pixel")
     shading: EnumProperty(name="Shading", items=SHADING_ITEMS, default="SOLID")
+    simplify_px: FloatProperty(
+        name="Ray Simplify",
+        default=0.25,
+        min=0.0,
+        max=8.0,
+        subtype="PIXEL",
+        description="How far, in pixels, the straight segments cast for a bent ray may "
+        "stray from it; larger renders faster (0.25 is below what a pixel shows)",
+    )
     report: StringProperty(
         name="Report", default="", description="JSON report of the last field build"
     )

@@ -1,0 +1,216 @@
+"""Benchmark: the renderer on a 100k-triangle scene at 1920x1080, one sample.
+
+    .venv/bin/python bench/render.py [--width 1920 --height 1080] [--triangles 100000]
+
+Reports, in one run: the raw ``BVHTree.ray_cast`` rate on the scene (camera 1's
+straight rays, cast in a bare loop over prepared tuples); the engine's segment-cast rate
+(segment casts over the wall time of the whole tile loop: ray sampling, culling,
+casting, shading and passes); the time of the render (field build, frame preparation,
+tiles); and the cancel latency (from the first ``should_stop`` that says stop to the
+tile loop ending); and the tile loop in one worker process per core. Writes
+bench/render.json.
+"""
+
+import argparse
+import json
+import math
+import os
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+OUT = Path(__file__).with_suffix(".json")
+
+
+def build_scene(width, height, triangles):
+    """The two-camera test scene with its ground replaced by a bumpy grid of about
+    ``triangles`` triangles, so every pixel's ray meets a real BVH."""
+    import bpy
+    import numpy as np
+
+    from tests.blender.scenes import two_camera_scene
+
+    scene = bpy.context.scene
+    two_camera_scene(scene, width, height)
+    bpy.data.objects.remove(scene.objects["Plane"])
+    n = max(2, int(math.sqrt(triangles / 2)) + 1)
+    bpy.ops.mesh.primitive_grid_add(x_subdivisions=n, y_subdivisions=n, size=20)
+    ground = bpy.context.object
+    ground.pass_index = 1
+    co = np.empty(len(ground.data.vertices) * 3, dtype=np.float32)
+    ground.data.vertices.foreach_get("co", co)
+    co = co.reshape(-1, 3)
+    co[:, 2] = 0.05 * np.sin(co[:, 0] * 3.1) * np.cos(co[:, 1] * 2.3)
+    ground.data.vertices.foreach_set("co", co.ravel())
+    ground.data.update()
+    bpy.context.view_layer.update()
+    return scene
+
+
+def raw_rate(frame, seconds=3.0):
+    """(per wall second, per CPU second) of a bare BVHTree.ray_cast loop over camera 1's
+    straight rays through the pixel centres of the image's middle rows."""
+    import numpy as np
+
+    from multiscale_camera.render.raycast import gc_paused
+
+    cam = frame.rig.cameras[0]
+    w, h = frame.size
+    # pixel centres in row order, as the tiles go (coherent rays: the same cache luck)
+    rows = max(1, min(h, 250_000 // max(w, 1)))
+    py, px = np.mgrid[0:rows, 0:w] + 0.5
+    py = py + (h - rows) // 2
+    d = cam.directions(px.ravel(), py.ravel())
+    o = cam.near_points(d)
+    origins, dirs = o.tolist(), d.tolist()
+    far = float(cam.clip_end)
+    cast = frame.tree.ray_cast
+    done, start, cpu = 0, time.perf_counter(), time.process_time()
+    with gc_paused():  # the best case: no collections during the loop
+        while time.process_time() - cpu < seconds:
+            for a, b in zip(origins, dirs):
+                cast(a, b, far)
+            done += len(origins)
+    return done / (time.perf_counter() - start), done / (time.process_time() - cpu)
+
+
+def render_tiles(frame, should_stop=None, processes=1):
+    """The engine's tile loop (without writing a Render Result)."""
+    from multiscale_camera.render import pipeline, workers
+
+    for _rows, _passes in workers.render_tiles(
+        frame, pipeline.tiles(frame), processes, should_stop
+    ):
+        pass
+
+
+def cancel_latency(frame, after, processes=1):
+    """Seconds from the first stop request (made ``after`` seconds into the tile loop)
+    until the loop has ended."""
+    from multiscale_camera.core.errors import Cancelled
+
+    asked = []
+    start = time.perf_counter()
+
+    def should_stop():
+        now = time.perf_counter()
+        if now - start >= after:
+            asked.append(now)
+            return True
+        return False
+
+    try:
+        render_tiles(frame, should_stop, processes)
+    except Cancelled:
+        pass
+    if not asked:  # the render ended before the request
+        return None
+    return time.perf_counter() - asked[0]
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--width", type=int, default=1920)
+    parser.add_argument("--height", type=int, default=1080)
+    parser.add_argument("--triangles", type=int, default=100_000)
+    parser.add_argument("--samples", type=int, default=1)
+    args = parser.parse_args()
+
+    import bpy
+
+    import multiscale_camera
+    from multiscale_camera.render import pipeline, workers
+
+    multiscale_camera.register()
+    bpy.ops.wm.read_homefile(use_empty=True)
+    scene = build_scene(args.width, args.height, args.triangles)
+    scene.multiscale.samples = args.samples
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    pipeline.clear_fields()
+    t0, c0 = time.perf_counter(), time.process_time()
+    frame = pipeline.prepare_frame(depsgraph)
+    t1, c1 = time.perf_counter(), time.process_time()
+    render_tiles(frame)
+    t2, c2 = time.perf_counter(), time.process_time()
+    tile_seconds = t2 - t1
+    raw, raw_cpu = raw_rate(frame)
+    latencies = []
+    for after in (0.5, 1.5, 3.0):
+        frame.casts = frame.shadow_casts = frame.rays = 0
+        latencies.append(cancel_latency(frame, after))
+    # the tile loop again on a warm field, for its casts
+    frame.casts = frame.shadow_casts = frame.rays = 0
+    t3, c3 = time.perf_counter(), time.process_time()
+    render_tiles(frame)
+    warm, warm_cpu = time.perf_counter() - t3, time.process_time() - c3
+    seg_rate = frame.casts / warm
+    seg_rate_cpu = frame.casts / warm_cpu
+    counts = frame.rays, frame.casts, frame.shadow_casts
+    # and in worker processes, one per core (CPU: this process and its reaped children)
+    processes = workers.worker_count()
+    before = os.times()
+    t4 = time.perf_counter()
+    render_tiles(frame, processes=processes)
+    pooled = time.perf_counter() - t4
+    after = os.times()
+    pooled_cpu = sum(after[:4]) - sum(before[:4])
+    pooled_latency = cancel_latency(frame, 1.5, processes)
+    frame.rays, frame.casts, frame.shadow_casts = counts
+    result = {
+        "size": [args.width, args.height],
+        "samples": args.samples,
+        "triangles": int(len(frame.geometry)),
+        "cpu_count": os.cpu_count(),
+        "raw_ray_cast_per_s": round(raw),
+        "engine_segment_casts_per_s": round(seg_rate),
+        "engine_share_of_raw": round(seg_rate / raw, 3),
+        # the same per CPU second of this process: far less sensitive to other work
+        "raw_ray_cast_per_cpu_s": round(raw_cpu),
+        "engine_segment_casts_per_cpu_s": round(seg_rate_cpu),
+        "engine_share_of_raw_cpu": round(seg_rate_cpu / raw_cpu, 3),
+        "engine_all_casts_per_s": round((frame.casts + frame.shadow_casts) / warm),
+        "rays": frame.rays,
+        "segment_casts": frame.casts,
+        "shadow_casts": frame.shadow_casts,
+        "segment_casts_per_ray": round(frame.casts / max(frame.rays, 1), 3),
+        "seconds": {
+            "prepare_frame": round(t1 - t0, 2),
+            "stages": {k: round(v, 2) for k, v in frame.seconds.items()},
+            "tiles_first": round(tile_seconds, 2),
+            "tiles_warm": round(warm, 2),
+            f"tiles_{processes}_processes": round(pooled, 2),
+            "render_total": round(t2 - t0, 2),
+        },
+        # CPU seconds of this process: less sensitive than wall time to other work
+        "cpu_seconds": {
+            "prepare_frame": round(c1 - c0, 2),
+            "tiles_first": round(c2 - c1, 2),
+            "render_total": round(c2 - c0, 2),
+            "tiles_warm": round(warm_cpu, 2),
+            f"tiles_{processes}_processes_with_children": round(pooled_cpu, 2),
+        },
+        "load_average_1min": round(os.getloadavg()[0], 2),
+        "cancel_latency_s": [None if x is None else round(x, 3) for x in latencies],
+        f"cancel_latency_{processes}_processes_s": None
+        if pooled_latency is None
+        else round(pooled_latency, 3),
+        "note": "2 cores shared with other work while measured: timings are noisy",
+    }
+    print(json.dumps(result, indent=1))
+    print(
+        f"raw ray_cast {raw_cpu / 1e6:.2f} M/CPU s | engine {seg_rate_cpu / 1e6:.2f} M segment "
+        f"casts/CPU s ({seg_rate_cpu / raw_cpu:.0%} of raw; wall-clock {seg_rate / raw:.0%}) | "
+        f"{args.width}x{args.height} {len(frame.geometry)} tris: "
+        f"field+frame {t1 - t0:.1f} s, tiles {tile_seconds:.1f} s, total {t2 - t0:.1f} s "
+        f"(CPU {c2 - c0:.1f} s); tiles in {processes} processes {pooled:.1f} s | "
+        f"cancel latency max {max(x or 0.0 for x in latencies):.3f} s "
+        f"({pooled_latency or 0.0:.3f} s in {processes} processes)"
+    )
+    OUT.write_text(json.dumps(result, indent=1) + "\n")
+    print(f"wrote {OUT.relative_to(ROOT)}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,103 @@
+"""Tiles rendered in worker processes: ``BVHTree.ray_cast`` holds the interpreter lock, so
+threads cannot share the casting, but forked processes can, each casting on its own copy
+of the frame's tree (fork copies the parent's memory, tree included, page by page as it
+is written).
+
+Only ``fork`` is used: a spawned worker would start a fresh interpreter and import the
+package, and with it ``bpy``, which must not happen inside Blender. Where fork is not
+available (Windows, or a Python that forbids it) the tiles render in-process. Workers
+never call bpy: ``render_rows`` works on the frame's numpy arrays and the tree.
+"""
+
+import multiprocessing
+import os
+import signal
+import sys
+
+from ..core.errors import Cancelled
+from . import pipeline
+
+# A frame with fewer rays than this renders in-process: starting workers costs more.
+MIN_RAYS = 200_000
+
+# The frame the forked workers render (set in the parent just before forking).
+_FRAME = None
+
+
+def fork_context():
+    """The ``fork`` multiprocessing context, or None where it is unavailable."""
+    if sys.platform == "win32":
+        return None
+    try:
+        return multiprocessing.get_context("fork")
+    except ValueError:
+        return None
+
+
+def worker_count(requested=0):
+    """Processes to use: ``requested`` if positive, else one per core this process may
+    run on."""
+    if requested and requested > 0:
+        return int(requested)
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
+def _worker_init():
+    """A worker ends when the pool terminates it, whatever handlers the host installed,
+    and leaves Ctrl+C to the parent."""
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _render_tile(rows):
+    frame = _FRAME
+    before = frame.casts, frame.shadow_casts, frame.rays
+    passes = pipeline.render_rows(frame, rows[0], rows[1])
+    counts = (frame.casts - before[0], frame.shadow_casts - before[1], frame.rays - before[2])
+    return rows, passes, counts
+
+
+def render_tiles(frame, tiles, processes, should_stop=None):
+    """Yield ``((row0, row1), passes)`` for every tile, in order.
+
+    Parameters
+    ----------
+    frame : pipeline.Frame. tiles : list of (row0, row1). processes : int; 1 (or no fork,
+        or a small frame) renders in-process. should_stop : callable, consulted between
+        tiles (and, in-process, every few thousand casts); True stops the workers.
+
+    Raises
+    ------
+    Cancelled when ``should_stop`` says so.
+    """
+    global _FRAME
+    width, height = frame.size
+    ctx = fork_context()
+    pool = None
+    if processes > 1 and ctx is not None and width * height * frame.samples >= MIN_RAYS:
+        _FRAME = frame
+        try:
+            pool = ctx.Pool(processes, initializer=_worker_init)
+        except OSError:  # no processes to be had (limits, sandbox): render here
+            _FRAME = None
+    if pool is None:
+        for row0, row1 in tiles:
+            if should_stop is not None and should_stop():
+                raise Cancelled()
+            yield (row0, row1), pipeline.render_rows(frame, row0, row1, should_stop)
+        return
+    try:
+        for rows, passes, counts in pool.imap(_render_tile, tiles):
+            frame.casts += counts[0]
+            frame.shadow_casts += counts[1]
+            frame.rays += counts[2]
+            if should_stop is not None and should_stop():
+                raise Cancelled()
+            yield rows, passes
+    finally:
+        pool.terminate()
+        pool.join()
+        _FRAME = None

@@ -1,0 +1,85 @@
+"""Tiles in forked worker processes give the same image as in-process, and Esc stops them."""
+
+import bpy
+import numpy as np
+import pytest
+
+from multiscale_camera.core.errors import Cancelled
+from multiscale_camera.render import pipeline, workers
+
+from .scenes import two_camera_scene
+
+
+def frame_of(scene):
+    return pipeline.prepare_frame(bpy.context.evaluated_depsgraph_get())
+
+
+def collect(frame, processes, should_stop=None):
+    out = {}
+    for rows, passes in workers.render_tiles(frame, pipeline.tiles(frame), processes, should_stop):
+        out[rows] = passes
+    return out
+
+
+@pytest.mark.skipif(workers.fork_context() is None, reason="no fork on this platform")
+def test_worker_processes_render_the_same_image(empty_scene, monkeypatch):
+    two_camera_scene(empty_scene, 64, 48)
+    empty_scene.multiscale.samples = 2
+    monkeypatch.setattr(workers, "MIN_RAYS", 0)
+    monkeypatch.setattr(pipeline, "rows_per_tile", lambda width, rays=0, samples=1: 5)
+    frame = frame_of(empty_scene)
+    alone = collect(frame, 1)
+    casts = frame.casts, frame.shadow_casts, frame.rays
+    frame.casts = frame.shadow_casts = frame.rays = 0
+    pooled = collect(frame, 2)
+    assert list(pooled) == list(alone) and len(alone) == 10
+    for rows in alone:
+        for name in pipeline.PASSES:
+            np.testing.assert_array_equal(pooled[rows][name[0]], alone[rows][name[0]])
+    assert (frame.casts, frame.shadow_casts, frame.rays) == casts
+
+
+@pytest.mark.skipif(workers.fork_context() is None, reason="no fork on this platform")
+def test_stop_request_ends_the_workers(empty_scene, monkeypatch):
+    two_camera_scene(empty_scene, 64, 48)
+    monkeypatch.setattr(workers, "MIN_RAYS", 0)
+    monkeypatch.setattr(pipeline, "rows_per_tile", lambda width, rays=0, samples=1: 4)
+    frame = frame_of(empty_scene)
+    calls = []
+
+    def stop_after_two_tiles():
+        calls.append(1)
+        return len(calls) > 2
+
+    with pytest.raises(Cancelled):
+        collect(frame, 2, stop_after_two_tiles)
+    assert len(calls) == 3
+
+
+def test_without_fork_tiles_render_in_process(empty_scene, monkeypatch):
+    two_camera_scene(empty_scene, 64, 48)
+    monkeypatch.setattr(workers, "MIN_RAYS", 0)
+    monkeypatch.setattr(workers, "fork_context", lambda: None)
+    monkeypatch.setattr(
+        workers.multiprocessing, "get_context", lambda *a: pytest.fail("no pool without fork")
+    )
+    frame = frame_of(empty_scene)
+    out = collect(frame, 4)
+    assert sorted(out) == pipeline.tiles(frame)
+    assert frame.rays == 64 * 48
+
+
+def test_when_no_process_can_start_tiles_render_in_process(empty_scene, monkeypatch):
+    two_camera_scene(empty_scene, 64, 48)
+    monkeypatch.setattr(workers, "MIN_RAYS", 0)
+
+    class NoPool:
+        def Pool(self, *args, **kwargs):  # noqa: N802 (multiprocessing's name)
+            raise OSError(11, "Resource temporarily unavailable")
+
+    monkeypatch.setattr(workers, "fork_context", lambda: NoPool())
+    frame = frame_of(empty_scene)
+    out = collect(frame, 2)
+    assert sorted(out) == pipeline.tiles(frame)
+    assert frame.rays == 64 * 48
+    assert workers._FRAME is None
