@@ -65,7 +65,5 @@ def read_channels(path):
         part = openexr.File(str(path), separate_channels=True).parts[0]
     except Exception as err:
         raise ExrError(f"Cannot read '{path}': {err}") from err
-    channels = {
-        name: np.asarray(ch.pixels, dtype=np.float32) for name, ch in part.channels.items()
-    }
+    channels = {name: np.asarray(ch.pixels, dtype=np.float32) for name, ch in part.channels.items()}
     return channels, dict(part.header)
