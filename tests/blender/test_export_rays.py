@@ -135,9 +135,7 @@ def test_two_camera_tables_agree_with_the_polylines(empty_scene, tmp_path):
     axis = -np.array(c1.matrix_world.col[2][:3])
     first = points[offsets[:-1]]
     np.testing.assert_allclose((first - eye) @ axis, c1.data.clip_start, atol=1e-3)
-    np.testing.assert_allclose(
-        np.linalg.norm(first - eye, axis=1), lines["start_depth"], rtol=1e-5
-    )
+    np.testing.assert_allclose(np.linalg.norm(first - eye, axis=1), lines["start_depth"], rtol=1e-5)
     assert lines["membership"].min() >= 1.0 - 1e-4 and lines["membership"].max() > 1.9
     origin, direction = vec(ch, "origin"), vec(ch, "direction")
     rng = np.random.default_rng(4)
@@ -170,9 +168,8 @@ def test_export_rays_bad_input(empty_scene, tmp_path):
     missing = tmp_path / "nowhere" / "rays.exr"
     with pytest.raises(RuntimeError) as info:
         bpy.ops.multiscale.export_rays(filepath=str(missing))
-    assert (
-        f"Error: Cannot write '{missing}': the folder '{missing.parent}' does not exist"
-        in str(info.value)
+    assert f"Error: Cannot write '{missing}': the folder '{missing.parent}' does not exist" in str(
+        info.value
     )
     scene.multiscale.cameras[1].camera = None
     with pytest.raises(RuntimeError) as info:
