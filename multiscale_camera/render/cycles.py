@@ -259,7 +259,7 @@ def render(engine, depsgraph, frame):
         _run_cycles(engine, depsgraph, bpy.data)
         if engine.test_break():
             return True
-        _write_own_passes(engine, tables, index_name)
+        _write_own_passes(engine, tables, index_name, _region(depsgraph.scene.render, *frame.size))
         return True
     except (ExrError, RuntimeError, OSError) as err:
         engine.fail(f"Multiscale: Cycles hand-off failed: {err}")
@@ -280,25 +280,45 @@ def _run_cycles(engine, depsgraph, data):
         cycles_engine.free(engine)
 
 
-def _write_own_passes(engine, tables, index_name):
+def _region(render, width, height):
+    """The rendered region (x, y, w, h) in pixels, y from the bottom: the render border
+    when one is used (as Blender rounds it), else the whole image."""
+    if not render.use_border:
+        return 0, 0, width, height
+    x0, x1 = int(render.border_min_x * width), int(render.border_max_x * width)
+    y0, y1 = int(render.border_min_y * height), int(render.border_max_y * height)
+    return x0, y0, x1 - x0, y1 - y0
+
+
+def _write_own_passes(engine, tables, index_name, region):
     """Depth (arc length along the bent ray) and Membership come from our tables; the
-    other passes stay as Cycles wrote them (IndexOB copies Cycles' object index)."""
+    other passes stay as Cycles wrote them (IndexOB copies Cycles' object index).
+
+    region : (x, y, w, h) pixels of the result, y from the bottom (``_region``).
+    """
     result = engine.get_result()
     layer = result.layers[0]
-    height, width = tables.hit.shape
+    x0, y0, width, rows = region
     data = {}
     for render_pass in layer.passes:
-        buf = np.empty(width * height * render_pass.channels, dtype=np.float32)
-        render_pass.rect.foreach_get(buf)
+        buf = np.empty(width * rows * render_pass.channels, dtype=np.float32)
+        try:
+            render_pass.rect.foreach_get(buf)
+        except (TypeError, ValueError, RuntimeError):
+            engine.report(
+                {"WARNING"}, "Multiscale: Depth and Membership are Cycles' own in this render"
+            )
+            return
         data[render_pass.name] = buf
-    flip = slice(None, None, -1)
-    depth = np.where(tables.hit, tables.depth, MISS_DEPTH).astype(np.float32)[flip]
-    data["Depth"] = depth.ravel()
-    data["Membership"] = tables.membership[flip].ravel()
+    # our tables are top-first; the result's rows run bottom-up
+    window = (slice(y0, y0 + rows), slice(x0, x0 + width))
+    depth = np.where(tables.hit, tables.depth, MISS_DEPTH).astype(np.float32)[::-1]
+    data["Depth"] = np.ascontiguousarray(depth[window]).ravel()
+    data["Membership"] = np.ascontiguousarray(tables.membership[::-1][window]).ravel()
     for name in ("IndexOB", "Object Index"):
         if name in data and name != index_name and index_name in data:
             data[name] = data[index_name]
-    out = engine.begin_result(0, 0, width, height)
+    out = engine.begin_result(0, 0, width, rows)
     for render_pass in out.layers[0].passes:
         if render_pass.name in data:
             render_pass.rect.foreach_set(data[render_pass.name])
