@@ -45,7 +45,7 @@ def main():
     import bpy
 
     import multiscale_camera
-    from multiscale_camera.render import pipeline
+    from multiscale_camera.render import cycles, pipeline
     from multiscale_camera.render.tables import ray_tables
     from tests.blender.test_cycles import cycles_settings, three_camera_scene
 
@@ -67,7 +67,10 @@ def main():
     scene.multiscale.shading = "CYCLES"
     pipeline.clear_fields()
     first = timed_render()
-    handoff = [timed_render() for _ in range(args.repeats)]
+    handoff, stages = [], []
+    for _ in range(args.repeats):
+        handoff.append(timed_render())
+        stages.append({k: round(v, 3) for k, v in cycles.LAST_SECONDS.items()})
 
     depsgraph = bpy.context.evaluated_depsgraph_get()
     start = time.perf_counter()
@@ -84,6 +87,7 @@ def main():
         "cpu_count": os.cpu_count(),
         "plain_cycles_seconds": [round(t, 3) for t in plain],
         "handoff_seconds": [round(t, 3) for t in handoff],
+        "handoff_stage_seconds": stages,
         "handoff_first_render_seconds": round(first, 3),
         "prepare_frame_cached_field_seconds": round(prepare, 3),
         "march_and_tables_seconds": round(march, 3),

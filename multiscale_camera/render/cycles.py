@@ -18,6 +18,7 @@ import hashlib
 import os
 import shutil
 import tempfile
+import time
 
 import numpy as np
 
@@ -59,6 +60,10 @@ shader multiscale_camera(
     direction = normalize(dir);
 }
 """
+
+
+# Stage timings of the last hand-off (seconds): "march", "tables", "cycles", "passes".
+LAST_SECONDS = {}
 
 
 def _cycles_module():
@@ -218,6 +223,14 @@ def render(engine, depsgraph, frame):
         return True
     width, height = frame.size
     folder = tempfile.mkdtemp(prefix="multiscale-cycles-")
+    LAST_SECONDS.clear()
+    clock = [time.perf_counter()]
+
+    def lap(stage):
+        now = time.perf_counter()
+        LAST_SECONDS[stage] = now - clock[0]
+        clock[0] = now
+
     try:
         engine.update_stats("", "Multiscale: marching rays for Cycles")
         try:
@@ -226,6 +239,7 @@ def render(engine, depsgraph, frame):
             )
         except Cancelled:
             return True
+        lap("march")
         if engine.test_break():
             return True
         origin_path, direction_path = write_tables(folder, tables, camera.matrix_world)
@@ -255,11 +269,18 @@ def render(engine, depsgraph, frame):
             ("Membership", 1, "X"),
         ):
             engine.add_pass(name, channels, chan_id)
+        lap("tables")
         engine.update_stats("", "Multiscale: Cycles")
         _run_cycles(engine, depsgraph, bpy.data)
+        lap("cycles")
         if engine.test_break():
             return True
         _write_own_passes(engine, tables, index_name, _region(depsgraph.scene.render, *frame.size))
+        lap("passes")
+        print(
+            f"Multiscale (Cycles): {width}x{height}, {tables.casts} segment casts, "
+            + ", ".join(f"{k} {v:.2f} s" for k, v in LAST_SECONDS.items())
+        )
         return True
     except (ExrError, RuntimeError, OSError) as err:
         engine.fail(f"Multiscale: Cycles hand-off failed: {err}")
