@@ -15,6 +15,10 @@ import numpy as np
 
 from .raycast import march, polyline_segments
 
+# A handed-on ray starts at least this fraction of the scene's size before its hit: far
+# below anything visible, far above float32 rounding of the stored origins.
+START_MARGIN = 1e-5
+
 
 @dataclass(frozen=True)
 class RayTables:
@@ -64,12 +68,14 @@ class Polylines:
     pixels: np.ndarray
 
 
-def first_hit_segments(bundle, hits):
+def first_hit_segments(bundle, hits, margin=0.0):
     """Origin of the segment holding each ray's first hit (last segment for a miss).
 
     Parameters
     ----------
     bundle : RayBundle of R rays. hits : Hits of the same rays (``raycast.march``).
+    margin : float, world units: an origin closer than this to its hit is moved back
+        along the segment's line to this distance.
 
     Returns
     -------
@@ -79,9 +85,10 @@ def first_hit_segments(bundle, hits):
     seg = polyline_segments(bundle)
     r = len(bundle)
     counts = np.diff(seg.offsets)
-    # the segment holding arc length d of ray r is the last one starting at or before d
+    # the segment holding arc length d of ray r is the last one starting before d (a hit
+    # at a vertex belongs to the segment that ends there)
     target = np.where(hits.hit, hits.distance, np.inf)
-    starts_before = seg.before <= target[seg.ray]
+    starts_before = seg.before < target[seg.ray]
     held = seg.offsets[:-1] + np.bincount(seg.ray, weights=starts_before, minlength=r).astype(
         np.int64
     )
@@ -90,6 +97,11 @@ def first_hit_segments(bundle, hits):
     origin = seg.origin[held]
     direction = seg.direction[held]
     distance = np.where(hits.hit, hits.distance - seg.before[held], np.inf)
+    # a ray handed on must not start on its surface (a renderer would skip the surface):
+    # start at least ``margin`` before the hit, back along the segment's line
+    short = hits.hit & (distance < margin)
+    origin[short] -= direction[short] * (margin - distance[short])[:, None]
+    distance[short] = margin
     return origin, direction, distance
 
 
@@ -137,7 +149,7 @@ def ray_tables(frame, should_stop=None, progress=None, keep_polylines=False):
         bundle = frame.field.rays(ix, iy)
         hits = march(frame.tree, bundle, should_stop)
         casts += hits.casts
-        o, d, t = first_hit_segments(bundle, hits)
+        o, d, t = first_hit_segments(bundle, hits, START_MARGIN * frame.scale)
         rows = slice(row0, row1)
         origin[rows] = o.reshape(row1 - row0, width, 3)
         direction[rows] = d.reshape(row1 - row0, width, 3)
