@@ -3,11 +3,12 @@
     .venv/bin/python bench/cycles.py [--width 480 --height 270 --samples 64 --repeats 2]
 
 The scene is the three-camera rig of tests/blender/test_cycles.py (five objects, a sun).
-Times are wall-clock seconds of ``bpy.ops.render.render()``: a plain Cycles render from
+Times are wall-clock seconds of ``bpy.ops.render.render()`` (and the process's CPU
+seconds over all threads, less sensitive to other load on the machine): a plain Cycles render from
 camera 1, and the Multiscale engine with shading = 'CYCLES' (our march, the tables, the
 shader compile and Cycles through the custom camera), the ray field already built (it is
-cached across renders while the rig is unchanged); the first hand-off render, which also
-builds the field, is reported on its own. Writes bench/cycles.json.
+cached across renders while the rig is unchanged), the two alternating; the first
+hand-off render, which also builds the field, is reported on its own. Writes bench/cycles.json.
 """
 
 import argparse
@@ -25,12 +26,14 @@ OUT = Path(__file__).with_suffix(".json")
 TARGET_RATIO = 1.2
 
 
-def timed_render():
+def timed_render(engine):
+    """Render with ``engine``: (wall seconds, CPU seconds of this process, all threads)."""
     import bpy
 
-    start = time.perf_counter()
+    bpy.context.scene.render.engine = engine
+    wall, cpu = time.perf_counter(), time.process_time()
     bpy.ops.render.render()
-    return time.perf_counter() - start
+    return time.perf_counter() - wall, time.process_time() - cpu
 
 
 def main():
@@ -59,17 +62,19 @@ def main():
         len(o.data.loop_triangles) for o in scene.objects if o.type == "MESH" and o.data
     )
 
-    scene.render.engine = "CYCLES"
-    timed_render()  # warm-up: kernels, caches
-    plain = [timed_render() for _ in range(args.repeats)]
-
-    scene.render.engine = "MULTISCALE"
+    timed_render("CYCLES")  # warm-up: kernels, caches
     scene.multiscale.shading = "CYCLES"
     pipeline.clear_fields()
-    first = timed_render()
-    handoff, stages = [], []
+    first, _ = timed_render("MULTISCALE")
+    # alternate the two, so that both see the same load on a shared machine
+    plain, handoff, plain_cpu, handoff_cpu, stages = [], [], [], [], []
     for _ in range(args.repeats):
-        handoff.append(timed_render())
+        wall, cpu = timed_render("CYCLES")
+        plain.append(wall)
+        plain_cpu.append(cpu)
+        wall, cpu = timed_render("MULTISCALE")
+        handoff.append(wall)
+        handoff_cpu.append(cpu)
         stages.append({k: round(v, 3) for k, v in cycles.LAST_SECONDS.items()})
 
     depsgraph = bpy.context.evaluated_depsgraph_get()
@@ -87,12 +92,15 @@ def main():
         "cpu_count": os.cpu_count(),
         "plain_cycles_seconds": [round(t, 3) for t in plain],
         "handoff_seconds": [round(t, 3) for t in handoff],
+        "plain_cycles_cpu_seconds": [round(t, 3) for t in plain_cpu],
+        "handoff_cpu_seconds": [round(t, 3) for t in handoff_cpu],
         "handoff_stage_seconds": stages,
         "handoff_first_render_seconds": round(first, 3),
         "prepare_frame_cached_field_seconds": round(prepare, 3),
         "march_and_tables_seconds": round(march, 3),
         "segment_casts": int(tables.casts),
         "ratio": round(min(handoff) / min(plain), 3),
+        "cpu_ratio": round(min(handoff_cpu) / min(plain_cpu), 3),
         "ratio_first_render": round(first / min(plain), 3),
         "target_ratio": TARGET_RATIO,
     }
