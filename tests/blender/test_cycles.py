@@ -282,3 +282,41 @@ def test_border_render_keeps_our_depth_in_the_border(empty_scene, tmp_path):
     np.testing.assert_array_equal(part["Depth"], full["Depth"][window])
     np.testing.assert_array_equal(part["Membership"], full["Membership"][window])
     np.testing.assert_array_equal(part["IndexOB"], full["IndexOB"][window])
+
+
+class RecordingLayout:
+    """Stands in for a panel's UILayout: records prop and label calls."""
+
+    def __init__(self, calls=None):
+        self.calls = [] if calls is None else calls
+
+    def prop(self, data, name, **kw):
+        self.calls.append(("prop", name))
+
+    def label(self, text="", **kw):
+        self.calls.append(("label", text))
+
+    def operator(self, idname, **kw):
+        self.calls.append(("operator", idname))
+        return type("Props", (), {})()
+
+    def __getattr__(self, name):  # row, column, box, template_*, separator, scale_y ...
+        return lambda *a, **kw: RecordingLayout(self.calls)
+
+
+def draw_panel(context):
+    from multiscale_camera.ui.panels import MULTISCALE_PT_main
+
+    panel = type("Panel", (), {"layout": RecordingLayout()})()
+    MULTISCALE_PT_main.draw(panel, context)
+    return panel.layout.calls
+
+
+def test_panel_offers_cycles_only_where_supported(empty_scene, monkeypatch):
+    calls = draw_panel(bpy.context)
+    assert ("prop", "shading") in calls
+    assert ("operator", "multiscale.export_rays") in calls
+    reason = "Cycles shading needs Blender 4.5 or later (OSL custom cameras); this is Blender 4.2.0"
+    monkeypatch.setattr(cycles, "unsupported_reason", lambda version=None: reason)
+    calls = draw_panel(bpy.context)
+    assert ("prop", "shading") not in calls and ("label", reason) in calls
