@@ -94,6 +94,8 @@ def unsupported_reason(version=None):
         return "Cycles shading needs Cycles, which this Blender lacks"
     if not getattr(cyc, "with_osl", True):
         return "Cycles shading needs Cycles built with OSL, which this Blender lacks"
+    if "cycles" not in bpy.types.Scene.bl_rna.properties:
+        return "Cycles shading needs the Cycles add-on: enable it in Preferences > Add-ons"
     return None
 
 

@@ -251,6 +251,19 @@ def test_unsupported_blender_says_why():
     assert cycles.index_pass_name((5, 0, 1)) == "Object Index"
 
 
+def test_disabled_cycles_addon_says_why():
+    import addon_utils
+
+    addon_utils.disable("cycles")
+    try:
+        assert cycles.unsupported_reason() == (
+            "Cycles shading needs the Cycles add-on: enable it in Preferences > Add-ons"
+        )
+    finally:
+        addon_utils.enable("cycles", default_set=True)
+    assert cycles.unsupported_reason() is None
+
+
 def test_without_the_handoff_the_engine_renders_solid(empty_scene, tmp_path, monkeypatch):
     """Where the hand-off cannot run (older Blender), CYCLES renders as SOLID does."""
     scene = empty_scene
