@@ -42,6 +42,13 @@ def main():
     parser.add_argument("--height", type=int, default=270)
     parser.add_argument("--samples", type=int, default=64)
     parser.add_argument("--repeats", type=int, default=2)
+    parser.add_argument(
+        "--dense-sphere",
+        type=int,
+        default=0,
+        metavar="N",
+        help="add an icosphere of N subdivisions (20 * 4**(N - 1) triangles) to the scene",
+    )
     parser.add_argument("--out", type=Path, default=OUT)
     args = parser.parse_args()
 
@@ -58,9 +65,16 @@ def main():
     cams, _masks = three_camera_scene(scene, args.width, args.height)
     cycles_settings(scene, samples=args.samples)
     scene.camera = cams[0]
-    triangles = sum(
-        len(o.data.loop_triangles) for o in scene.objects if o.type == "MESH" and o.data
-    )
+    if args.dense_sphere:
+        bpy.ops.mesh.primitive_ico_sphere_add(
+            subdivisions=args.dense_sphere, radius=0.7, location=(-2.5, -1.0, 0.7)
+        )
+        bpy.context.object.pass_index = 6
+        bpy.context.view_layer.update()
+    for o in scene.objects:
+        if o.type == "MESH":
+            o.data.calc_loop_triangles()
+    triangles = sum(len(o.data.loop_triangles) for o in scene.objects if o.type == "MESH")
 
     timed_render("CYCLES")  # warm-up: kernels, caches
     scene.multiscale.shading = "CYCLES"
