@@ -292,13 +292,16 @@ def render(engine, depsgraph, frame):
 
 
 def _run_cycles(engine, depsgraph, data):
-    """Run a Cycles session on ``engine`` (as Cycles' own RenderEngine does)."""
+    """Run a Cycles session on ``engine`` as Blender drives Cycles' own RenderEngine:
+    update (create, reset), render, render_frame_finish (which writes the tiles Cycles
+    kept on disk when the image is larger than its tile size), free."""
     from cycles import engine as cycles_engine
 
     cycles_engine.create(engine, data)
     try:
         cycles_engine.reset(engine, data, depsgraph)
         cycles_engine.render(engine, depsgraph)
+        cycles_engine.render_frame_finish(engine)
     finally:
         cycles_engine.free(engine)
 

@@ -343,3 +343,18 @@ def test_panel_offers_cycles_only_where_supported(empty_scene, monkeypatch):
     monkeypatch.setattr(cycles, "unsupported_reason", lambda version=None: reason)
     calls = draw_panel(bpy.context)
     assert ("prop", "shading") not in calls and ("label", reason) in calls
+
+
+def test_tiled_cycles_render_is_not_lost(empty_scene, tmp_path):
+    """An image larger than Cycles' tile size (auto tiling): Cycles keeps the tiles on
+    disk until render_frame_finish; the hand-off must call it or the image is black."""
+    scene = empty_scene
+    two_camera_scene(scene, 64, 48)
+    scene.multiscale.shading = "CYCLES"
+    cycles_settings(scene, samples=2)
+    whole = render(scene, tmp_path / "whole.exr", "MULTISCALE")
+    scene.cycles.use_auto_tile, scene.cycles.tile_size = True, 16
+    tiled = render(scene, tmp_path / "tiled.exr", "MULTISCALE")
+    assert whole["Combined"][..., :3].mean() > 0.01
+    np.testing.assert_array_equal(tiled["Combined"], whole["Combined"])
+    np.testing.assert_array_equal(tiled["IndexOB"], whole["IndexOB"])
