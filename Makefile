@@ -78,10 +78,12 @@ demo: build sample_blends/demo.blend
 
 # Speed and accuracy figures (minutes, not part of `make test`): the membership solver
 # against the paper's explicit diffusion (capped at 8 minutes a size: a capped run gives
-# a lower bound on the ratio), then every method at every quality at 1920x1080.
+# a lower bound on the ratio), then every method at every quality at 1920x1080, then the
+# Cycles hand-off against plain Cycles at 480x270, 64 samples (about 3 minutes on 2 cores).
 bench: venv bench-render
 	$(PY) bench/solvers.py --sizes 64 128 256 320 --diffusion-sizes 64 128 --cap 480
 	$(PY) bench/methods.py --width 1920 --height 1080
+	$(PY) bench/cycles.py --width 480 --height 270 --samples 64
 
 # The renderer on a 100k-triangle scene at 1920x1080: raw BVH rate, engine cast rate,
 # render time, cancel latency: bench/render.json.

@@ -26,6 +26,11 @@ class MultiscaleRenderEngine(bpy.types.RenderEngine):
             return
         for notice in frame.notices:
             self.report({"WARNING"}, f"Multiscale: {notice}")
+        if depsgraph.scene.multiscale.shading == "CYCLES":
+            from . import cycles
+
+            if cycles.render(self, depsgraph, frame):
+                return
         width, height = frame.size
         for name, channels, chan_id, _kind in pipeline.PASSES[1:]:
             self.add_pass(name, channels, chan_id)

@@ -3,7 +3,7 @@
 import time
 
 import bpy
-from bpy.props import BoolProperty, EnumProperty
+from bpy.props import BoolProperty, EnumProperty, StringProperty
 
 from ..adapters.scene import rig_from_scene
 from ..core.errors import RigError, SolverDidNotConverge
@@ -165,6 +165,56 @@ class MULTISCALE_OT_render(bpy.types.Operator):
         return {"FINISHED"}
 
 
+class MULTISCALE_OT_export_rays(bpy.types.Operator):
+    """Write every pixel's first-hit ray (origin, direction, hit distance, membership) as a
+    multi-channel EXR, and the bent rays' polylines beside it as .npz"""
+
+    bl_idname = "multiscale.export_rays"
+    bl_label = "Export Rays"
+
+    filepath: StringProperty(
+        name="File Path",
+        subtype="FILE_PATH",
+        default="",
+        description="The EXR to write; the polylines go to the same name with .npz",
+    )
+    filter_glob: StringProperty(default="*.exr", options={"HIDDEN"})
+
+    @classmethod
+    def poll(cls, context):
+        scene = getattr(context, "scene", None)
+        if scene is None or len(scene.multiscale.cameras) == 0:
+            cls.poll_message_set("Add cameras to the Multiscale camera list first")
+            return False
+        return True
+
+    def invoke(self, context, _event):
+        if not self.filepath:
+            self.filepath = bpy.path.ensure_ext(bpy.path.abspath("//rays") or "rays", ".exr")
+        context.window_manager.fileselect_add(self)
+        return {"RUNNING_MODAL"}
+
+    def execute(self, context):
+        from ..io.exr import ExrError
+        from ..io.rays import export_rays
+
+        if not self.filepath:
+            self.report({"ERROR"}, "Export Rays needs a file path")
+            return {"CANCELLED"}
+        path = bpy.path.ensure_ext(bpy.path.abspath(self.filepath), ".exr")
+        try:
+            frame = pipeline.prepare_frame(context.evaluated_depsgraph_get())
+            exr_path, npz_path = export_rays(frame, path)
+        except (RigError, SolverDidNotConverge, ExrError, OSError) as err:
+            self.report({"ERROR"}, str(err))
+            return {"CANCELLED"}
+        for notice in frame.notices:
+            self.report({"WARNING"}, notice)
+        width, height = frame.size
+        self.report({"INFO"}, f"Wrote {width}x{height} rays to {exr_path} and {npz_path}")
+        return {"FINISHED"}
+
+
 CLASSES = (
     MULTISCALE_OT_camera_add,
     MULTISCALE_OT_camera_remove,
@@ -172,6 +222,7 @@ CLASSES = (
     MULTISCALE_OT_validate,
     MULTISCALE_OT_compute_field,
     MULTISCALE_OT_render,
+    MULTISCALE_OT_export_rays,
 )
 
 

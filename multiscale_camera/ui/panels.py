@@ -16,6 +16,17 @@ def _report(settings):
     return report if isinstance(report, dict) and "cameras" in report else None
 
 
+def _draw_shading(layout, settings):
+    """The shading choice where Cycles can take the rays (Blender 4.5+), else why not."""
+    from ..render.cycles import unsupported_reason
+
+    reason = unsupported_reason()
+    if reason is None:
+        layout.prop(settings, "shading", expand=True)
+    else:
+        layout.label(text=reason, icon="INFO")
+
+
 class MULTISCALE_UL_cameras(bpy.types.UIList):
     def draw_item(self, context, layout, data, item, icon, active_data, active_property, index):
         row = layout.row(align=True)
@@ -61,6 +72,7 @@ class MULTISCALE_PT_main(bpy.types.Panel):
         col.prop(settings, "beta")
         col.prop(settings, "samples")
         col.prop(settings, "simplify_px")
+        _draw_shading(layout, settings)
         row = layout.row(align=True)
         row.operator("multiscale.validate", icon="CHECKMARK")
         row.operator("multiscale.compute_field", icon="FORCE_MAGNETIC")
@@ -73,6 +85,7 @@ class MULTISCALE_PT_main(bpy.types.Panel):
         row = layout.row()
         row.scale_y = 1.4
         row.operator("multiscale.render", icon="RENDER_STILL")
+        layout.operator("multiscale.export_rays", icon="EXPORT")
 
 
 CLASSES = (MULTISCALE_UL_cameras, MULTISCALE_PT_main)

@@ -1,0 +1,351 @@
+"""Cycles hand-off (Blender 4.5+): Cycles shades the bent rays with the scene's own
+materials, lights, world and sample count.
+
+Our march finds, for every pixel, the straight segment that holds the first hit
+(``tables.ray_tables``). Its origin and direction, in the render camera's space, go to
+two float EXR tables in a temporary folder; an OSL custom camera reads them with
+bilinear texture lookups at the raster position Cycles asks for, so Cycles' own
+sub-pixel jitter gives interpolated rays (anti-aliasing) and Cycles renders into this
+engine's Render Result.
+
+Nothing the user made is touched: the custom camera is set on the render depsgraph's
+evaluated copy of the scene camera (and Cycles' device and denoiser on the evaluated
+copy of the scene); Blender throws those copies away after the render, whatever
+happens. The temporary folder is removed at the end, also on failure or cancel.
+"""
+
+import hashlib
+import os
+import shutil
+import tempfile
+import time
+
+import numpy as np
+
+from ..core.errors import Cancelled
+from ..io.exr import ExrError, write_channels
+from .tables import ray_tables
+
+# The custom camera (camera.type = 'CUSTOM') came with Blender 4.5.
+MIN_VERSION = (4, 5, 0)
+# Tables are extended this many pixels past every image edge (linear extrapolation),
+# so raster positions Cycles' pixel filter puts outside the image still interpolate.
+PAD = 2
+# Depth written where a ray hits nothing, as in the other passes (pipeline.MISS_DEPTH).
+MISS_DEPTH = 1e10
+
+OSL_SOURCE = """\
+// Multiscale Camera: per-pixel rays from tables (origin and direction, camera space).
+shader multiscale_camera(
+    string origin_table = "",
+    string direction_table = "",
+    int width = 1,
+    int height = 1,
+    int pad = 0,
+    output point position = 0.0,
+    output vector direction = 0.0,
+    output color throughput = 1.0)
+{
+    point raster = camera_shader_raster_position();  // (0, 0) is the bottom left
+    float s = (raster[0] * width + pad) / (width + 2 * pad);
+    float t = 1.0 - (raster[1] * height + pad) / (height + 2 * pad);  // t = 0 is the top row
+    color o = texture(origin_table, s, t, "interp", "linear", "wrap", "clamp", "width", 0.0);
+    color d = texture(direction_table, s, t, "interp", "linear", "wrap", "clamp", "width", 0.0);
+    vector dir = vector(d[0], d[1], d[2]);
+    if (length(dir) == 0.0) {
+        throughput = color(0.0);
+        return;
+    }
+    position = point(o[0], o[1], o[2]);
+    direction = normalize(dir);
+}
+"""
+
+
+# Stage timings of the last hand-off (seconds): "march", "tables", "cycles", "passes".
+LAST_SECONDS = {}
+
+
+def _cycles_module():
+    try:
+        import _cycles
+    except ImportError:
+        return None
+    return _cycles
+
+
+def unsupported_reason(version=None):
+    """Why the hand-off cannot run in this Blender, or None when it can.
+
+    Parameters
+    ----------
+    version : tuple of int, optional; ``bpy.app.version`` by default.
+    """
+    import bpy
+
+    version = tuple(version or bpy.app.version)
+    if version < MIN_VERSION:
+        return (
+            "Cycles shading needs Blender 4.5 or later (OSL custom cameras); "
+            f"this is Blender {'.'.join(map(str, version))}"
+        )
+    cyc = _cycles_module()
+    if cyc is None:
+        return "Cycles shading needs Cycles, which this Blender lacks"
+    if not getattr(cyc, "with_osl", True):
+        return "Cycles shading needs Cycles built with OSL, which this Blender lacks"
+    if "cycles" not in bpy.types.Scene.bl_rna.properties:
+        return "Cycles shading needs the Cycles add-on: enable it in Preferences > Add-ons"
+    return None
+
+
+def compile_shader(folder):
+    """Compile ``OSL_SOURCE`` with Cycles' compiler.
+
+    Returns
+    -------
+    str, the OSO bytecode.
+
+    Raises
+    ------
+    RuntimeError: the compiler failed (its messages go to the console).
+    """
+    source = os.path.join(folder, "multiscale_camera.osl")
+    target = os.path.join(folder, "multiscale_camera.oso")
+    with open(source, "w", encoding="utf-8") as out:
+        out.write(OSL_SOURCE)
+    if not _cycles_module().osl_compile(source, target):
+        raise RuntimeError("the custom camera's OSL shader did not compile (see the console)")
+    with open(target, encoding="utf-8") as oso:
+        return oso.read()
+
+
+def camera_space(points, vectors, matrix_world):
+    """World -> OSL camera space (+Z forward, +Y up, +X right).
+
+    Cycles uses the camera object's matrix without its scale, with Z flipped (Blender
+    cameras look down -Z).
+
+    Parameters
+    ----------
+    points, vectors : (..., 3) float64 world positions and directions.
+    matrix_world : (4, 4) float64, the camera object's world matrix.
+
+    Returns
+    -------
+    (..., 3) float64 positions, (..., 3) float64 directions in camera space.
+    """
+    m = np.asarray(matrix_world, dtype=np.float64)
+    rot = m[:3, :3] / np.linalg.norm(m[:3, :3], axis=0)
+    flip = np.array([1.0, 1.0, -1.0])
+    p = (np.asarray(points) - m[:3, 3]) @ rot * flip
+    v = np.asarray(vectors) @ rot * flip
+    return p, v
+
+
+def pad_edges(a, pad):
+    """Extend (H, W, C) by ``pad`` pixels on every side by linear extrapolation from the
+    two outermost rows and columns (one row or column: repeated).
+
+    Returns
+    -------
+    (H + 2 pad, W + 2 pad, C) array of ``a``'s dtype.
+    """
+    out = a
+    for axis in (0, 1):
+        n = out.shape[axis]
+        first = np.take(out, [0], axis=axis)
+        last = np.take(out, [n - 1], axis=axis)
+        if n > 1:
+            step0 = first - np.take(out, [1], axis=axis)
+            step1 = last - np.take(out, [n - 2], axis=axis)
+        else:
+            step0 = step1 = np.zeros_like(first)
+        before = [first + step0 * (pad - i) for i in range(pad)]
+        after = [last + step1 * (i + 1) for i in range(pad)]
+        out = np.concatenate(before + [out] + after, axis=axis)
+    return out
+
+
+def write_tables(folder, tables, matrix_world):
+    """Write the origin and direction tables (camera space, padded) as RGB EXRs.
+
+    Returns
+    -------
+    (origin_path, direction_path) : str.
+    """
+    origin, direction = camera_space(tables.origin, tables.direction, matrix_world)
+    paths = []
+    for name, table in (("origin", origin), ("direction", direction)):
+        padded = pad_edges(table, PAD)
+        path = os.path.join(folder, f"{name}.exr")
+        write_channels(path, {c: padded[..., i] for i, c in enumerate("RGB")})
+        paths.append(path)
+    return tuple(paths)
+
+
+def index_pass_name(version=None):
+    """Cycles' name of the object index pass: "Object Index" from Blender 5, else "IndexOB"."""
+    import bpy
+
+    return "Object Index" if tuple(version or bpy.app.version) >= (5, 0, 0) else "IndexOB"
+
+
+def _set_custom_camera(cam, bytecode, params, reach):
+    """Turn the evaluated camera datablock ``cam`` into our custom camera."""
+    cam.type = "CUSTOM"
+    cam.custom_mode = "INTERNAL"
+    cam.custom_bytecode = bytecode
+    cam.custom_bytecode_hash = hashlib.sha1(bytecode.encode()).hexdigest()
+    # rays start on the tables' origins: nothing may clip them
+    cam.clip_start = 1e-6
+    cam.clip_end = max(cam.clip_end, reach)
+    props = cam.cycles_custom
+    for key, value in params.items():
+        props[key] = value
+
+
+def render(engine, depsgraph, frame):
+    """Render ``frame`` with Cycles into ``engine``'s result.
+
+    Returns
+    -------
+    bool : True when the hand-off ran (or was cancelled / failed and said so), False
+    when it cannot run here (a warning says why; the caller renders with Solid).
+    """
+    import bpy
+
+    reason = unsupported_reason()
+    if reason is not None:
+        engine.report({"WARNING"}, f"Multiscale: {reason}; rendering with Solid shading")
+        return False
+    camera = engine.camera_override or depsgraph.scene_eval.camera
+    if camera is None or camera.type != "CAMERA":
+        engine.fail("Multiscale: Cycles shading needs a scene camera")
+        return True
+    width, height = frame.size
+    folder = tempfile.mkdtemp(prefix="multiscale-cycles-")
+    LAST_SECONDS.clear()
+    clock = [time.perf_counter()]
+
+    def lap(stage):
+        now = time.perf_counter()
+        LAST_SECONDS[stage] = now - clock[0]
+        clock[0] = now
+
+    try:
+        engine.update_stats("", "Multiscale: marching rays for Cycles")
+        try:
+            tables = ray_tables(
+                frame, engine.test_break, progress=lambda f: engine.update_progress(0.2 * f)
+            )
+        except Cancelled:
+            return True
+        lap("march")
+        if engine.test_break():
+            return True
+        origin_path, direction_path = write_tables(folder, tables, camera.matrix_world)
+        bytecode = compile_shader(folder)
+        finite = np.where(tables.hit, tables.distance, 0.0)
+        reach = float(finite.max(initial=0.0)) + float(frame.field.rig.cameras[-1].clip_end)
+        _set_custom_camera(
+            camera.data,
+            bytecode,
+            {
+                "origin_table": origin_path,
+                "direction_table": direction_path,
+                "width": width,
+                "height": height,
+                "pad": PAD,
+            },
+            max(reach, frame.scale) * 4.0,
+        )
+        settings = depsgraph.scene_eval.cycles
+        settings.device = "CPU"  # OSL custom cameras run on the CPU (and OptiX) only
+        settings.use_denoising = False
+        index_name = index_pass_name()
+        for name, channels, chan_id in (
+            ("Depth", 1, "Z"),
+            ("Normal", 3, "XYZ"),
+            (index_name, 1, "X"),
+            ("Membership", 1, "X"),
+        ):
+            engine.add_pass(name, channels, chan_id)
+        lap("tables")
+        engine.update_stats("", "Multiscale: Cycles")
+        _run_cycles(engine, depsgraph, bpy.data)
+        lap("cycles")
+        if engine.test_break():
+            return True
+        _write_own_passes(engine, tables, index_name, _region(depsgraph.scene.render, *frame.size))
+        lap("passes")
+        print(
+            f"Multiscale (Cycles): {width}x{height}, {tables.casts} segment casts, "
+            + ", ".join(f"{k} {v:.2f} s" for k, v in LAST_SECONDS.items())
+        )
+        return True
+    except (ExrError, RuntimeError, OSError) as err:
+        engine.fail(f"Multiscale: Cycles hand-off failed: {err}")
+        return True
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+def _run_cycles(engine, depsgraph, data):
+    """Run a Cycles session on ``engine`` as Blender drives Cycles' own RenderEngine:
+    update (create, reset), render, render_frame_finish (which writes the tiles Cycles
+    kept on disk when the image is larger than its tile size), free."""
+    from cycles import engine as cycles_engine
+
+    cycles_engine.create(engine, data)
+    try:
+        cycles_engine.reset(engine, data, depsgraph)
+        cycles_engine.render(engine, depsgraph)
+        cycles_engine.render_frame_finish(engine)
+    finally:
+        cycles_engine.free(engine)
+
+
+def _region(render, width, height):
+    """The rendered region (x, y, w, h) in pixels, y from the bottom: the render border
+    when one is used (as Blender rounds it), else the whole image."""
+    if not render.use_border:
+        return 0, 0, width, height
+    x0, x1 = int(render.border_min_x * width), int(render.border_max_x * width)
+    y0, y1 = int(render.border_min_y * height), int(render.border_max_y * height)
+    return x0, y0, x1 - x0, y1 - y0
+
+
+def _write_own_passes(engine, tables, index_name, region):
+    """Depth (arc length along the bent ray) and Membership come from our tables; the
+    other passes stay as Cycles wrote them (IndexOB copies Cycles' object index).
+
+    region : (x, y, w, h) pixels of the result, y from the bottom (``_region``).
+    """
+    result = engine.get_result()
+    layer = result.layers[0]
+    x0, y0, width, rows = region
+    data = {}
+    for render_pass in layer.passes:
+        buf = np.empty(width * rows * render_pass.channels, dtype=np.float32)
+        try:
+            render_pass.rect.foreach_get(buf)
+        except (TypeError, ValueError, RuntimeError):
+            engine.report(
+                {"WARNING"}, "Multiscale: Depth and Membership are Cycles' own in this render"
+            )
+            return
+        data[render_pass.name] = buf
+    # our tables are top-first; the result's rows run bottom-up
+    window = (slice(y0, y0 + rows), slice(x0, x0 + width))
+    depth = np.where(tables.hit, tables.depth, MISS_DEPTH).astype(np.float32)[::-1]
+    data["Depth"] = np.ascontiguousarray(depth[window]).ravel()
+    data["Membership"] = np.ascontiguousarray(tables.membership[::-1][window]).ravel()
+    for name in ("IndexOB", "Object Index"):
+        if name in data and name != index_name and index_name in data:
+            data[name] = data[index_name]
+    out = engine.begin_result(0, 0, width, rows)
+    for render_pass in out.layers[0].passes:
+        if render_pass.name in data:
+            render_pass.rect.foreach_set(data[render_pass.name])
+    engine.end_result(out)

@@ -1,0 +1,230 @@
+"""Per-pixel ray tables: the straight segment of each bent ray that holds its first hit.
+
+Beyond the segment that holds a pixel's first hit, what the pixel shows depends only on
+that segment's line: a straight renderer (Cycles through a custom camera, another
+renderer, a compositor) that starts a ray at the segment's start and follows its
+direction meets the same surface first, because the march found nothing earlier on the
+polyline. A ray that hits nothing is handed on as its last segment, whose direction is
+the ray's last tangent. The tables come from the same march the renderer uses
+(``raycast.march`` on the simplified polylines), one tile of rows at a time.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .raycast import march, polyline_segments
+
+# A handed-on ray starts at least this fraction of the scene's size before its hit: far
+# below anything visible, far above float32 rounding of the stored origins.
+START_MARGIN = 1e-5
+
+
+@dataclass(frozen=True)
+class RayTables:
+    """First-hit rays of an image of H x W pixels, row 0 at the top, world space.
+
+    origin : (H, W, 3) float64, world units: start of the segment that holds the first
+        hit (for a miss: start of the ray's last segment).
+    direction : (H, W, 3) float64, unit: that segment's direction.
+    distance : (H, W) float64, world units: from ``origin`` to the hit along
+        ``direction`` (inf for a miss).
+    depth : (H, W) float64, world units: arc length from camera 1's eye to the hit along
+        the bent ray (the Depth pass; inf for a miss).
+    hit : (H, W) bool.
+    membership : (H, W) float32: the membership value where the ray leaves the bending
+        stretch (the Membership pass).
+    object_index : (H, W) float32: the hit object's ``pass_index`` (0 for a miss).
+    casts : int, segment casts the march made.
+    """
+
+    origin: np.ndarray
+    direction: np.ndarray
+    distance: np.ndarray
+    depth: np.ndarray
+    hit: np.ndarray
+    membership: np.ndarray
+    object_index: np.ndarray
+    casts: int
+
+
+@dataclass(frozen=True)
+class Polylines:
+    """The polylines the renderer casts, in a ragged layout (see docs/ray_tables.md).
+
+    points : (V, 3) float32, world units: each ray's vertices, ray after ray.
+    offsets : (R + 1,) int64: ray r owns ``points[offsets[r]:offsets[r + 1]]``.
+    membership : (V,) float32, the membership value at each vertex (nearest stored one).
+    reach : (R,) float32, world units: how far the ray runs on past its last vertex.
+    start_depth : (R,) float32, world units: camera 1's eye to vertex 0.
+    pixels : (R, 2) int32, the (x, y) pixel of each ray, top-left origin.
+    """
+
+    points: np.ndarray
+    offsets: np.ndarray
+    membership: np.ndarray
+    reach: np.ndarray
+    start_depth: np.ndarray
+    pixels: np.ndarray
+
+
+def first_hit_segments(bundle, hits, margin=0.0):
+    """Origin of the segment holding each ray's first hit (last segment for a miss).
+
+    Parameters
+    ----------
+    bundle : RayBundle of R rays. hits : Hits of the same rays (``raycast.march``).
+    margin : float, world units: an origin closer than this to its hit is moved back
+        along the segment's line to this distance.
+
+    Returns
+    -------
+    origin : (R, 3) float64, world units. direction : (R, 3) float64 unit.
+    distance : (R,) float64, world units, origin to hit (inf for a miss).
+    """
+    seg = polyline_segments(bundle)
+    r = len(bundle)
+    counts = np.diff(seg.offsets)
+    # the segment holding arc length d of ray r is the last one starting before d (a hit
+    # at a vertex belongs to the segment that ends there)
+    target = np.where(hits.hit, hits.distance, np.inf)
+    starts_before = seg.before < target[seg.ray]
+    held = seg.offsets[:-1] + np.bincount(seg.ray, weights=starts_before, minlength=r).astype(
+        np.int64
+    )
+    held = np.clip(held - 1, seg.offsets[:-1], seg.offsets[1:] - 1)
+    held = np.where(counts > 0, held, 0)
+    origin = seg.origin[held]
+    direction = seg.direction[held]
+    distance = np.where(hits.hit, hits.distance - seg.before[held], np.inf)
+    # a ray handed on must not start on its surface (a renderer would skip the surface):
+    # start at least ``margin`` before the hit, back along the segment's line
+    short = hits.hit & (distance < margin)
+    origin[short] -= direction[short] * (margin - distance[short])[:, None]
+    distance[short] = margin
+    return origin, direction, distance
+
+
+def _membership(ray_field, bundle, ix, iy):
+    """(R,) float32 membership where each ray leaves the bending stretch (as the
+    renderer's Membership pass)."""
+    leave = ray_field.exit_index(ix, iy)
+    k = bundle.vertices.shape[1]
+    if leave is None:
+        leave = np.full(len(bundle), k - 1)
+    leave = np.clip(leave, 0, k - 1)
+    return bundle.membership[np.arange(len(bundle)), leave].astype(np.float32)
+
+
+def ray_tables(frame, should_stop=None, progress=None, keep_polylines=False):
+    """March every pixel of ``frame`` and tabulate its first-hit segment.
+
+    Parameters
+    ----------
+    frame : pipeline.Frame. should_stop : callable -> bool (raises ``Cancelled``).
+    progress : callable(fraction) or None, called after each tile of rows.
+    keep_polylines : bool, also return the simplified polylines (``Polylines``).
+
+    Returns
+    -------
+    RayTables, or (RayTables, Polylines) with ``keep_polylines``.
+    """
+    from .pipeline import rows_per_tile
+
+    width, height = frame.size
+    shape = (height, width)
+    origin = np.zeros((*shape, 3))
+    direction = np.zeros((*shape, 3))
+    distance = np.full(shape, np.inf)
+    depth = np.full(shape, np.inf)
+    hit = np.zeros(shape, dtype=bool)
+    membership = np.zeros(shape, dtype=np.float32)
+    index = np.zeros(shape, dtype=np.float32)
+    casts = 0
+    lines = []
+    step = rows_per_tile(width)
+    for row0 in range(0, height, step):
+        row1 = min(row0 + step, height)
+        iy, ix = (a.ravel() for a in np.mgrid[row0:row1, 0:width])
+        bundle = frame.field.rays(ix, iy)
+        hits = march(frame.tree, bundle, should_stop)
+        casts += hits.casts
+        o, d, t = first_hit_segments(bundle, hits, START_MARGIN * frame.scale)
+        rows = slice(row0, row1)
+        origin[rows] = o.reshape(row1 - row0, width, 3)
+        direction[rows] = d.reshape(row1 - row0, width, 3)
+        distance[rows] = t.reshape(row1 - row0, width)
+        depth[rows] = np.where(hits.hit, bundle.start_depth + hits.distance, np.inf).reshape(
+            row1 - row0, width
+        )
+        hit[rows] = hits.hit.reshape(row1 - row0, width)
+        membership[rows] = _membership(frame.field, bundle, ix, iy).reshape(row1 - row0, width)
+        tile_index = np.zeros(len(bundle), dtype=np.float32)
+        tile_index[hits.hit] = frame.geometry.pass_index[hits.triangle[hits.hit]]
+        index[rows] = tile_index.reshape(row1 - row0, width)
+        if keep_polylines:
+            lines.append(_polylines(bundle))
+        if progress is not None:
+            progress(row1 / height)
+    frame.casts += casts
+    tables = RayTables(origin, direction, distance, depth, hit, membership, index, casts)
+    if not keep_polylines:
+        return tables
+    return tables, _concatenate(lines)
+
+
+def _polylines(bundle):
+    """The simplified polylines of one bundle as ``Polylines``."""
+    seg = polyline_segments(bundle)
+    counts = np.diff(seg.offsets)
+    last = seg.offsets[1:] - 1
+    end = seg.origin[last] + seg.direction[last] * (seg.length[last] - bundle.reach)[:, None]
+    # each ray: its segment starts, then the end of its last segment
+    order = np.concatenate([np.arange(len(seg.ray)), len(seg.ray) + np.arange(len(bundle))])
+    owner = np.concatenate([seg.ray, np.arange(len(bundle))])
+    key = np.lexsort((order, owner))
+    points = np.concatenate([seg.origin, end])[key].astype(np.float32)
+    offsets = np.concatenate([[0], np.cumsum(counts + 1)])
+    # membership at the bundle vertex nearest in arc length (every kept point is one)
+    verts = bundle.vertices.astype(np.float64)
+    r, k = verts.shape[:2]
+    arc = np.concatenate(
+        [np.zeros((r, 1)), np.cumsum(np.linalg.norm(np.diff(verts, axis=1), axis=-1), axis=1)],
+        axis=1,
+    )
+    total = seg.before[last] + seg.length[last] - bundle.reach
+    point_arc = np.concatenate([seg.before, total])[key]
+    ray_of_point = owner[key]
+    span = float(arc[:, -1].max()) + 1.0
+    flat = (arc + span * np.arange(r)[:, None]).ravel()
+    pos = np.searchsorted(flat, point_arc + span * ray_of_point)
+    pos = np.clip(pos, 1, r * k - 1)
+    nearer_left = np.abs(flat[pos - 1] - (point_arc + span * ray_of_point)) < np.abs(
+        flat[pos] - (point_arc + span * ray_of_point)
+    )
+    pos = np.where(nearer_left, pos - 1, pos)
+    pos = np.clip(pos, ray_of_point * k, ray_of_point * k + k - 1)
+    membership = bundle.membership.reshape(-1)[pos].astype(np.float32)
+    return Polylines(
+        points=points,
+        offsets=offsets.astype(np.int64),
+        membership=membership,
+        reach=np.asarray(bundle.reach, dtype=np.float32),
+        start_depth=np.asarray(bundle.start_depth, dtype=np.float32),
+        pixels=np.asarray(bundle.pixels, dtype=np.int32),
+    )
+
+
+def _concatenate(parts):
+    starts = np.cumsum([0] + [len(p.points) for p in parts[:-1]])
+    offsets = np.concatenate(
+        [[0]] + [p.offsets[1:] + s for p, s in zip(parts, starts, strict=True)]
+    ).astype(np.int64)
+    return Polylines(
+        points=np.concatenate([p.points for p in parts]),
+        offsets=offsets,
+        membership=np.concatenate([p.membership for p in parts]),
+        reach=np.concatenate([p.reach for p in parts]),
+        start_depth=np.concatenate([p.start_depth for p in parts]),
+        pixels=np.concatenate([p.pixels for p in parts]),
+    )
