@@ -16,6 +16,7 @@ of voxels that every transfer function makes transparent (empty-space skipping) 
 stops once nearly opaque (early termination).
 """
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -266,7 +267,7 @@ def _box_interval(p, d, n):
     return np.minimum(a, b).max(-1), np.maximum(a, b).min(-1)
 
 
-def march_volume(scene, vertices, membership, reach, stop=None, should_stop=None):
+def march_volume(scene, vertices, membership, reach, stop=None, should_stop=None, threads=1):
     """Composite ``scene``'s volume front to back along bent rays.
 
     Parameters
@@ -277,7 +278,8 @@ def march_volume(scene, vertices, membership, reach, stop=None, should_stop=None
     reach : (R,) float, how far the last segment runs on past vertex K-1.
     stop : (R,) float or None, arc length where each ray ends (an opaque surface's
         hit); inf or None for no surface.
-    should_stop : callable or None, checked between chunks (raise in it to cancel).
+    should_stop : callable or None, called between chunks (raise in it to cancel).
+    threads : int, chunks marched at once (numpy releases the GIL in its loops).
 
     Returns
     -------
@@ -292,42 +294,128 @@ def march_volume(scene, vertices, membership, reach, stop=None, should_stop=None
     entry = np.full(r, np.inf)
     depth = np.full(r, np.inf)
     samples = skipped = 0
-    chunk = max(64, CHUNK_VERTICES // max(k + 1, 1))
-    for a in range(0, r, chunk):
+    chunk = max(64, min(CHUNK_VERTICES // max(k + 1, 1), -(-r // max(threads, 1))))
+    parts = [slice(a, min(a + chunk, r)) for a in range(0, r, chunk)]
+
+    def run(sl):
         if should_stop is not None:
             should_stop()
-        sl = slice(a, min(a + chunk, r))
-        out = _march_chunk(scene, vertices[sl], membership[sl], reach[sl], stop[sl])
+        return sl, _march_chunk(scene, vertices[sl], membership[sl], reach[sl], stop[sl])
+
+    if threads > 1 and len(parts) > 1:
+        with ThreadPoolExecutor(threads) as pool:
+            done = list(pool.map(run, parts))
+    else:
+        done = [run(sl) for sl in parts]
+    for sl, out in done:
         colour[sl], alpha[sl], entry[sl], depth[sl] = out[:4]
         samples += out[4]
         skipped += out[5]
     return VolumeResult(colour, alpha, entry, depth, samples, skipped)
 
 
+def _trilinear(flat, strides, shape, q):
+    """Trilinear samples of a C-ordered volume at clamped voxel coordinates.
+
+    flat : (nx * ny * nz,) float32. q : (P, 3) float, inside [0, n - 1].
+    Returns the values (P,) and the eight corner values (for the gradient) with the
+    fractions (P, 3).
+    """
+    top = np.array([max(n - 2, 0) for n in shape])
+    i0 = np.minimum(q.astype(np.int64), top)
+    f = (q - i0).astype(np.float32)
+    base = i0 @ np.asarray(strides, dtype=np.int64)
+    ox, oy, oz = (st * (n > 1) for st, n in zip(strides, shape))
+    c = [flat[base + off] for off in (0, ox, oy, ox + oy, oz, ox + oz, oy + oz, ox + oy + oz)]
+    fx, fy, fz = f[:, 0], f[:, 1], f[:, 2]
+    c00 = c[0] + (c[1] - c[0]) * fx
+    c10 = c[2] + (c[3] - c[2]) * fx
+    c01 = c[4] + (c[5] - c[4]) * fx
+    c11 = c[6] + (c[7] - c[6]) * fx
+    c0 = c00 + (c10 - c00) * fy
+    c1 = c01 + (c11 - c01) * fy
+    return c0 + (c1 - c0) * fz, c, f
+
+
+def _gradient(c, f):
+    """(P, 3) gradient of the trilinear interpolant in voxel units, from its corners."""
+    fx, fy, fz = f[:, 0], f[:, 1], f[:, 2]
+    gx = (
+        (c[1] - c[0]) * (1 - fy) * (1 - fz)
+        + (c[3] - c[2]) * fy * (1 - fz)
+        + (c[5] - c[4]) * (1 - fy) * fz
+        + (c[7] - c[6]) * fy * fz
+    )
+    gy = ((c[2] - c[0]) + (c[3] - c[1] - c[2] + c[0]) * fx) * (1 - fz) + (
+        (c[6] - c[4]) + (c[7] - c[5] - c[6] + c[4]) * fx
+    ) * fz
+    c00 = c[0] + (c[1] - c[0]) * fx
+    c10 = c[2] + (c[3] - c[2]) * fx
+    c01 = c[4] + (c[5] - c[4]) * fx
+    c11 = c[6] + (c[7] - c[6]) * fx
+    gz = (c01 + (c11 - c01) * fy) - (c00 + (c10 - c00) * fy)
+    return np.stack([gx, gy, gz], axis=1)
+
+
+def corrected_tables(tables, step):
+    """Tables with alpha corrected for a step of ``step`` voxels: 1 - (1 - a)^step."""
+    out = np.array(tables, dtype=np.float32, copy=True)
+    out[..., 3] = 1.0 - np.power(np.clip(1.0 - out[..., 3], 0.0, 1.0), step)
+    return out
+
+
+def _classify(scene, tables, val, nval):
+    """(P, 4) float RGBA of values ``val`` under the tables blended by eq. 6 at
+    memberships ``nval``; alpha already corrected for the step."""
+    ncam, tsize = tables.shape[:2]
+    x = np.clip(val, 0.0, 1.0) * np.float32(tsize - 1)
+    lo = np.minimum(x.astype(np.int64), tsize - 2)
+    t = (x - lo)[:, None]
+    if ncam == 1:
+        return tables[0, lo] * (1 - t) + tables[0, lo + 1] * t
+    w = blend_weights(nval, ncam, scene.cubic)
+    w = w / np.maximum(w.sum(0), 1e-30)
+    rgba = np.zeros((len(val), 4), dtype=np.float32)
+    for i in range(ncam):
+        sel = np.flatnonzero(w[i] > 0)
+        if len(sel) == len(val):
+            rgba += w[i, :, None] * (tables[i, lo] * (1 - t) + tables[i, lo + 1] * t)
+        elif len(sel):
+            li, ti = lo[sel], t[sel]
+            rgba[sel] += w[i, sel, None] * (tables[i, li] * (1 - ti) + tables[i, li + 1] * ti)
+    return rgba
+
+
+# Consecutive samples each ray takes per pass of the marching loop: amortises numpy's
+# per-call cost; a ray that turns opaque mid-pass wastes at most this many - 1 samples.
+SAMPLES_PER_PASS = 4
+
+
 def _march_chunk(scene, vertices, membership, reach, stop):
     vol = scene.volume
     values = vol.values
-    nx, ny, nz = values.shape
+    shape = values.shape
     flat = values.ravel()
-    sx, sy, sz = ny * nz, nz, 1
+    strides = (shape[1] * shape[2], shape[2], 1)
     m = vol.world_to_index
     voxel = vol.voxel_size
     h = scene.step * voxel
     r = len(vertices)
+    tables = corrected_tables(scene.tables, scene.step)
 
     vw = _extended(vertices, reach)  # (R, K1, 3) world
     k1 = vw.shape[1]
-    seg = np.diff(vw, axis=1)
-    seglen = np.linalg.norm(seg, axis=-1)  # (R, K1-1)
+    seglen = np.linalg.norm(np.diff(vw, axis=1), axis=-1)  # (R, K1-1)
     cum = np.zeros((r, k1))
     np.cumsum(seglen, axis=1, out=cum[:, 1:])
     vi = vw @ m[:3, :3].T + m[:3, 3]  # voxel space
+    del vw
     with np.errstate(invalid="ignore", divide="ignore"):
         dvi = np.where(seglen[..., None] > 0, np.diff(vi, axis=1) / seglen[..., None], 0.0)
     mem = np.concatenate([membership, membership[:, -1:]], axis=1).astype(np.float64)
 
     # the arc-length interval each ray spends in the box
-    t0, t1 = _box_interval(vi[:, :-1], dvi, values.shape)
+    t0, t1 = _box_interval(vi[:, :-1], dvi, shape)
     t0 = np.maximum(t0, 0.0)
     t1 = np.minimum(t1, seglen)
     hit = (t1 >= t0) & (seglen > 0)
@@ -337,8 +425,8 @@ def _march_chunk(scene, vertices, membership, reach, stop):
     j0 = np.ceil(s_in / h)
     alive = np.isfinite(s_in) & (j0 * h <= s_out)
 
-    colour = np.zeros((r, 3))
-    alpha = np.zeros(r)
+    colour = np.zeros((r, 3), dtype=np.float32)
+    alpha = np.zeros(r, dtype=np.float32)
     entry = np.full(r, np.inf)
     depth = np.full(r, np.inf)
     samples = skipped = 0
@@ -347,129 +435,101 @@ def _march_chunk(scene, vertices, membership, reach, stop):
         return colour, alpha, entry, depth, 0, 0
     s = j0[rows] * h
     entry[rows] = s
-    # one searchsorted finds every ray's segment: rows are offset by more than a ray is long
+    # flat per-vertex arrays: row r's vertex k at r * k1 + k
+    cum_f = cum.ravel()
+    vi_f = vi.reshape(-1, 3)
+    dvi_f = np.concatenate([dvi, np.zeros((r, 1, 3))], axis=1).reshape(-1, 3)
+    len_f = np.concatenate([seglen, np.ones((r, 1))], axis=1).ravel()
+    mem_f = mem.ravel()
+    # one searchsorted finds every sample's segment: rows are offset by more than a ray
     span = float(cum[:, -1].max()) + 1.0
     keys = (cum + np.arange(r)[:, None] * span).ravel()
     inv = np.linalg.inv(m)[:3, :3]
     block = BLOCK
     occ = scene.occupied
     bshape = np.array(occ.shape)
+    bstride = np.array([bshape[1] * bshape[2], bshape[2], 1])
     occ_flat = occ.ravel()
-    tables = scene.tables
-    ncam, tsize = tables.shape[:2]
-    hi_idx = np.array([nx - 1, ny - 1, nz - 1], dtype=np.float64)
+    n_hi = np.array(shape, dtype=np.float64) - 1
+    steps = np.arange(SAMPLES_PER_PASS) * h
+
+    def locate(sv, rv):
+        """Flat segment index, offset along it, direction and voxel position of the
+        samples at arc lengths ``sv`` of rays ``rv``."""
+        base = rv * k1
+        kk = np.searchsorted(keys, sv + rv * span, side="right") - 1 - base
+        fi = np.clip(kk, 0, k1 - 2) + base
+        local = sv - cum_f[fi]
+        d = dvi_f[fi]
+        return fi, local, d, vi_f[fi] + local[:, None] * d
 
     while len(rows):
-        kk = np.searchsorted(keys, s + rows * span, side="right") - 1 - rows * k1
-        kk = np.clip(kk, 0, k1 - 2)
-        local = s - cum[rows, kk]
-        d = dvi[rows, kk]
-        p = vi[rows, kk] + local[:, None] * d
-        pc = np.clip(p, 0.0, hi_idx)
-        b = np.minimum((pc // block).astype(np.int64), bshape - 1)
-        busy = occ_flat[(b[:, 0] * bshape[1] + b[:, 1]) * bshape[2] + b[:, 2]]
+        fi0, _local0, d0, p0 = locate(s, rows)
         # a bent ray may leave the box and come back: samples outside it read nothing
-        outside = ((p < -0.5) | (p > hi_idx + 0.5)).any(axis=1)
-        busy &= ~outside
+        inside0 = ((p0 >= -0.5) & (p0 <= n_hi + 0.5)).all(axis=1)
+        pc0 = np.clip(p0, 0.0, n_hi)
+        b0 = np.minimum((pc0 * (1.0 / block)).astype(np.int64), bshape - 1)
+        busy = occ_flat[b0 @ bstride] | ~inside0
+        next_s = s + SAMPLES_PER_PASS * h
 
-        # empty blocks: jump to the first lattice sample past the block (or the segment)
-        free = np.flatnonzero(~busy & ~outside)
-        next_s = s + h
+        # the first sample in an empty block: jump to the first lattice sample past the
+        # block (or past the segment, where the direction changes)
+        free = np.flatnonzero(~busy)
         if len(free):
-            df = d[free]
-            bf = b[free].astype(np.float64) * block
+            df = d0[free]
+            lo_b = b0[free].astype(np.float64) * block
+            pf = p0[free]
             with np.errstate(divide="ignore", invalid="ignore"):
                 exit_t = np.where(
-                    df > 0,
-                    (bf + block - p[free]) / df,
-                    np.where(df < 0, (bf - p[free]) / df, np.inf),
+                    df > 0, (lo_b + block - pf) / df, np.where(df < 0, (lo_b - pf) / df, np.inf)
                 ).min(axis=1)
-            rf = rows[free]
-            seg_end = cum[rf, kk[free] + 1] - s[free]
-            jump = np.minimum(np.maximum(exit_t, 0.0), seg_end)
-            target = np.maximum(np.ceil((s[free] + jump) / h) * h, s[free] + h)
-            skipped += int(np.round((target - s[free]) / h).sum()) - len(free)
+            sf = s[free]
+            jump = np.minimum(np.maximum(exit_t, 0.0), cum_f[fi0[free] + 1] - sf)
+            target = np.maximum(np.ceil((sf + jump) / h) * h, sf + h)
+            skipped += int(np.round((target - sf) / h).sum()) - len(free)
             next_s[free] = target
 
-        # occupied blocks: sample, classify, composite
+        # otherwise: sample, classify and composite SAMPLES_PER_PASS samples
         on = np.flatnonzero(busy)
         if len(on):
             ro = rows[on]
-            q = pc[on]
-            i0 = np.minimum(q.astype(np.int64), hi_idx.astype(np.int64) - (hi_idx > 0))
-            f = q - i0
-            base = i0[:, 0] * sx + i0[:, 1] * sy + i0[:, 2] * sz
-            ox, oy, oz = sx * (nx > 1), sy * (ny > 1), sz * (nz > 1)
-            c000 = flat[base]
-            c100 = flat[base + ox]
-            c010 = flat[base + oy]
-            c110 = flat[base + ox + oy]
-            c001 = flat[base + oz]
-            c101 = flat[base + ox + oz]
-            c011 = flat[base + oy + oz]
-            c111 = flat[base + ox + oy + oz]
-            fx, fy, fz = f[:, 0], f[:, 1], f[:, 2]
-            c00 = c000 + (c100 - c000) * fx
-            c10 = c010 + (c110 - c010) * fx
-            c01 = c001 + (c101 - c001) * fx
-            c11 = c011 + (c111 - c011) * fx
-            c0 = c00 + (c10 - c00) * fy
-            c1 = c01 + (c11 - c01) * fy
-            val = c0 + (c1 - c0) * fz
-            samples += len(on)
-
-            # eq. 6 blend of the cameras' tables by the membership here
-            kf = kk[on]
-            frac = np.where(seglen[ro, kf] > 0, local[on] / np.maximum(seglen[ro, kf], 1e-300), 0)
-            nval = mem[ro, kf] + (mem[ro, kf + 1] - mem[ro, kf]) * np.clip(frac, 0.0, 1.0)
-            x = np.clip(val, 0.0, 1.0) * (tsize - 1)
-            t_lo = np.minimum(x.astype(np.int64), tsize - 2)
-            tf = (x - t_lo)[:, None]
-            if ncam == 1:
-                rgba = tables[0, t_lo] * (1 - tf) + tables[0, t_lo + 1] * tf
-            else:
-                w = blend_weights(nval, ncam, scene.cubic)
-                w = w / np.maximum(w.sum(0), 1e-30)
-                rgba = np.zeros((len(on), 4))
-                for i in range(ncam):
-                    sel = np.flatnonzero(w[i] > 0)
-                    if len(sel):
-                        ti, ts = t_lo[sel], tf[sel]
-                        rgba[sel] += w[i, sel, None] * (
-                            tables[i, ti] * (1 - ts) + tables[i, ti + 1] * ts
-                        )
-            a_s = 1.0 - np.power(np.clip(1.0 - rgba[:, 3], 0.0, 1.0), scene.step)
+            sj = (s[on, None] + steps).ravel()
+            rj = np.repeat(ro, SAMPLES_PER_PASS)
+            fo, local, d, p = locate(sj, rj)
+            ok = ((p >= -0.5) & (p <= n_hi + 0.5)).all(axis=1) & (sj <= s_out[rj])
+            val, corners, frac3 = _trilinear(flat, strides, shape, np.clip(p, 0.0, n_hi))
+            t = np.clip(local / len_f[fo], 0.0, 1.0)
+            nval = mem_f[fo] + (mem_f[fo + 1] - mem_f[fo]) * t
+            rgba = _classify(scene, tables, val, nval)
+            rgba[:, 3] *= ok
+            samples += int(ok.sum())
             rgb = rgba[:, :3]
             if scene.shading:
-                gx = (
-                    (c100 - c000) * (1 - fy) * (1 - fz)
-                    + (c110 - c010) * fy * (1 - fz)
-                    + (c101 - c001) * (1 - fy) * fz
-                    + (c111 - c011) * fy * fz
-                )
-                gy = (c10 - c00) * (1 - fz) + (c11 - c01) * fz
-                gz = c1 - c0
-                g = np.stack([gx, gy, gz], axis=1) @ m[:3, :3]  # world gradient
-                dw = d[on] @ inv.T  # world direction (unit)
+                g = _gradient(corners, frac3) @ m[:3, :3].astype(np.float32)  # world
                 gn = np.linalg.norm(g, axis=1)
+                dw = d @ inv.T  # unit world direction
                 cos = np.abs((g * dw).sum(1)) / np.maximum(gn, 1e-30)
                 lit = SHADE_AMBIENT + (1.0 - SHADE_AMBIENT) * cos
-                lit = np.where(gn * voxel > MIN_GRADIENT, lit, 1.0)
-                rgb = rgb * lit[:, None]
-            a_old = alpha[ro]
-            wgt = (1.0 - a_old) * a_s
-            colour[ro] += wgt[:, None] * rgb
-            a_new = a_old + wgt
-            alpha[ro] = a_new
-            crossed = (a_old < 0.5) & (a_new >= 0.5)
-            depth[ro[crossed]] = s[on][crossed]
-            done = a_new >= EARLY_TERMINATION
-            next_s[on[done]] = np.inf
+                rgb = rgb * np.where(gn * voxel > MIN_GRADIENT, lit, 1.0)[:, None]
+            rgb = rgb.reshape(len(on), SAMPLES_PER_PASS, 3)
+            a_s = rgba[:, 3].reshape(len(on), SAMPLES_PER_PASS)
+            acc = alpha[ro]
+            col = colour[ro]
+            dep = depth[ro]
+            s_on = s[on]
+            for j in range(SAMPLES_PER_PASS):
+                w = (1.0 - acc) * a_s[:, j]
+                col += w[:, None] * rgb[:, j]
+                new = acc + w
+                dep = np.where((acc < 0.5) & (new >= 0.5), s_on + j * h, dep)
+                acc = new
+            alpha[ro], colour[ro], depth[ro] = acc, col, dep
+            next_s[on[acc >= EARLY_TERMINATION]] = np.inf
 
         s = next_s
         keep = s <= s_out[rows]
         rows, s = rows[keep], s[keep]
-    return colour.astype(np.float32), alpha.astype(np.float32), entry, depth, samples, skipped
+    return colour, alpha, entry, depth, samples, skipped
 
 
 def composite_over(layers, behind_colour, behind_alpha):

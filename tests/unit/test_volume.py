@@ -163,10 +163,18 @@ def test_surface_stops_the_march():
 
 
 def test_composite_over_orders_layers_by_entry():
-    red = V.VolumeResult(np.array([[0.5, 0, 0]], np.float32), np.array([0.5], np.float32),
-                         np.array([2.0]), np.array([2.5]))
-    blue = V.VolumeResult(np.array([[0, 0, 1.0]], np.float32), np.array([1.0], np.float32),
-                          np.array([1.0]), np.array([1.2]))
+    red = V.VolumeResult(
+        np.array([[0.5, 0, 0]], np.float32),
+        np.array([0.5], np.float32),
+        np.array([2.0]),
+        np.array([2.5]),
+    )
+    blue = V.VolumeResult(
+        np.array([[0, 0, 1.0]], np.float32),
+        np.array([1.0], np.float32),
+        np.array([1.0]),
+        np.array([1.2]),
+    )
     col, alpha, depth = V.composite_over([red, blue], np.ones((1, 3)), np.ones(1))
     np.testing.assert_allclose(col, [[0, 0, 1]])  # blue is in front and opaque
     assert alpha[0] == 1 and depth[0] == 1.2
