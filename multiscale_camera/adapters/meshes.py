@@ -4,6 +4,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .volumes import is_volume_source
+
 GEOMETRY_TYPES = {"MESH", "CURVE", "SURFACE", "META", "FONT"}
 DEFAULT_COLOUR = (0.8, 0.8, 0.8)
 
@@ -72,7 +74,7 @@ def scene_geometry(depsgraph):
     offset = 0
     for inst in depsgraph.object_instances:
         obj = inst.object
-        if obj.type not in GEOMETRY_TYPES:
+        if obj.type not in GEOMETRY_TYPES or is_volume_source(obj):
             continue
         mesh = obj.to_mesh()
         if mesh is None:

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .errors import Cancelled
 from .field import blend_weights
 
 # Rows of a transfer function's lookup table: finer than 8-bit data, and a ramp's
@@ -278,7 +279,7 @@ def march_volume(scene, vertices, membership, reach, stop=None, should_stop=None
     reach : (R,) float, how far the last segment runs on past vertex K-1.
     stop : (R,) float or None, arc length where each ray ends (an opaque surface's
         hit); inf or None for no surface.
-    should_stop : callable or None, called between chunks (raise in it to cancel).
+    should_stop : callable or None; True between chunks raises ``Cancelled``.
     threads : int, chunks marched at once (numpy releases the GIL in its loops).
 
     Returns
@@ -298,8 +299,8 @@ def march_volume(scene, vertices, membership, reach, stop=None, should_stop=None
     parts = [slice(a, min(a + chunk, r)) for a in range(0, r, chunk)]
 
     def run(sl):
-        if should_stop is not None:
-            should_stop()
+        if should_stop is not None and should_stop():
+            raise Cancelled()
         return sl, _march_chunk(scene, vertices[sl], membership[sl], reach[sl], stop[sl])
 
     if threads > 1 and len(parts) > 1:
@@ -538,36 +539,32 @@ def composite_over(layers, behind_colour, behind_alpha):
     Parameters
     ----------
     layers : list of VolumeResult for the same R rays.
-    behind_colour : (R, 3) float, not premultiplied. behind_alpha : (R,) float.
+    behind_colour : (R, 3) float, premultiplied by ``behind_alpha``.
+    behind_alpha : (R,) float.
 
     Returns
     -------
-    colour : (R, 3) float32 (premultiplied when behind_alpha < 1, as the film expects),
-    alpha : (R,) float32, depth : (R,) float64 (inf where no layer reached 0.5).
+    colour : (R, 3) float32, premultiplied. alpha : (R,) float32.
+    depth : (R,) float64, arc length where the layers' accumulated opacity reached 0.5
+        (inf where it did not).
     """
     r = len(behind_alpha)
-    if not layers:
-        return (
-            np.asarray(behind_colour, np.float32) * np.asarray(behind_alpha)[:, None],
-            np.asarray(behind_alpha, np.float32),
-            np.full(r, np.inf),
-        )
-    entries = np.stack([lay.entry for lay in layers])  # (L, R)
-    order = np.argsort(entries, axis=0, kind="stable")
-    rows = np.arange(r)
     col = np.zeros((r, 3))
     acc = np.zeros(r)
     depth = np.full(r, np.inf)
-    cols = np.stack([lay.colour for lay in layers]).astype(np.float64)
-    alps = np.stack([lay.alpha for lay in layers]).astype(np.float64)
-    deps = np.stack([lay.depth for lay in layers])
-    for rank in range(len(layers)):
-        li = order[rank]
-        c, a_l, d = cols[li, rows], alps[li, rows], deps[li, rows]
-        col += (1.0 - acc)[:, None] * c
-        depth = np.where(np.isinf(depth) & (acc + (1 - acc) * a_l >= 0.5), d, depth)
-        acc = acc + (1.0 - acc) * a_l
-    ba = np.asarray(behind_alpha, np.float64)
-    col += ((1.0 - acc) * ba)[:, None] * np.asarray(behind_colour, np.float64)
-    acc = acc + (1.0 - acc) * ba
+    if layers:
+        entries = np.stack([lay.entry for lay in layers])  # (L, R)
+        order = np.argsort(entries, axis=0, kind="stable")
+        rows = np.arange(r)
+        cols = np.stack([lay.colour for lay in layers]).astype(np.float64)
+        alps = np.stack([lay.alpha for lay in layers]).astype(np.float64)
+        deps = np.stack([lay.depth for lay in layers])
+        for rank in range(len(layers)):
+            li = order[rank]
+            c, a_l, d = cols[li, rows], alps[li, rows], deps[li, rows]
+            col += (1.0 - acc)[:, None] * c
+            depth = np.where(np.isinf(depth) & (acc + (1 - acc) * a_l >= 0.5), d, depth)
+            acc = acc + (1.0 - acc) * a_l
+    col += (1.0 - acc)[:, None] * np.asarray(behind_colour, np.float64)
+    acc = acc + (1.0 - acc) * np.asarray(behind_alpha, np.float64)
     return col.astype(np.float32), acc.astype(np.float32), depth

@@ -13,6 +13,7 @@ from ..core.fingerprint import field_key
 from ..core.methods import prepare, settings_for
 from .raycast import march
 from .shade import shade
+from .volume import FrameVolumes, composite_volumes, prepare_volumes
 
 PASSES = (
     # name, channels, channel ids, Blender pass type
@@ -49,6 +50,7 @@ class Frame:
     notices: list = field(default_factory=list)
     seconds: dict = field(default_factory=dict)
     casts: int = 0
+    volumes: FrameVolumes = field(default_factory=FrameVolumes)
 
     @property
     def size(self):
@@ -116,6 +118,9 @@ def prepare_frame(depsgraph, should_stop=None):
         scale = float(np.linalg.norm(geometry.vertices.max(0) - geometry.vertices.min(0)))
     else:
         tree, scale = None, 1.0
+    volumes, said = prepare_volumes(depsgraph)
+    notices += said
+    if not len(geometry) and not volumes:
         notices.append(NO_MESH)
     t3 = time.perf_counter()
     return Frame(
@@ -129,6 +134,7 @@ def prepare_frame(depsgraph, should_stop=None):
         scale=max(scale, 1e-6),
         notices=notices,
         seconds={"field" if built else "field (cached)": t1 - t0, "geometry": t3 - t2},
+        volumes=volumes,
     )
 
 
@@ -162,6 +168,10 @@ def render_rows(frame, row0, row1, should_stop=None):
     index = np.zeros(len(hits.hit), dtype=np.float32)
     index[hits.hit] = frame.geometry.pass_index[hits.triangle[hits.hit]]
     depth = np.where(hits.hit, bundle.start_depth + hits.distance, MISS_DEPTH)
+    if frame.volumes:
+        colour, alpha, depth = composite_volumes(
+            frame.volumes, bundle, hits.distance, colour, alpha, depth, should_stop
+        )
     return {
         "Combined": np.concatenate([colour, alpha[:, None]], axis=1).reshape(*shape, 4),
         "Depth": depth.astype(np.float32).reshape(*shape, 1),

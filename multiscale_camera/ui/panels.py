@@ -5,6 +5,7 @@ import json
 import bpy
 
 from ..core.report import headline
+from .volume import draw_transfer_function
 
 
 def _report(settings):
@@ -53,12 +54,16 @@ class MULTISCALE_PT_main(bpy.types.Panel):
             box = layout.box()
             box.prop(item, "camera")
             box.template_ID(item, "mask", new="image.new", open="image.open")
+            draw_transfer_function(box, item)
         col = layout.column(align=True)
         col.prop(settings, "method")
         col.prop(settings, "quality")
         if settings.quality == "CUSTOM":
             col.prop(settings, "accuracy_px")
         col.prop(settings, "beta")
+        row = layout.row(align=True)
+        row.prop(settings, "volume_step")
+        row.prop(settings, "volume_shading", text="", icon="LIGHT_SUN")
         row = layout.row(align=True)
         row.operator("multiscale.validate", icon="CHECKMARK")
         row.operator("multiscale.compute_field", icon="FORCE_MAGNETIC")
