@@ -32,27 +32,28 @@ def _ellipsoid_distance(x, y, z, centre, radii):
     return (k - 1.0) * min(radii)
 
 
-def vessel_tree(depth=4, seed=7):
+def vessel_tree(depth=5, seed=7):
     """Branches of a vessel tree: list of (start (3,), end (3,), radius), in [-1, 1]^3.
 
     The trunk enters the organ from above; every branch forks in two, turning away
-    from its parent and getting thinner and shorter, all inside the organ."""
+    from its parent and getting thinner and shorter (``phantom`` clips the tree to the
+    organ)."""
     rng = np.random.default_rng(seed)
     centre = np.array(ORGAN_CENTRE)
     out = []
-    todo = [(centre + (0.02, 0.0, 0.3), np.array([0.0, 0.05, -1.0]), 0.22, 0.045, 0)]
+    todo = [(centre + (0.0, 0.0, 0.3), np.array([0.05, 0.0, -1.0]), 0.16, 0.032, 0)]
     while todo:
         start, direction, length, radius, level = todo.pop()
         direction = direction / np.linalg.norm(direction)
         end = start + direction * length
         out.append((start, end, radius))
         if level < depth:
+            turn = rng.normal(size=3)
+            turn -= turn.dot(direction) * direction
+            turn /= np.linalg.norm(turn)
             for side in (-1, 1):
-                turn = rng.normal(size=3)
-                turn -= turn.dot(direction) * direction
-                turn /= np.linalg.norm(turn)
-                child = direction + side * 0.9 * turn + rng.normal(scale=0.15, size=3)
-                todo.append((end, child, length * 0.72, radius * 0.72, level + 1))
+                child = direction + side * 1.1 * turn + rng.normal(scale=0.2, size=3)
+                todo.append((end, child, length * 0.78, radius * 0.74, level + 1))
     return out
 
 
@@ -94,5 +95,58 @@ def phantom(n=128, dtype=np.float32):
         part = _smooth_inside(d - radius, edge)
         box = vessels[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]]
         np.maximum(box, part, out=box)
+    vessels *= _smooth_inside(organ, edge)  # the tree stays inside the organ
     values = values * (1 - vessels) + VESSEL * vessels
     return np.clip(values, 0, 1).astype(dtype)
+
+
+# --- the volume demo's rig (sample_blends/scenes.py and bench/volume.py share it) ---
+
+BODY_CENTRE = (0.0, 0.0, 1.0)  # the phantom's cube [-1, 1]^3 moved up by this (metres)
+_ORGAN = tuple(b + o for b, o in zip(BODY_CENTRE, ORGAN_CENTRE))
+_VESSELS = (_ORGAN[0], _ORGAN[1], _ORGAN[2] + 0.06)
+# name, target, distance, azimuth and elevation (degrees, azimuth 0 looks along +y),
+# near plane distance: the body, the organ, the vessel tree; camera 3 looks nearly along
+# camera 2's axis, so their preserved frusta stay apart.
+DEMO_CAMERAS = (
+    ("Cam1 Body", BODY_CENTRE, 4.6, 0.0, 10.0, 2.0),
+    ("Cam2 Organ", _ORGAN, 1.7, 8.0, 12.0, 0.8),
+    ("Cam3 Vessels", _VESSELS, 0.9, 9.0, 12.0, 0.4),
+)
+# Mask radii in pixels of a 640-pixel-wide image (scale with the width): camera 3 owns
+# the disk, camera 2 the ring, camera 1 the outside; the gaps are the transitions.
+DEMO_RADII = {"cam3": 56, "cam2_inner": 92, "cam2_outer": 122, "cam1": 152}
+# Samples half a voxel apart: camera 3 magnifies a voxel to several pixels.
+DEMO_STEP = 0.5
+# Transfer functions over the values above: position, (r, g, b, opacity per voxel).
+DEMO_TFS = {
+    # the body: an opaque skin hides the inside
+    "Body": [
+        (0.0, (0.0, 0.0, 0.0, 0.0)),
+        (0.1, (0.6, 0.4, 0.35, 0.0)),
+        (0.2, (0.8, 0.55, 0.45, 0.02)),
+        (0.3, (0.95, 0.72, 0.58, 0.35)),
+        (0.42, (0.9, 0.5, 0.45, 0.05)),
+        (0.55, (0.8, 0.2, 0.2, 0.3)),
+        (1.0, (1.0, 0.9, 0.8, 0.8)),
+    ],
+    # the organ: skin and tissue clear, a translucent red wall, bright vessels
+    "Organ": [
+        (0.0, (0.0, 0.0, 0.0, 0.0)),
+        (0.4, (0.8, 0.2, 0.2, 0.0)),
+        (0.55, (0.85, 0.15, 0.15, 0.12)),
+        (0.7, (0.9, 0.5, 0.2, 0.02)),
+        (0.9, (1.0, 0.9, 0.5, 0.7)),
+        (1.0, (1.0, 1.0, 0.8, 0.9)),
+    ],
+    # the vessels alone, the wall a faint veil
+    "Vessels": [
+        (0.0, (0.0, 0.0, 0.0, 0.0)),
+        (0.5, (0.6, 0.2, 0.3, 0.0)),
+        (0.55, (0.6, 0.25, 0.3, 0.006)),
+        (0.62, (0.6, 0.25, 0.3, 0.0)),
+        (0.75, (0.7, 0.1, 0.15, 0.0)),
+        (0.9, (0.95, 0.2, 0.25, 0.9)),
+        (1.0, (1.0, 0.6, 0.6, 1.0)),
+    ],
+}

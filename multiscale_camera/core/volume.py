@@ -35,8 +35,6 @@ EARLY_TERMINATION = 0.995
 BLOCK = 8
 # Share of a gradient-shaded sample's colour that does not depend on its orientation.
 SHADE_AMBIENT = 0.35
-# Gradients shorter than this (value units per voxel) are noise: such samples stay unshaded.
-MIN_GRADIENT = 1e-4
 # Vertices x rays processed at once: bounds the memory of a chunk's polylines
 # (about 100 MB of float64 index-space copies).
 CHUNK_VERTICES = 1 << 21
@@ -191,6 +189,34 @@ def occupied_blocks(lo, hi, tables):
     return range_max[a, b] > 0
 
 
+# Gradients shorter than this (value units per voxel) are noise of a uniform material:
+# they get no direction, and samples near them stay unshaded.
+MIN_GRADIENT = 1e-3
+# An interpolated direction shorter than this (of unit length at best) means the
+# neighbouring voxels disagree or have none: such a sample stays unshaded.
+MIN_DIRECTION = 0.25
+
+
+def gradient_directions(values):
+    """Unit gradient directions of a volume, quantised for shading.
+
+    Central differences on the grid (one-sided at the faces), in voxel units,
+    normalised and scaled to int8 (127 = 1); zero where the gradient is shorter than
+    ``MIN_GRADIENT``.
+
+    Returns
+    -------
+    (nx * ny * nz, 3) int8, rows in the C order of ``values``.
+    """
+    v = np.asarray(values, dtype=np.float32)
+    g = np.empty(v.shape + (3,), dtype=np.float32)
+    for axis in range(3):
+        g[..., axis] = np.gradient(v, axis=axis) if v.shape[axis] > 1 else 0.0
+    n = np.sqrt((g * g).sum(-1, keepdims=True))
+    scale = np.where(n > MIN_GRADIENT, 127.0 / np.maximum(n, 1e-30), 0.0)
+    return np.rint(g * scale).astype(np.int8).reshape(-1, 3)
+
+
 @dataclass
 class VolumeScene:
     """One volume ready to render with a rig's transfer functions (built once per frame).
@@ -198,6 +224,7 @@ class VolumeScene:
     volume : ScalarVolume. tables : (N, T, 4) float32, camera i's table in row i.
     occupied : (bx, by, bz) bool (``occupied_blocks``). step : float, samples apart in
     voxels. shading : bool, gradient shading. cubic : bool, eq. 6's cubic weights.
+    normals : (nx * ny * nz, 3) int8 or None, ``gradient_directions`` (when shading).
     """
 
     volume: ScalarVolume
@@ -206,17 +233,22 @@ class VolumeScene:
     step: float = 1.0
     shading: bool = False
     cubic: bool = False
+    normals: np.ndarray = None
 
     @classmethod
-    def build(cls, volume, tables, step=1.0, shading=False, cubic=False, ranges=None):
-        """Prepare ``volume`` for rendering; ``ranges`` are its ``block_ranges`` if known."""
+    def build(cls, volume, tables, step=1.0, shading=False, cubic=False, ranges=None, normals=None):
+        """Prepare ``volume`` for rendering; ``ranges`` are its ``block_ranges`` and
+        ``normals`` its ``gradient_directions`` if known (else they are computed)."""
         tables = np.ascontiguousarray(tables, dtype=np.float32)
         if tables.ndim != 3 or tables.shape[2] != 4 or tables.shape[1] < 2:
             raise ValueError(f"tables must be (N, T >= 2, 4), got {tables.shape}")
         if not step > 0:
             raise ValueError(f"the step must be positive, got {step}")
         lo, hi = ranges if ranges is not None else block_ranges(volume.values)
-        return cls(volume, tables, occupied_blocks(lo, hi, tables), float(step), shading, cubic)
+        if shading and normals is None:
+            normals = gradient_directions(volume.values)
+        occupied = occupied_blocks(lo, hi, tables)
+        return cls(volume, tables, occupied, float(step), shading, cubic, normals)
 
 
 @dataclass(frozen=True)
@@ -315,47 +347,32 @@ def march_volume(scene, vertices, membership, reach, stop=None, should_stop=None
     return VolumeResult(colour, alpha, entry, depth, samples, skipped)
 
 
-def _trilinear(flat, strides, shape, q):
-    """Trilinear samples of a C-ordered volume at clamped voxel coordinates.
-
-    flat : (nx * ny * nz,) float32. q : (P, 3) float, inside [0, n - 1].
-    Returns the values (P,) and the eight corner values (for the gradient) with the
-    fractions (P, 3).
-    """
+def _cell(strides, shape, q):
+    """Base voxel index (P,) int64, the seven other corners' offsets and the fractions
+    (P, 3) float32 of clamped voxel coordinates q (P, 3) inside [0, n - 1]."""
     top = np.array([max(n - 2, 0) for n in shape])
     i0 = np.minimum(q.astype(np.int64), top)
     f = (q - i0).astype(np.float32)
     base = i0 @ np.asarray(strides, dtype=np.int64)
     ox, oy, oz = (st * (n > 1) for st, n in zip(strides, shape))
-    c = [flat[base + off] for off in (0, ox, oy, ox + oy, oz, ox + oz, oy + oz, ox + oy + oz)]
-    fx, fy, fz = f[:, 0], f[:, 1], f[:, 2]
+    return base, (0, ox, oy, ox + oy, oz, ox + oz, oy + oz, ox + oy + oz), f
+
+
+def _trilinear(flat, cell):
+    """(P,) trilinear samples of a flat C-ordered array (or (P, C) of an (n, C) one) in
+    the cells ``_cell`` gave."""
+    base, offsets, f = cell
+    c = [flat[base + off].astype(np.float32, copy=False) for off in offsets]
+    if c[0].ndim > 1:
+        f = f[:, None, :]
+    fx, fy, fz = f[..., 0], f[..., 1], f[..., 2]
     c00 = c[0] + (c[1] - c[0]) * fx
     c10 = c[2] + (c[3] - c[2]) * fx
     c01 = c[4] + (c[5] - c[4]) * fx
     c11 = c[6] + (c[7] - c[6]) * fx
     c0 = c00 + (c10 - c00) * fy
     c1 = c01 + (c11 - c01) * fy
-    return c0 + (c1 - c0) * fz, c, f
-
-
-def _gradient(c, f):
-    """(P, 3) gradient of the trilinear interpolant in voxel units, from its corners."""
-    fx, fy, fz = f[:, 0], f[:, 1], f[:, 2]
-    gx = (
-        (c[1] - c[0]) * (1 - fy) * (1 - fz)
-        + (c[3] - c[2]) * fy * (1 - fz)
-        + (c[5] - c[4]) * (1 - fy) * fz
-        + (c[7] - c[6]) * fy * fz
-    )
-    gy = ((c[2] - c[0]) + (c[3] - c[1] - c[2] + c[0]) * fx) * (1 - fz) + (
-        (c[6] - c[4]) + (c[7] - c[5] - c[6] + c[4]) * fx
-    ) * fz
-    c00 = c[0] + (c[1] - c[0]) * fx
-    c10 = c[2] + (c[3] - c[2]) * fx
-    c01 = c[4] + (c[5] - c[4]) * fx
-    c11 = c[6] + (c[7] - c[6]) * fx
-    gz = (c01 + (c11 - c01) * fy) - (c00 + (c10 - c00) * fy)
-    return np.stack([gx, gy, gz], axis=1)
+    return c0 + (c1 - c0) * fz
 
 
 def corrected_tables(tables, step):
@@ -498,7 +515,8 @@ def _march_chunk(scene, vertices, membership, reach, stop):
             rj = np.repeat(ro, SAMPLES_PER_PASS)
             fo, local, d, p = locate(sj, rj)
             ok = ((p >= -0.5) & (p <= n_hi + 0.5)).all(axis=1) & (sj <= s_out[rj])
-            val, corners, frac3 = _trilinear(flat, strides, shape, np.clip(p, 0.0, n_hi))
+            cell = _cell(strides, shape, np.clip(p, 0.0, n_hi))
+            val = _trilinear(flat, cell)
             t = np.clip(local / len_f[fo], 0.0, 1.0)
             nval = mem_f[fo] + (mem_f[fo + 1] - mem_f[fo]) * t
             rgba = _classify(scene, tables, val, nval)
@@ -506,12 +524,17 @@ def _march_chunk(scene, vertices, membership, reach, stop):
             samples += int(ok.sum())
             rgb = rgba[:, :3]
             if scene.shading:
-                g = _gradient(corners, frac3) @ m[:3, :3].astype(np.float32)  # world
+                lit = np.flatnonzero(rgba[:, 3] > 0)
+                sub = (cell[0][lit], cell[1], cell[2][lit])
+                gi = _trilinear(scene.normals, sub)  # voxel space, unit = 127
+                g = gi @ m[:3, :3].astype(np.float32)
                 gn = np.linalg.norm(g, axis=1)
-                dw = d @ inv.T  # unit world direction
+                dw = (d[lit] @ inv.T).astype(np.float32)  # unit world direction
                 cos = np.abs((g * dw).sum(1)) / np.maximum(gn, 1e-30)
-                lit = SHADE_AMBIENT + (1.0 - SHADE_AMBIENT) * cos
-                rgb = rgb * np.where(gn * voxel > MIN_GRADIENT, lit, 1.0)[:, None]
+                shade = SHADE_AMBIENT + (1.0 - SHADE_AMBIENT) * cos
+                length = np.linalg.norm(gi, axis=1)
+                shade = np.where(length > MIN_DIRECTION * 127, shade, 1.0)
+                rgb[lit] *= shade[:, None].astype(rgb.dtype)
             rgb = rgb.reshape(len(on), SAMPLES_PER_PASS, 3)
             a_s = rgba[:, 3].reshape(len(on), SAMPLES_PER_PASS)
             acc = alpha[ro]

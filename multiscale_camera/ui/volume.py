@@ -23,6 +23,9 @@ VALUE_TYPES = [
     ("FLOAT64", "64-bit float", ""),
 ]
 
+# Blender 4.5+ warns about "//" paths unless the property says it supports them.
+PATH_OPTIONS = {"PATH_SUPPORTS_BLEND_RELATIVE"} if bpy.app.version >= (4, 5, 0) else set()
+
 
 class MultiscaleVolumeSettings(bpy.types.PropertyGroup):
     use: BoolProperty(
@@ -34,6 +37,7 @@ class MultiscaleVolumeSettings(bpy.types.PropertyGroup):
     filepath: StringProperty(
         name="File",
         subtype="FILE_PATH",
+        options=PATH_OPTIONS,
         description=".npy (array indexed [x, y, z]), .raw (x fastest) or .nrrd",
     )
     dims: IntVectorProperty(

@@ -239,3 +239,29 @@ def test_each_camera_uses_its_own_transfer_function_where_preserved():
     # the transition between them blends the two
     between = ~masks.any(0) & seen
     assert ((rgba[between, 0] > 0.05) & (rgba[between, 1] > 0.05)).any()
+
+
+def test_gradient_shading_darkens_surfaces_seen_edge_on():
+    """A ball of one value with an opaque transfer function: shaded, its centre (surface
+    facing the eye) keeps its colour and its rim (seen edge on) darkens toward the
+    ambient share."""
+    n = 48
+    x, y, z = np.meshgrid(*[np.linspace(-1, 1, n)] * 3, indexing="ij")
+    ball = np.clip((0.8 - np.sqrt(x**2 + y**2 + z**2)) * n / 4 + 0.5, 0, 1)
+    at = np.eye(4)
+    at[:3, 3] = TARGET
+    vol = V.ScalarVolume(
+        ball.astype(np.float32), V.box_to_index(ball.shape, [-1.5] * 3, [1.5] * 3, at)
+    )
+    table = V.table_from_points([(0.0, (1, 1, 1, 0)), (0.5, (1, 1, 1, 0)), (1.0, (1, 1, 1, 1))])
+    cam, rig = one_camera(48, 48)
+    fld = prepare(rig, "IMAGE_BLEND")
+    flat, _ = render(fld, V.VolumeScene.build(vol, table[None]))
+    lit, _ = render(fld, V.VolumeScene.build(vol, table[None], shading=True))
+    seen = flat[..., 3] > 0.99
+    ratio = lit[..., 0][seen] / flat[..., 0][seen]
+    yy, xx = np.nonzero(seen)
+    r = np.hypot(xx - xx.mean(), yy - yy.mean())
+    centre, rim = ratio[r < 0.2 * r.max()], ratio[r > 0.9 * r.max()]
+    assert centre.min() > 0.9
+    assert rim.mean() < 0.75 and rim.min() >= V.SHADE_AMBIENT - 1e-6
