@@ -4,7 +4,7 @@
 #   make test     build, then run tests/ (unit, blender, e2e) with $(BLENDER)
 #   make samples  write sample_blends/*.blend
 #   make demo     install the linux zip in a throwaway user folder, render demo.blend to out/
-#   make bench    speed and accuracy of the solver and of every method: bench/*.json
+#   make bench    speed and accuracy: solver, every method, volume rendering: bench/*.json
 #   make lint     ruff
 #
 # BLENDER defaults to tools/blender (Blender's command line on the bpy wheel);
@@ -77,10 +77,12 @@ demo: build sample_blends/demo.blend
 
 # Speed and accuracy figures (minutes, not part of `make test`): the membership solver
 # against the paper's explicit diffusion (capped at 8 minutes a size: a capped run gives
-# a lower bound on the ratio), then every method at every quality at 1920x1080.
+# a lower bound on the ratio), then every method at every quality at 1920x1080, then
+# volume ray casting of a 256^3 phantom at 1920x1080.
 bench: venv
 	$(PY) bench/solvers.py --sizes 64 128 256 320 --diffusion-sizes 64 128 --cap 480
 	$(PY) bench/methods.py --width 1920 --height 1080
+	$(PY) bench/volume.py --width 1920 --height 1080 --voxels 256
 
 lint: venv
 	$(PY) -m ruff check .
