@@ -296,3 +296,19 @@ def test_transfer_function_operator_gives_the_default_ramp(empty_scene):
         "Camera 'C1': the transfer function texture 'TF C1' has no colour ramp (enable it "
         "in the panel); the default transfer function is used"
     ]
+
+
+def test_engine_writes_the_volume_into_the_render_result(empty_scene, tmp_path):
+    from tests.exr import read_passes
+
+    scene = empty_scene
+    one_camera_scene(scene)
+    np.save(tmp_path / "v.npy", lumpy())
+    file_box(scene, tmp_path / "v.npy")
+    _frame, passes = render_passes(scene)
+    scene.render.image_settings.media_type = "MULTI_LAYER_IMAGE"
+    scene.render.filepath = str(tmp_path / "out.exr")
+    bpy.ops.render.render(write_still=True)
+    got = read_passes(tmp_path / "out.exr")
+    assert passes["Combined"][..., 3].max() > 0.5
+    np.testing.assert_allclose(got["Combined"], passes["Combined"], atol=1e-5)
