@@ -277,6 +277,9 @@ def test_missing_volume_file(empty_scene, tmp_path):
         "Object Properties > Multiscale Volume"
     )
     assert f"Error: Multiscale: {msg}" in render_error()
+    with pytest.raises(RuntimeError) as info:
+        bpy.ops.multiscale.validate()
+    assert f"Error: {msg}" in str(info.value)  # Check Rig says it before a render
 
 
 def test_transfer_function_operator_gives_the_default_ramp(empty_scene):
