@@ -331,15 +331,20 @@ def march_volume(scene, vertices, membership, reach, stop=None, should_stop=None
     parts = [slice(a, min(a + chunk, r)) for a in range(0, r, chunk)]
 
     def run(sl):
-        if should_stop is not None and should_stop():
-            raise Cancelled()
         return sl, _march_chunk(scene, vertices[sl], membership[sl], reach[sl], stop[sl])
 
-    if threads > 1 and len(parts) > 1:
-        with ThreadPoolExecutor(threads) as pool:
-            done = list(pool.map(run, parts))
-    else:
-        done = [run(sl) for sl in parts]
+    # ``should_stop`` is only ever called here, on the caller's thread (it may be bpy's)
+    done = []
+    pool = ThreadPoolExecutor(threads) if threads > 1 and len(parts) > 1 else None
+    try:
+        for first in range(0, len(parts), max(threads, 1)):
+            if should_stop is not None and should_stop():
+                raise Cancelled()
+            group = parts[first : first + max(threads, 1)]
+            done += list(pool.map(run, group)) if pool else [run(sl) for sl in group]
+    finally:
+        if pool is not None:
+            pool.shutdown()
     for sl, out in done:
         colour[sl], alpha[sl], entry[sl], depth[sl] = out[:4]
         samples += out[4]

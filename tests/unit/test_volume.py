@@ -265,3 +265,17 @@ def test_gradient_shading_darkens_surfaces_seen_edge_on():
     centre, rim = ratio[r < 0.2 * r.max()], ratio[r > 0.9 * r.max()]
     assert centre.min() > 0.9
     assert rim.mean() < 0.75 and rim.min() >= V.SHADE_AMBIENT - 1e-6
+
+
+def test_threads_change_nothing_and_should_stop_cancels():
+    from multiscale_camera.core.errors import Cancelled
+
+    _cam, rig = one_camera(40, 30)
+    scene = V.VolumeScene.build(blob_volume(), rainbow_table()[None], shading=True)
+    b = prepare(rig, "IMAGE_BLEND").rays(*np.mgrid[0:30, 0:40][::-1].reshape(2, -1))
+    one = V.march_volume(scene, b.vertices, b.membership, b.reach, threads=1)
+    two = V.march_volume(scene, b.vertices, b.membership, b.reach, threads=2)
+    np.testing.assert_array_equal(one.colour, two.colour)
+    assert one.samples == two.samples > 0
+    with pytest.raises(Cancelled):
+        V.march_volume(scene, b.vertices, b.membership, b.reach, should_stop=lambda: True)
