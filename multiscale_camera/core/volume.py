@@ -151,27 +151,33 @@ def block_ranges(values, block=BLOCK):
 
     A sample at voxel coordinates p (clamped to the volume) lies in block floor(p /
     block) and reads voxels floor(p) and floor(p) + 1, so each block's range covers its
-    own voxels and the next layer of voxels along each axis.
+    own voxels and the next layer of voxels along each axis. Computed one x-row of
+    blocks at a time (temporaries of a few layers).
 
     Returns
     -------
     lo, hi : (bx, by, bz) float32, bx = ceil(nx / block).
     """
-    lo = np.asarray(values, dtype=np.float32)
-    hi = lo
-    for axis in range(3):
-        nxt_lo = np.concatenate([np.delete(lo, 0, axis), np.take(lo, [-1], axis)], axis)
-        nxt_hi = np.concatenate([np.delete(hi, 0, axis), np.take(hi, [-1], axis)], axis)
-        lo, hi = np.minimum(lo, nxt_lo), np.maximum(hi, nxt_hi)
-    return _block_reduce(lo, block, np.minimum), _block_reduce(hi, block, np.maximum)
+    v = np.asarray(values, dtype=np.float32)
+    nx = v.shape[0]
+    rows_lo, rows_hi = [], []
+    for a in range(0, nx, block):
+        sub = v[a : min(a + block + 1, nx)]
+        for op, rows in ((np.minimum, rows_lo), (np.maximum, rows_hi)):
+            layer = op.reduce(sub, axis=0)  # (ny, nz), the x apron included
+            layer = op(layer, np.concatenate([layer[1:], layer[-1:]], axis=0))
+            layer = op(layer, np.concatenate([layer[:, 1:], layer[:, -1:]], axis=1))
+            rows.append(_block_reduce(layer[None], block, op)[0])
+    return np.stack(rows_lo), np.stack(rows_hi)
 
 
 def _block_reduce(a, block, op):
-    pad = [(0, (-s) % block) for s in a.shape]
+    """Reduce (1, ny, nz) over block x block tiles of its last two axes (edge-padded)."""
+    pad = [(0, 0)] + [(0, (-s) % block) for s in a.shape[1:]]
     a = np.pad(a, pad, mode="edge")
-    bx, by, bz = (s // block for s in a.shape)
-    a = a.reshape(bx, block, by, block, bz, block)
-    return op.reduce(op.reduce(op.reduce(a, axis=5), axis=3), axis=1)
+    _, ny, nz = a.shape
+    a = a.reshape(1, ny // block, block, nz // block, block)
+    return op.reduce(op.reduce(a, axis=4), axis=2)
 
 
 def occupied_blocks(lo, hi, tables):
@@ -197,24 +203,34 @@ MIN_GRADIENT = 1e-3
 MIN_DIRECTION = 0.25
 
 
-def gradient_directions(values):
+def gradient_directions(values, slab=16):
     """Unit gradient directions of a volume, quantised for shading.
 
     Central differences on the grid (one-sided at the faces), in voxel units,
     normalised and scaled to int8 (127 = 1); zero where the gradient is shorter than
-    ``MIN_GRADIENT``.
+    ``MIN_GRADIENT``. Computed ``slab`` x-layers at a time, so the temporaries stay a
+    small part of the volume's own size.
 
     Returns
     -------
     (nx * ny * nz, 3) int8, rows in the C order of ``values``.
     """
     v = np.asarray(values, dtype=np.float32)
-    g = np.empty(v.shape + (3,), dtype=np.float32)
-    for axis in range(3):
-        g[..., axis] = np.gradient(v, axis=axis) if v.shape[axis] > 1 else 0.0
-    n = np.sqrt((g * g).sum(-1, keepdims=True))
-    scale = np.where(n > MIN_GRADIENT, 127.0 / np.maximum(n, 1e-30), 0.0)
-    return np.rint(g * scale).astype(np.int8).reshape(-1, 3)
+    nx = v.shape[0]
+    out = np.zeros(v.shape + (3,), dtype=np.int8)
+    for a in range(0, nx, slab):
+        b = min(a + slab, nx)
+        lo, hi = max(a - 1, 0), min(b + 1, nx)
+        part = v[lo:hi]
+        g = np.zeros(part.shape + (3,), dtype=np.float32)
+        for axis in range(3):
+            if part.shape[axis] > 1:
+                g[..., axis] = np.gradient(part, axis=axis)
+        g = g[a - lo : a - lo + (b - a)]
+        n = np.sqrt((g * g).sum(-1, keepdims=True))
+        scale = np.where(n > MIN_GRADIENT, np.float32(127.0) / np.maximum(n, 1e-30), 0.0)
+        out[a:b] = np.rint(g * scale.astype(np.float32))
+    return out.reshape(-1, 3)
 
 
 @dataclass

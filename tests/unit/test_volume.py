@@ -279,3 +279,28 @@ def test_threads_change_nothing_and_should_stop_cancels():
     assert one.samples == two.samples > 0
     with pytest.raises(Cancelled):
         V.march_volume(scene, b.vertices, b.membership, b.reach, should_stop=lambda: True)
+
+
+def test_gradient_directions_are_numpy_gradients_normalised_slab_by_slab():
+    rng = np.random.default_rng(0)
+    v = rng.random((37, 20, 9)).astype(np.float32)
+    v[:, :, 4] = 0.5  # a flat layer... still has gradients from its neighbours
+    g = np.stack(np.gradient(v), -1)
+    n = np.linalg.norm(g, axis=-1, keepdims=True)
+    ref = np.where(n > V.MIN_GRADIENT, np.rint(g / np.maximum(n, 1e-30) * 127), 0)
+    for slab in (1, 4, 100):
+        got = V.gradient_directions(v, slab=slab)
+        assert got.dtype == np.int8
+        np.testing.assert_array_equal(got, ref.astype(np.int8).reshape(-1, 3))
+    flat = V.gradient_directions(np.ones((5, 4, 3), np.float32))
+    assert not flat.any()  # no gradient, no direction
+
+
+def test_block_ranges_are_the_ranges_of_each_block_and_its_far_layers():
+    rng = np.random.default_rng(4)
+    v = rng.random((19, 12, 9)).astype(np.float32)
+    lo, hi = V.block_ranges(v, 4)
+    assert lo.shape == (5, 3, 3)
+    for i, j, k in np.ndindex(*lo.shape):
+        box = v[4 * i : 4 * i + 5, 4 * j : 4 * j + 5, 4 * k : 4 * k + 5]
+        assert lo[i, j, k] == box.min() and hi[i, j, k] == box.max()
