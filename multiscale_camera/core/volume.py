@@ -33,6 +33,9 @@ EARLY_TERMINATION = 0.995
 # Voxels per side of the blocks used for empty-space skipping: small enough to hug thin
 # structures, large enough that a jump saves many samples.
 BLOCK = 8
+# Blocks per side of a coarse block: a ray in a wholly empty coarse block crosses it in
+# one jump (in the sample phantom, 3.5 skipping passes per sampling pass without it).
+COARSE = 4
 # Share of a gradient-shaded sample's colour that does not depend on its orientation.
 SHADE_AMBIENT = 0.35
 # Vertices x rays processed at once: bounds the memory of a chunk's polylines
@@ -180,6 +183,14 @@ def _block_reduce(a, block, op):
     return op.reduce(op.reduce(a, axis=4), axis=2)
 
 
+def coarse_blocks(occupied, factor=COARSE):
+    """(cx, cy, cz) bool: whether any block of each ``factor``^3 group is occupied."""
+    pad = [(0, (-n) % factor) for n in occupied.shape]
+    a = np.pad(occupied, pad)
+    cx, cy, cz = (n // factor for n in a.shape)
+    return a.reshape(cx, factor, cy, factor, cz, factor).any(axis=(1, 3, 5))
+
+
 def occupied_blocks(lo, hi, tables):
     """(bx, by, bz) bool: blocks where some transfer function gives some opacity.
 
@@ -213,11 +224,12 @@ def gradient_directions(values, slab=16):
 
     Returns
     -------
-    (nx * ny * nz, 3) int8, rows in the C order of ``values``.
+    (nx * ny * nz,) int32 in the C order of ``values``, each the four bytes (gx, gy, gz,
+    0) as int8: one gather fetches a voxel's direction (view as (P, 4) int8).
     """
     v = np.asarray(values, dtype=np.float32)
     nx = v.shape[0]
-    out = np.zeros(v.shape + (3,), dtype=np.int8)
+    out = np.zeros(v.shape + (4,), dtype=np.int8)
     for a in range(0, nx, slab):
         b = min(a + slab, nx)
         lo, hi = max(a - 1, 0), min(b + 1, nx)
@@ -229,8 +241,8 @@ def gradient_directions(values, slab=16):
         g = g[a - lo : a - lo + (b - a)]
         n = np.sqrt((g * g).sum(-1, keepdims=True))
         scale = np.where(n > MIN_GRADIENT, np.float32(127.0) / np.maximum(n, 1e-30), 0.0)
-        out[a:b] = np.rint(g * scale.astype(np.float32))
-    return out.reshape(-1, 3)
+        out[a:b, ..., :3] = np.rint(g * scale.astype(np.float32))
+    return out.reshape(-1, 4).view(np.int32).ravel()
 
 
 @dataclass
@@ -240,7 +252,7 @@ class VolumeScene:
     volume : ScalarVolume. tables : (N, T, 4) float32, camera i's table in row i.
     occupied : (bx, by, bz) bool (``occupied_blocks``). step : float, samples apart in
     voxels. shading : bool, gradient shading. cubic : bool, eq. 6's cubic weights.
-    normals : (nx * ny * nz, 3) int8 or None, ``gradient_directions`` (when shading).
+    normals : (nx * ny * nz,) int32 or None, ``gradient_directions`` (when shading).
     """
 
     volume: ScalarVolume
@@ -250,6 +262,11 @@ class VolumeScene:
     shading: bool = False
     cubic: bool = False
     normals: np.ndarray = None
+    coarse: np.ndarray = None
+
+    def __post_init__(self):
+        if self.coarse is None:
+            self.coarse = coarse_blocks(self.occupied)
 
     @classmethod
     def build(cls, volume, tables, step=1.0, shading=False, cubic=False, ranges=None, normals=None):
@@ -379,11 +396,18 @@ def _cell(strides, shape, q):
     return base, (0, ox, oy, ox + oy, oz, ox + oz, oy + oz, ox + oy + oz), f
 
 
+def _fetch(flat, index):
+    """float32 values of ``flat`` at ``index``; packed directions (int32) as (P, 3)."""
+    if flat.dtype == np.int32:
+        return flat[index].view(np.int8).reshape(-1, 4)[:, :3].astype(np.float32)
+    return flat[index].astype(np.float32, copy=False)
+
+
 def _trilinear(flat, cell):
-    """(P,) trilinear samples of a flat C-ordered array (or (P, C) of an (n, C) one) in
-    the cells ``_cell`` gave."""
+    """(P,) trilinear samples of a flat C-ordered array (or (P, 3) of packed directions,
+    ``gradient_directions``) in the cells ``_cell`` gave."""
     base, offsets, f = cell
-    c = [flat[base + off].astype(np.float32, copy=False) for off in offsets]
+    c = [_fetch(flat, base + off) for off in offsets]
     if c[0].ndim > 1:
         f = f[:, None, :]
     fx, fy, fz = f[..., 0], f[..., 1], f[..., 2]
@@ -489,6 +513,10 @@ def _march_chunk(scene, vertices, membership, reach, stop):
     bshape = np.array(occ.shape)
     bstride = np.array([bshape[1] * bshape[2], bshape[2], 1])
     occ_flat = occ.ravel()
+    coarse = scene.coarse
+    cshape = np.array(coarse.shape)
+    cstride = np.array([cshape[1] * cshape[2], cshape[2], 1])
+    coarse_flat = coarse.ravel()
     n_hi = np.array(shape, dtype=np.float64) - 1
     steps = np.arange(SAMPLES_PER_PASS) * h
 
@@ -516,11 +544,15 @@ def _march_chunk(scene, vertices, membership, reach, stop):
         free = np.flatnonzero(~busy)
         if len(free):
             df = d0[free]
-            lo_b = b0[free].astype(np.float64) * block
+            bf = b0[free]
+            cb = bf // COARSE
+            wide = ~coarse_flat[cb @ cstride]  # the whole coarse block is empty
+            size = np.where(wide, block * COARSE, block).astype(np.float64)[:, None]
+            lo_b = np.where(wide[:, None], cb * COARSE, bf) * float(block)
             pf = p0[free]
             with np.errstate(divide="ignore", invalid="ignore"):
                 exit_t = np.where(
-                    df > 0, (lo_b + block - pf) / df, np.where(df < 0, (lo_b - pf) / df, np.inf)
+                    df > 0, (lo_b + size - pf) / df, np.where(df < 0, (lo_b - pf) / df, np.inf)
                 ).min(axis=1)
             sf = s[free]
             jump = np.minimum(np.maximum(exit_t, 0.0), cum_f[fi0[free] + 1] - sf)

@@ -122,7 +122,7 @@ def test_skipping_and_early_termination_change_nothing_visible():
     full = V.VolumeScene(vol, fast.tables, np.ones_like(fast.occupied), 1.0)
     a, ra = render(fld, fast)
     b, rb = render(fld, full)
-    assert ra.samples + ra.skipped < rb.samples
+    assert ra.samples < rb.samples and ra.skipped > 0
     assert np.abs(a - b).max() <= 1 - V.EARLY_TERMINATION + 1e-6
 
 
@@ -289,9 +289,9 @@ def test_gradient_directions_are_numpy_gradients_normalised_slab_by_slab():
     n = np.linalg.norm(g, axis=-1, keepdims=True)
     ref = np.where(n > V.MIN_GRADIENT, np.rint(g / np.maximum(n, 1e-30) * 127), 0)
     for slab in (1, 4, 100):
-        got = V.gradient_directions(v, slab=slab)
-        assert got.dtype == np.int8
-        np.testing.assert_array_equal(got, ref.astype(np.int8).reshape(-1, 3))
+        got = V.gradient_directions(v, slab=slab).view(np.int8).reshape(-1, 4)
+        np.testing.assert_array_equal(got[:, :3], ref.astype(np.int8).reshape(-1, 3))
+        assert not got[:, 3].any()
     flat = V.gradient_directions(np.ones((5, 4, 3), np.float32))
     assert not flat.any()  # no gradient, no direction
 
