@@ -307,13 +307,13 @@ class VolumeResult:
 
 
 def _extended(vertices, reach):
-    """(R, K+1, 3) float64: the polylines with their last segment run on by ``reach``."""
-    v = np.asarray(vertices, dtype=np.float64)
-    last = v[:, -1] - v[:, -2]
+    """(R, K+1, 3) float32: the polylines with their last segment run on by ``reach``."""
+    v = np.asarray(vertices, dtype=np.float32)
+    last = (v[:, -1] - v[:, -2]).astype(np.float64)
     n = np.linalg.norm(last, axis=-1, keepdims=True)
     last = np.where(n > 0, last / np.where(n > 0, n, 1.0), 0.0)
     end = v[:, -1] + last * np.asarray(reach, dtype=np.float64)[:, None]
-    return np.concatenate([v, end[:, None]], axis=1)
+    return np.concatenate([v, end[:, None].astype(np.float32)], axis=1)
 
 
 def _box_interval(p, d, n):
@@ -321,16 +321,18 @@ def _box_interval(p, d, n):
 
     p : (..., 3) start points; d : (..., 3) direction per unit of the segment parameter.
     Returns t0, t1 (...,): the parameter interval inside the box (t0 > t1 when missed).
+    A zero component of d gives infinities of the right signs (inside that slab: the
+    whole line; outside: nothing); NaN (a start exactly on a face) is ignored.
     """
-    lo = -0.5 - p
-    hi = np.asarray(n, dtype=np.float64) - 0.5 - p
     with np.errstate(divide="ignore", invalid="ignore"):
-        a, b = lo / d, hi / d
-    inside = (lo <= 0) & (hi >= 0)
-    flat = d == 0
-    a = np.where(flat, np.where(inside, -np.inf, np.inf), a)
-    b = np.where(flat, np.where(inside, np.inf, -np.inf), b)
-    return np.minimum(a, b).max(-1), np.maximum(a, b).min(-1)
+        inv = 1.0 / d
+        a = (-0.5 - p) * inv
+        b = (np.asarray(n, dtype=p.dtype) - 0.5 - p) * inv
+    near = np.fmin(a, b)
+    far = np.fmax(a, b)
+    return np.fmax(np.fmax(near[..., 0], near[..., 1]), near[..., 2]), np.fmin(
+        np.fmin(far[..., 0], far[..., 1]), far[..., 2]
+    )
 
 
 def march_volume(scene, vertices, membership, reach, stop=None, should_stop=None, threads=1):
@@ -466,25 +468,35 @@ def _march_chunk(scene, vertices, membership, reach, stop):
     r = len(vertices)
     tables = corrected_tables(scene.tables, scene.step)
 
-    vw = _extended(vertices, reach)  # (R, K1, 3) world
+    vw = _extended(vertices, reach)  # (R, K1, 3) world, float32
     k1 = vw.shape[1]
-    seglen = np.linalg.norm(np.diff(vw, axis=1), axis=-1)  # (R, K1-1)
+    seglen = np.sqrt((np.diff(vw, axis=1) ** 2).sum(-1))  # (R, K1-1) float32
     cum = np.zeros((r, k1))
-    np.cumsum(seglen, axis=1, out=cum[:, 1:])
-    vi = vw @ m[:3, :3].T + m[:3, 3]  # voxel space
+    np.cumsum(seglen, axis=1, dtype=np.float64, out=cum[:, 1:])
+    vi = vw @ m[:3, :3].T.astype(np.float32) + m[:3, 3].astype(np.float32)  # voxel space
     del vw
-    with np.errstate(invalid="ignore", divide="ignore"):
-        dvi = np.where(seglen[..., None] > 0, np.diff(vi, axis=1) / seglen[..., None], 0.0)
+    dvi = np.diff(vi, axis=1)
+    np.divide(dvi, seglen[..., None], out=dvi, where=seglen[..., None] > 0)
+    dvi[seglen == 0] = 0.0
     mem = np.concatenate([membership, membership[:, -1:]], axis=1).astype(np.float64)
 
-    # the arc-length interval each ray spends in the box
-    t0, t1 = _box_interval(vi[:, :-1], dvi, shape)
+    # the arc-length interval each ray spends in the box: segments whose ends are both
+    # beyond the same face (Cohen-Sutherland outcodes) cannot touch it; slab-test the rest
+    below = vi < -0.5
+    above = vi > np.array(shape, dtype=np.float32) - 0.5
+    beyond = (below[:, :-1] & below[:, 1:]) | (above[:, :-1] & above[:, 1:])
+    cand = np.flatnonzero(~beyond.any(axis=-1) & (seglen > 0))
+    t0, t1 = _box_interval(vi[:, :-1].reshape(-1, 3)[cand], dvi.reshape(-1, 3)[cand], shape)
     t0 = np.maximum(t0, 0.0)
-    t1 = np.minimum(t1, seglen)
-    hit = (t1 >= t0) & (seglen > 0)
-    s_in = np.where(hit, cum[:, :-1] + t0, np.inf).min(axis=1)
-    s_out = np.where(hit, cum[:, :-1] + t1, -np.inf).max(axis=1)
-    s_out = np.minimum(s_out, stop)
+    t1 = np.minimum(t1, seglen.ravel()[cand])
+    hit = t1 >= t0
+    start = cum[:, :-1].ravel()[cand]
+    enter = np.full(r * (k1 - 1), np.inf)
+    leave = np.full(r * (k1 - 1), -np.inf)
+    enter[cand] = np.where(hit, start + t0, np.inf)
+    leave[cand] = np.where(hit, start + t1, -np.inf)
+    s_in = enter.reshape(r, k1 - 1).min(axis=1)
+    s_out = np.minimum(leave.reshape(r, k1 - 1).max(axis=1), stop)
     j0 = np.ceil(s_in / h)
     alive = np.isfinite(s_in) & (j0 * h <= s_out)
 
@@ -501,8 +513,8 @@ def _march_chunk(scene, vertices, membership, reach, stop):
     # flat per-vertex arrays: row r's vertex k at r * k1 + k
     cum_f = cum.ravel()
     vi_f = vi.reshape(-1, 3)
-    dvi_f = np.concatenate([dvi, np.zeros((r, 1, 3))], axis=1).reshape(-1, 3)
-    len_f = np.concatenate([seglen, np.ones((r, 1))], axis=1).ravel()
+    dvi_f = np.concatenate([dvi, np.zeros((r, 1, 3), np.float32)], axis=1).reshape(-1, 3)
+    len_f = np.concatenate([seglen, np.ones((r, 1), np.float32)], axis=1).ravel()
     mem_f = mem.ravel()
     # one searchsorted finds every sample's segment: rows are offset by more than a ray
     span = float(cum[:, -1].max()) + 1.0
@@ -520,18 +532,37 @@ def _march_chunk(scene, vertices, membership, reach, stop):
     n_hi = np.array(shape, dtype=np.float64) - 1
     steps = np.arange(SAMPLES_PER_PASS) * h
 
-    def locate(sv, rv):
-        """Flat segment index, offset along it, direction and voxel position of the
-        samples at arc lengths ``sv`` of rays ``rv``."""
+    def search(sv, rv):
+        """Flat index of the segment holding arc length ``sv`` of rays ``rv``."""
         base = rv * k1
         kk = np.searchsorted(keys, sv + rv * span, side="right") - 1 - base
-        fi = np.clip(kk, 0, k1 - 2) + base
+        return np.clip(kk, 0, k1 - 2) + base
+
+    def advance(fi, sv, rv):
+        """The segment holding ``sv``, from a segment ``fi`` at or before it: a step
+        crosses at most a vertex or two, so two cheap moves, then a search for the rest."""
+        last = rv * k1 + k1 - 2
+        for _ in range(2):
+            late = (sv > cum_f[fi + 1]) & (fi < last)
+            if not late.any():
+                return fi
+            fi = fi + late
+        late = np.flatnonzero((sv > cum_f[fi + 1]) & (fi < last))
+        if len(late):
+            fi[late] = search(sv[late], rv[late])
+        return fi
+
+    def locate(fi, sv):
+        """Offset along segments ``fi``, their direction and the voxel position at
+        arc lengths ``sv``."""
         local = sv - cum_f[fi]
         d = dvi_f[fi]
-        return fi, local, d, vi_f[fi] + local[:, None] * d
+        return local, d, vi_f[fi] + local[:, None] * d
 
+    seg = search(s, rows)
     while len(rows):
-        fi0, _local0, d0, p0 = locate(s, rows)
+        fi0 = seg = advance(seg, s, rows)
+        _local0, d0, p0 = locate(fi0, s)
         # a bent ray may leave the box and come back: samples outside it read nothing
         inside0 = ((p0 >= -0.5) & (p0 <= n_hi + 0.5)).all(axis=1)
         pc0 = np.clip(p0, 0.0, n_hi)
@@ -566,7 +597,8 @@ def _march_chunk(scene, vertices, membership, reach, stop):
             ro = rows[on]
             sj = (s[on, None] + steps).ravel()
             rj = np.repeat(ro, SAMPLES_PER_PASS)
-            fo, local, d, p = locate(sj, rj)
+            fo = advance(np.repeat(fi0[on], SAMPLES_PER_PASS), sj, rj)
+            local, d, p = locate(fo, sj)
             ok = ((p >= -0.5) & (p <= n_hi + 0.5)).all(axis=1) & (sj <= s_out[rj])
             cell = _cell(strides, shape, np.clip(p, 0.0, n_hi))
             val = _trilinear(flat, cell)
@@ -605,7 +637,7 @@ def _march_chunk(scene, vertices, membership, reach, stop):
 
         s = next_s
         keep = s <= s_out[rows]
-        rows, s = rows[keep], s[keep]
+        rows, s, seg = rows[keep], s[keep], seg[keep]
     return colour, alpha, entry, depth, samples, skipped
 
 
