@@ -104,6 +104,8 @@ def prepare_frame(depsgraph, should_stop=None):
     from mathutils.bvhtree import BVHTree
 
     scene = depsgraph.scene
+    # volumes first: a missing or unusable volume file stops the render before the build
+    volumes, volume_notices = prepare_volumes(depsgraph)
     t0 = time.perf_counter()
     ray_field, built = build_field(scene, should_stop)
     rig = ray_field.rig
@@ -118,8 +120,7 @@ def prepare_frame(depsgraph, should_stop=None):
         scale = float(np.linalg.norm(geometry.vertices.max(0) - geometry.vertices.min(0)))
     else:
         tree, scale = None, 1.0
-    volumes, said = prepare_volumes(depsgraph)
-    notices += said
+    notices += volume_notices
     if not len(geometry) and not volumes:
         notices.append(NO_MESH)
     t3 = time.perf_counter()
