@@ -26,6 +26,7 @@ from ..core.volume import (
     block_ranges,
     box_to_index,
     default_table,
+    gradient_directions,
     normalise,
 )
 from ..io.volume_files import read_volume
@@ -111,13 +112,14 @@ def _value_range(settings):
 
 
 def _decoded(key, read, value_range):
-    """(values in [0, 1] float32, block ranges, extra) of a source, from the cache when
-    the source and range are unchanged; ``read()`` returns (array, extra)."""
+    """(values in [0, 1] float32, block ranges, gradient directions, extra) of a source,
+    from the cache when the source and range are unchanged; ``read()`` returns (array,
+    extra)."""
 
     def make():
         array, extra = read()
         values = normalise(array, value_range)
-        return values, block_ranges(values), extra
+        return values, block_ranges(values), gradient_directions(values), extra
 
     return _remember(key + (value_range,), make)
 
@@ -137,7 +139,7 @@ def file_volume(obj, matrix_world):
 
     Returns
     -------
-    (ScalarVolume, (lo, hi) block ranges)
+    (ScalarVolume, (lo, hi) block ranges, gradient directions)
     """
     import bpy
 
@@ -157,7 +159,7 @@ def file_volume(obj, matrix_world):
     dims = tuple(settings.dims)
     key = ("file",) + _file_key(path) + (dims, settings.value_type, settings.little_endian)
     try:
-        values, ranges, _ = _decoded(
+        values, ranges, normals, _ = _decoded(
             key,
             lambda: (read_volume(path, dims, settings.value_type, settings.little_endian), None),
             _value_range(settings),
@@ -172,7 +174,7 @@ def file_volume(obj, matrix_world):
             f"Object '{name}' has a flat bounding box or a zero scale; a volume needs a box "
             "with depth in every direction"
         ) from None
-    return ScalarVolume(values, to_index, name), ranges
+    return ScalarVolume(values, to_index, name), ranges, normals
 
 
 def _pick_grid(obj, wanted):
@@ -205,7 +207,7 @@ def grid_volume(obj, matrix_world):
 
     Returns
     -------
-    (ScalarVolume, (lo, hi) block ranges)
+    (ScalarVolume, (lo, hi) block ranges, gradient directions)
     """
     import bpy
 
@@ -240,12 +242,12 @@ def grid_volume(obj, matrix_world):
         return a, np.array(lo, dtype=np.float64)
 
     key = ("vdb",) + _file_key(path) + (grid.name,)
-    values, ranges, origin = _decoded(key, read, _value_range(settings))
+    values, ranges, normals, origin = _decoded(key, read, _value_range(settings))
     index_to_object = np.array([list(r) for r in grid.matrix_object], dtype=np.float64)
     shift = np.eye(4)
     shift[:3, 3] = -origin
     to_index = shift @ np.linalg.inv(np.asarray(matrix_world) @ index_to_object)
-    return ScalarVolume(values, to_index, name), ranges
+    return ScalarVolume(values, to_index, name), ranges, normals
 
 
 def is_volume_source(obj):
@@ -261,13 +263,14 @@ def scene_volumes(depsgraph):
 
     Returns
     -------
-    list of (ScalarVolume, (lo, hi) block ranges).
+    list of (ScalarVolume, (lo, hi) block ranges, gradient directions); notices : list of
+    str.
 
     Raises
     ------
     VolumeError naming the object and what to change.
     """
-    out = []
+    out, notices = [], []
     for inst in depsgraph.object_instances:
         obj = inst.object
         if not is_volume_source(obj):
@@ -275,9 +278,14 @@ def scene_volumes(depsgraph):
         matrix = np.array(inst.matrix_world, dtype=np.float64)
         if obj.type == "VOLUME":
             out.append(grid_volume(obj, matrix))
+            if len(obj.original.modifiers):
+                notices.append(
+                    f"Volume object '{obj.original.name}': its modifiers are not applied "
+                    "here; the grid in its file is rendered"
+                )
         else:
             out.append(file_volume(obj, matrix))
-    return out
+    return out, notices
 
 
 def ramp_table(texture, size=TABLE_SIZE):

@@ -46,11 +46,12 @@ def prepare_volumes(depsgraph):
     """
     from ..adapters.volumes import scene_volumes, transfer_tables
 
-    found = scene_volumes(depsgraph)
+    found, notices = scene_volumes(depsgraph)
     if not found:
-        return FrameVolumes(), []
+        return FrameVolumes(), notices
     settings = depsgraph.scene.multiscale
-    tables, notices = transfer_tables(settings)
+    tables, said = transfer_tables(settings)
+    notices += said
     scenes = [
         VolumeScene.build(
             vol,
@@ -58,8 +59,9 @@ def prepare_volumes(depsgraph):
             step=float(settings.volume_step),
             shading=bool(settings.volume_shading),
             ranges=ranges,
+            normals=normals,
         )
-        for vol, ranges in found
+        for vol, ranges, normals in found
     ]
     return FrameVolumes(scenes), notices
 

@@ -315,3 +315,17 @@ def test_engine_writes_the_volume_into_the_render_result(empty_scene, tmp_path):
     got = read_passes(tmp_path / "out.exr")
     assert passes["Combined"][..., 3].max() > 0.5
     np.testing.assert_allclose(got["Combined"], passes["Combined"], atol=1e-5)
+
+
+def test_volume_modifiers_are_named_as_not_applied(empty_scene, tmp_path):
+    scene = empty_scene
+    one_camera_scene(scene)
+    write_vdb(tmp_path / "v.vdb", lumpy(), 0.1)
+    obj = volume_object(scene, tmp_path / "v.vdb", name="Smoke")
+    obj.modifiers.new("Displace", "VOLUME_DISPLACE")
+    frame, passes = render_passes(scene)
+    assert (
+        "Volume object 'Smoke': its modifiers are not applied here; the grid in its file "
+        "is rendered"
+    ) in frame.notices
+    assert passes["Combined"][..., 3].max() > 0.5
