@@ -329,3 +329,25 @@ def test_volume_modifiers_are_named_as_not_applied(empty_scene, tmp_path):
         "is rendered"
     ) in frame.notices
     assert passes["Combined"][..., 3].max() > 0.5
+
+
+def test_raw_and_nrrd_files_render_as_the_npy_does(empty_scene, tmp_path):
+    from multiscale_camera.io.volume_files import write_nrrd
+
+    scene = empty_scene
+    one_camera_scene(scene)
+    values = np.round(lumpy() / 3).astype(np.uint16)
+    np.save(tmp_path / "v.npy", values)
+    np.ascontiguousarray(values.transpose(2, 1, 0)).astype(">u2").tofile(tmp_path / "v.raw")
+    write_nrrd(tmp_path / "v.nrrd", values)
+    box = file_box(scene, tmp_path / "v.npy")
+    images = {}
+    for name in ("v.npy", "v.raw", "v.nrrd"):
+        box.multiscale_volume.filepath = str(tmp_path / name)
+        box.multiscale_volume.dims = values.shape
+        box.multiscale_volume.value_type = "UINT16"
+        box.multiscale_volume.little_endian = False
+        images[name] = render_passes(scene)[1]["Combined"]
+    assert images["v.npy"][..., 3].max() > 0.5
+    np.testing.assert_array_equal(images["v.raw"], images["v.npy"])
+    np.testing.assert_array_equal(images["v.nrrd"], images["v.npy"])
