@@ -430,22 +430,24 @@ def corrected_tables(tables, step):
 
 
 def _classify(scene, tables, val, nval):
-    """(P, 4) float RGBA of values ``val`` under the tables blended by eq. 6 at
+    """(P, 4) float32 RGBA of values ``val`` under the tables blended by eq. 6 at
     memberships ``nval``; alpha already corrected for the step."""
     ncam, tsize = tables.shape[:2]
-    x = np.clip(val, 0.0, 1.0) * np.float32(tsize - 1)
-    lo = np.minimum(x.astype(np.int64), tsize - 2)
+    x = np.clip(val, 0.0, 1.0).astype(np.float32) * np.float32(tsize - 1)
+    lo = np.minimum(x.astype(np.int32), tsize - 2)
     t = (x - lo)[:, None]
     if ncam == 1:
         return tables[0, lo] * (1 - t) + tables[0, lo + 1] * t
     w = blend_weights(nval, ncam, scene.cubic)
-    w = w / np.maximum(w.sum(0), 1e-30)
+    w = (w / np.maximum(w.sum(0), 1e-30)).astype(np.float32)
     rgba = np.zeros((len(val), 4), dtype=np.float32)
     for i in range(ncam):
-        sel = np.flatnonzero(w[i] > 0)
-        if len(sel) == len(val):
+        used = w[i] > 0
+        count = int(np.count_nonzero(used))
+        if count == len(val):
             rgba += w[i, :, None] * (tables[i, lo] * (1 - t) + tables[i, lo + 1] * t)
-        elif len(sel):
+        elif count:
+            sel = np.flatnonzero(used)
             li, ti = lo[sel], t[sel]
             rgba[sel] += w[i, sel, None] * (tables[i, li] * (1 - ti) + tables[i, li + 1] * ti)
     return rgba
@@ -470,12 +472,15 @@ def _march_chunk(scene, vertices, membership, reach, stop):
 
     vw = _extended(vertices, reach)  # (R, K1, 3) world, float32
     k1 = vw.shape[1]
-    seglen = np.sqrt((np.diff(vw, axis=1) ** 2).sum(-1))  # (R, K1-1) float32
+    dw = np.diff(vw, axis=1)
+    seglen = np.sqrt((dw * dw).sum(-1))  # (R, K1-1) float32
     cum = np.zeros((r, k1))
     np.cumsum(seglen, axis=1, dtype=np.float64, out=cum[:, 1:])
-    vi = vw @ m[:3, :3].T.astype(np.float32) + m[:3, 3].astype(np.float32)  # voxel space
+    m3 = m[:3, :3].T.astype(np.float32)
+    vi = vw @ m3 + m[:3, 3].astype(np.float32)  # voxel space
     del vw
-    dvi = np.diff(vi, axis=1)
+    dvi = dw @ m3  # voxel units per world unit once divided by the length
+    del dw
     np.divide(dvi, seglen[..., None], out=dvi, where=seglen[..., None] > 0)
     dvi[seglen == 0] = 0.0
     mem = np.concatenate([membership, membership[:, -1:]], axis=1).astype(np.float64)
