@@ -85,7 +85,7 @@ PLACE = ((0.3, 0.2, 0.4), (20.0, -15.0, 35.0), (1.2, 0.8, 1.0))
 def render_passes(scene):
     bpy.context.view_layer.update()
     frame = pipeline.prepare_frame(bpy.context.evaluated_depsgraph_get())
-    return frame, pipeline.render_rows(frame, 0, H)
+    return frame, pipeline.render_rows(frame, 0, frame.size[1])
 
 
 def expected(cam_obj, values, world_to_index, step=1.0):
@@ -351,3 +351,47 @@ def test_raw_and_nrrd_files_render_as_the_npy_does(empty_scene, tmp_path):
     assert images["v.npy"][..., 3].max() > 0.5
     np.testing.assert_array_equal(images["v.raw"], images["v.npy"])
     np.testing.assert_array_equal(images["v.nrrd"], images["v.npy"])
+
+
+def test_each_camera_shows_its_own_colour_ramp_where_preserved(empty_scene, tmp_path):
+    """Two cameras, a red ramp and a green ramp on their textures: in each camera's
+    eroded mask the image has that camera's colour only; between them, both."""
+    from tests.unit.rigs import disk_masks, orbit
+    from tests.unit.test_volume import erode, slab_volume
+
+    scene = empty_scene
+    w, h = 96, 72
+    scene.render.resolution_x, scene.render.resolution_y = w, h
+    scene.render.resolution_percentage = 100
+    scene.render.engine = "MULTISCALE"
+    target = (0.0, 0.0, 0.5)
+    masks = disk_masks(w, h, 0.2 * w, 0.35 * w)
+    for name, dist, turn, clip, mask, rgb in (
+        ("C1", 20.0, 0, 8.0, masks[0], (1.0, 0.0, 0.0)),
+        ("C2", 5.0, 20, 2.5, masks[1], (0.0, 1.0, 0.0)),
+    ):
+        cam = add_camera(scene, name, tuple(orbit(target, dist, turn, 25)), target, clip_start=clip)
+        item = scene.multiscale.cameras.add()
+        item.camera, item.mask = cam, mask_image(f"{name} mask", mask)
+        ramp = [(0.0, (*rgb, 0.0)), (0.3, (*rgb, 0.3)), (1.0, (*rgb, 1.0))]
+        item.transfer_function = ramp_texture(ramp)
+    scene.camera = scene.multiscale.cameras[0].camera
+    scene.multiscale.volume_shading = False  # colours as the ramps give them
+    scene.render.film_transparent = True
+    np.save(tmp_path / "slab.npy", slab_volume().values)
+    box = bpy.data.objects.new("Slab", None)
+    box.empty_display_type = "CUBE"
+    scene.collection.objects.link(box)
+    box.location, box.scale = (0.0, 0.0, 0.25), (8.0, 8.0, 0.75)
+    box.multiscale_volume.use = True
+    box.multiscale_volume.filepath = str(tmp_path / "slab.npy")
+    rgba = render_passes(scene)[1]["Combined"]
+    seen = rgba[..., 3] > 0.2
+    for i, (own, other) in enumerate(((0, 1), (1, 0))):
+        region = erode(masks[i]) & seen
+        assert region.sum() > 50, f"camera {i + 1} sees too little of the slab"
+        c = rgba[region]
+        assert (c[:, own] > 0.2).all()
+        assert (c[:, other] <= 1e-2 * c[:, own]).all()
+    between = ~masks.any(0)
+    assert ((rgba[between, 0] > 0.05) & (rgba[between, 1] > 0.05)).any()
