@@ -4,8 +4,8 @@
 #   make test     build, then run tests/ (unit, blender, e2e) with $(BLENDER)
 #   make samples  write sample_blends/*.blend
 #   make demo     install the linux zip in a throwaway user folder, render demo.blend to out/
-#   make bench    speed and accuracy of the solver, of every method and of the renderer:
-#                 bench/*.json
+#   make bench    speed and accuracy: solver, every method, the renderer, the Cycles hand-off,
+#                 volume ray casting: bench/*.json
 #   make lint     ruff
 #
 # BLENDER defaults to tools/blender (Blender's command line on the bpy wheel);
@@ -79,11 +79,13 @@ demo: build sample_blends/demo.blend
 # Speed and accuracy figures (minutes, not part of `make test`): the membership solver
 # against the paper's explicit diffusion (capped at 8 minutes a size: a capped run gives
 # a lower bound on the ratio), then every method at every quality at 1920x1080, then the
-# Cycles hand-off against plain Cycles at 480x270, 64 samples (about 3 minutes on 2 cores).
+# Cycles hand-off against plain Cycles at 480x270, 64 samples (about 3 minutes on 2 cores),
+# then volume ray casting of a 256^3 phantom at 1920x1080.
 bench: venv bench-render
 	$(PY) bench/solvers.py --sizes 64 128 256 320 --diffusion-sizes 64 128 --cap 480
 	$(PY) bench/methods.py --width 1920 --height 1080
 	$(PY) bench/cycles.py --width 480 --height 270 --samples 64
+	$(PY) bench/volume.py --width 1920 --height 1080 --voxels 256
 
 # The renderer on a 100k-triangle scene at 1920x1080: raw BVH rate, engine cast rate,
 # render time, cancel latency: bench/render.json.

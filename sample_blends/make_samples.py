@@ -4,8 +4,9 @@
     tools/blender -b --factory-startup --python-exit-code 1 \
         --python sample_blends/make_samples.py -- --out DIR --only two_camera
 
-Writes demo.blend and two_camera.blend (compressed, masks packed) next to this
-script, or into --out.
+Writes demo.blend, two_camera.blend and volume_demo.blend (compressed, masks packed;
+the volume demo's voxels in volume_demo_phantom.nrrd beside it) next to this script,
+or into --out.
 """
 
 import argparse
@@ -19,7 +20,12 @@ REPO = os.path.dirname(HERE)
 sys.path.insert(0, HERE)
 import scenes  # noqa: E402
 
-BUILDERS = {"demo": scenes.build_demo, "two_camera": scenes.build_two_camera}
+# name -> builder(scene, out_dir): the folder the .blend (and any data file) goes to
+BUILDERS = {
+    "demo": lambda scene, _out: scenes.build_demo(scene),
+    "two_camera": lambda scene, _out: scenes.build_two_camera(scene),
+    "volume_demo": scenes.build_volume_demo,
+}
 
 
 def enable_multiscale():
@@ -34,7 +40,7 @@ def enable_multiscale():
 
 def make(name, out_dir):
     bpy.ops.wm.read_homefile(use_empty=True)
-    BUILDERS[name](bpy.context.scene)
+    BUILDERS[name](bpy.context.scene, out_dir)
     path = os.path.join(out_dir, f"{name}.blend")
     if os.path.exists(path):
         os.remove(path)  # a fresh file, not a .blend1 backup of the old one

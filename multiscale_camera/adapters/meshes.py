@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .textures import texture_from_node
+from .volumes import is_volume_source
 
 GEOMETRY_TYPES = {"MESH", "CURVE", "SURFACE", "META", "FONT"}
 DEFAULT_COLOUR = (0.8, 0.8, 0.8)
@@ -159,7 +160,7 @@ def scene_geometry(depsgraph):
     offset = 0
     for inst in depsgraph.object_instances:
         obj = inst.object
-        if obj.type not in GEOMETRY_TYPES:
+        if obj.type not in GEOMETRY_TYPES or is_volume_source(obj):
             continue
         mesh = obj.to_mesh()
         if mesh is None:

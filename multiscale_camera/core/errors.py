@@ -11,3 +11,10 @@ class SolverDidNotConverge(RuntimeError):
 
 class Cancelled(Exception):
     """The user asked long work to stop (Esc); nothing is wrong."""
+
+
+class VolumeError(RigError):
+    """A volume source cannot be read or used; the message names it and what to change.
+
+    A RigError, so every place that reports a scene the renderer cannot use reports it.
+    """

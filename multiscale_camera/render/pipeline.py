@@ -14,6 +14,7 @@ from ..core.methods import prepare, settings_for
 from ..core.sampling import DEFAULT_TOLERANCE_PX, RaySampler, sample_offsets
 from .raycast import march
 from .shade import shade
+from .volume import FrameVolumes, composite_volumes, prepare_volumes
 
 PASSES = (
     # name, channels, channel ids, Blender pass type
@@ -66,6 +67,7 @@ class Frame:
     casts: int = 0
     shadow_casts: int = 0
     rays: int = 0
+    volumes: FrameVolumes = field(default_factory=FrameVolumes)
 
     @property
     def size(self):
@@ -119,6 +121,8 @@ def prepare_frame(depsgraph, should_stop=None):
     from mathutils.bvhtree import BVHTree
 
     scene = depsgraph.scene
+    # volumes first: a missing or unusable volume file stops the render before the build
+    volumes, volume_notices = prepare_volumes(depsgraph)
     t0 = time.perf_counter()
     ray_field, built = build_field(scene, should_stop)
     rig = ray_field.rig
@@ -137,6 +141,8 @@ def prepare_frame(depsgraph, should_stop=None):
         bounds = (lo - pad, hi + pad)
     else:
         tree, scale = None, 1.0
+    notices += volume_notices
+    if not len(geometry) and not volumes:
         notices.append(NO_MESH)
     notices += geometry.notices
     lights = scene_lights(depsgraph)
@@ -168,6 +174,7 @@ def prepare_frame(depsgraph, should_stop=None):
         samples=max(1, int(settings.samples)),
         filter_width=float(getattr(scene.render, "filter_size", 1.5)),
         processes=int(scene.render.threads) if scene.render.threads_mode == "FIXED" else 0,
+        volumes=volumes,
     )
 
 
@@ -235,6 +242,19 @@ def render_rows(frame, row0, row1, should_stop=None):
     index = np.zeros(len(hits.hit), dtype=np.float32)
     index[hits.hit] = frame.geometry.pass_index[hits.triangle[hits.hit]]
     depth = np.where(hits.hit, centre.start_depth + hits.distance, MISS_DEPTH)
+    if frame.volumes:
+        # volumes are marched along the pixel's own bent ray (its centre), membership and all
+        bundle = frame.field.rays(ix, iy)
+        colour, alpha, depth = composite_volumes(
+            frame.volumes,
+            bundle,
+            hits.distance,
+            combined[:, :3],
+            combined[:, 3],
+            depth,
+            should_stop,
+        )
+        combined = np.concatenate([colour, alpha[:, None]], axis=1)
     return {
         "Combined": combined.astype(np.float32).reshape(*shape, 4),
         "Depth": depth.astype(np.float32).reshape(*shape, 1),

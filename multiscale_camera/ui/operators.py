@@ -9,6 +9,7 @@ from ..adapters.scene import rig_from_scene
 from ..core.errors import RigError, SolverDidNotConverge
 from ..core.report import build_report, headline, to_json
 from ..render import pipeline
+from ..render.volume import prepare_volumes
 
 
 def _settings(context):
@@ -97,10 +98,12 @@ class MULTISCALE_OT_validate(bpy.types.Operator):
     def execute(self, context):
         try:
             rig = rig_from_scene(_evaluated(context))
+            # volume sources and transfer functions too: a missing file shows here
+            _volumes, said = prepare_volumes(context.evaluated_depsgraph_get())
         except RigError as err:
             self.report({"ERROR"}, str(err))
             return {"CANCELLED"}
-        for notice in rig.notices:
+        for notice in list(rig.notices) + said:
             self.report({"WARNING"}, notice)
         self.report({"INFO"}, f"The rig of {len(rig.cameras)} cameras is ready to render")
         return {"FINISHED"}

@@ -5,6 +5,7 @@ import json
 import bpy
 
 from ..core.report import headline
+from .volume import draw_transfer_function
 
 
 def _report(settings):
@@ -64,6 +65,7 @@ class MULTISCALE_PT_main(bpy.types.Panel):
             box = layout.box()
             box.prop(item, "camera")
             box.template_ID(item, "mask", new="image.new", open="image.open")
+            draw_transfer_function(box, item)
         col = layout.column(align=True)
         col.prop(settings, "method")
         col.prop(settings, "quality")
@@ -73,6 +75,9 @@ class MULTISCALE_PT_main(bpy.types.Panel):
         col.prop(settings, "samples")
         col.prop(settings, "simplify_px")
         _draw_shading(layout, settings)
+        row = layout.row(align=True)
+        row.prop(settings, "volume_step")
+        row.prop(settings, "volume_shading", text="", icon="LIGHT_SUN")
         row = layout.row(align=True)
         row.operator("multiscale.validate", icon="CHECKMARK")
         row.operator("multiscale.compute_field", icon="FORCE_MAGNETIC")

@@ -6,6 +6,7 @@ The names here are a public contract (DESIGN.md): users' scripts and tests set
 
 import bpy
 from bpy.props import (
+    BoolProperty,
     CollectionProperty,
     EnumProperty,
     FloatProperty,
@@ -109,6 +110,19 @@ class MultiscaleSettings(bpy.types.PropertyGroup):
     )
     report: StringProperty(
         name="Report", default="", description="JSON report of the last field build"
+    )
+    volume_step: FloatProperty(
+        name="Volume Step",
+        default=1.0,
+        min=0.1,
+        max=8.0,
+        description="Distance between volume samples along a ray, in voxels; opacity is "
+        "corrected for it, so a larger step is faster and coarser",
+    )
+    volume_shading: BoolProperty(
+        name="Volume Shading",
+        default=True,
+        description="Shade volume samples by the data's gradient (a light at the eye)",
     )
 
 
