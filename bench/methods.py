@@ -1,11 +1,13 @@
 """Benchmark: every ray-generation method at every quality on a set of rigs.
 
-    .venv/bin/python bench/methods.py [--width 1920 --height 1080] [--rigs ...]
+    .venv/bin/python bench/methods.py [--width 960 --height 540] [--rigs ...]
 
 Each configuration runs in a fresh process (so its peak memory is its own) and builds
 the field and its report: seconds per stage, preserved-ray error per camera (p50, p95,
-max, in that camera's pixels), folds, stalled rays, peak memory. Prints a table and
-writes bench/methods.json.
+max, in that camera's pixels), folds, stalled rays, peak memory. SCALAR_FIELD runs on
+one uniform grid (the paper's) and on nested grids. Prints a table and writes
+bench/results.json, the speed-accuracy chart docs/figures/speed_accuracy.png and the
+failure table in docs/methods.md (between its GENERATED markers).
 """
 
 import argparse
@@ -14,27 +16,47 @@ import resource
 import subprocess
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-OUT = Path(__file__).with_suffix(".json")
-RIGS = ("zoom_rig", "three_camera_rig")
-FIELD_METHODS = ("VECTOR_FIELD", "SCALAR_FIELD")
+OUT = ROOT / "bench" / "results.json"
+CHART = ROOT / "docs" / "figures" / "speed_accuracy.png"
+TABLE = ROOT / "docs" / "methods.md"
+RIGS = {
+    "zoom_rig": "2 cameras, 4x, turned 20 degrees",
+    "zoom25_rig": "3 cameras, 25x",
+    "zoom1000_rig": "3 cameras, 1000x",
+    "turn100_rig": "2 cameras turned 100 degrees",
+    "contradictory_rig": "2 cameras, overlapping masks",
+}
+# SCALAR_FIELD_NESTED is SCALAR_FIELD with Settings.nested forced on, SCALAR_FIELD
+# here with it forced off (one uniform grid); the add-on chooses between them.
+FIELD_METHODS = ("VECTOR_FIELD", "SCALAR_FIELD", "SCALAR_FIELD_NESTED")
 IMAGE_METHODS = ("IMAGE_BLEND", "LINEAR")
 QUALITIES = ("PREVIEW", "STANDARD", "HIGH")
+# A configuration that runs longer than this is recorded as timed out.
+TIMEOUT_S = 900
 
 
 def run_one(rig_name, method, quality, width, height):
     """Build one field in this process; return its row (a dict)."""
+    from multiscale_camera.core.errors import RigError
     from multiscale_camera.core.methods import prepare, settings_for
     from multiscale_camera.core.report import build_report
     from multiscale_camera.core.rig import Rig
     from tests.unit import rigs
 
     cams, masks = getattr(rigs, rig_name)(width, height)
+    settings = settings_for(quality)
+    if method.startswith("SCALAR_FIELD"):
+        settings = replace(settings, nested=method.endswith("NESTED"))
     start = time.perf_counter()
-    fld = prepare(Rig(cams, masks), method, settings_for(quality))
+    try:
+        fld = prepare(Rig(cams, masks), method.replace("_NESTED", ""), settings)
+    except RigError as err:
+        return {"rig": rig_name, "method": method, "quality": quality, "refused": str(err)}
     build = time.perf_counter() - start
     report = build_report(fld, quality, build)
     return {
@@ -58,6 +80,7 @@ def run_one(rig_name, method, quality, width, height):
 
 
 def configurations(rigs):
+    """(rig, method, quality) triples: image methods at STANDARD, field methods at all."""
     for rig in rigs:
         for method in IMAGE_METHODS:
             yield rig, method, "STANDARD"
@@ -68,15 +91,23 @@ def configurations(rigs):
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--width", type=int, default=1920)
-    parser.add_argument("--height", type=int, default=1080)
+    parser.add_argument("--width", type=int, default=960)
+    parser.add_argument("--height", type=int, default=540)
     parser.add_argument("--rigs", nargs="+", default=list(RIGS))
+    parser.add_argument(
+        "--redraw", action="store_true", help="only redraw the chart and table from results.json"
+    )
     parser.add_argument(
         "--one", nargs=3, metavar=("RIG", "METHOD", "QUALITY"), help=argparse.SUPPRESS
     )
     args = parser.parse_args()
     if args.one:
         print(json.dumps(run_one(*args.one, args.width, args.height)))
+        return
+    if args.redraw:
+        results = json.loads(OUT.read_text())
+        chart(results)
+        table(results)
         return
     rows = []
     header = (
@@ -98,7 +129,12 @@ def main():
             method,
             quality,
         ]
-        proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
+        try:
+            proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=TIMEOUT_S)
+        except subprocess.TimeoutExpired:
+            print(f"{rig:17} {method:13} {quality:9} timed out after {TIMEOUT_S} s")
+            rows.append({"rig": rig, "method": method, "quality": quality, "timed_out": TIMEOUT_S})
+            continue
         if proc.returncode:
             print(
                 f"{rig:17} {method:13} {quality:9} failed: {proc.stderr.strip().splitlines()[-1]}"
@@ -109,6 +145,9 @@ def main():
             continue
         row = json.loads(proc.stdout.strip().splitlines()[-1])
         rows.append(row)
+        if "refused" in row:
+            print(f"{rig:17} {method:13} {quality:9} refused: {row['refused'][:60]}")
+            continue
         worst_max = max(c["preserved_px"]["max"] for c in row["cameras"])
         st = row["seconds"]
         print(
@@ -117,8 +156,129 @@ def main():
             f"{row['worst_p95_px']:8.3f} {worst_max:8.3f} {row['folds']:6d} {row['stalled']:5d} "
             f"{row['peak_mb']:6.0f}"
         )
-    OUT.write_text(json.dumps({"size": [args.width, args.height], "rows": rows}, indent=1))
+    results = {"size": [args.width, args.height], "rows": rows}
+    OUT.write_text(json.dumps(results, indent=1))
     print(f"wrote {OUT.relative_to(ROOT)}")
+    chart(results)
+    table(results)
+
+
+MARKERS = {
+    "LINEAR": "v",
+    "IMAGE_BLEND": "s",
+    "VECTOR_FIELD": "^",
+    "SCALAR_FIELD": "o",
+    "SCALAR_FIELD_NESTED": "D",
+}
+COLOURS = {"PREVIEW": "tab:orange", "STANDARD": "tab:blue", "HIGH": "tab:green"}
+
+
+def chart(results):
+    """docs/figures/speed_accuracy.png: build time (log) against the worst camera's p95
+    preserved error (log), one panel per rig, one marker per method and quality, the
+    number of folded quads written beside markers that fold."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = [r for r in results["rows"] if "build_seconds" in r]
+    rigs = [name for name in RIGS if any(r["rig"] == name for r in rows)]
+    fig, axes = plt.subplots(1, len(rigs), figsize=(4.2 * len(rigs), 4.2), squeeze=False)
+    for ax, rig in zip(axes[0], rigs):
+        for r in (r for r in rows if r["rig"] == rig):
+            x, y = r["build_seconds"], max(r["worst_p95_px"], 1e-3)
+            ax.scatter(
+                x, y, marker=MARKERS[r["method"]], color=COLOURS[r["quality"]], s=46, zorder=3
+            )
+            if r["folds"]:
+                ax.annotate(
+                    f"{r['folds']}",
+                    (x, y),
+                    textcoords="offset points",
+                    xytext=(4, 4),
+                    fontsize=7,
+                    color="tab:red",
+                )
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.axhline(1.0, color="grey", lw=0.8, ls="--")
+        ax.set_title(RIGS[rig], fontsize=10)
+        ax.set_xlabel("build time, s")
+        ax.grid(True, which="both", lw=0.3)
+    axes[0][0].set_ylabel("worst camera's p95 preserved error, px (floor 0.001)")
+    handles = [
+        plt.Line2D([], [], marker=m, ls="", color="black", label=name)
+        for name, m in MARKERS.items()
+    ] + [plt.Line2D([], [], marker="o", ls="", color=c, label=q) for q, c in COLOURS.items()]
+    fig.legend(handles=handles, loc="lower center", ncol=8, fontsize=8, frameon=False)
+    w, h = results["size"]
+    fig.suptitle(f"Speed against accuracy at {w}x{h} (red: folded quads)", fontsize=11)
+    fig.tight_layout(rect=(0, 0.07, 1, 0.95))
+    CHART.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(CHART, dpi=110)
+    print(f"wrote {CHART.relative_to(ROOT)}")
+
+
+def _verdict(r):
+    """How one configuration fared, in a few words."""
+    if "refused" in r:
+        return "refused: " + r["refused"].split(":")[0].split(";")[0]
+    if "timed_out" in r:
+        return f"timed out (> {r['timed_out']} s)"
+    if "error" in r:
+        return "crashed"
+    bad = []
+    if r["worst_p95_px"] > 1.0:
+        bad.append(f"p95 {r['worst_p95_px']:.3g} px")
+    if r["folds"]:
+        bad.append(f"{r['folds']} folds")
+    if r["stalled"]:
+        bad.append(f"{r['stalled']} stalled")
+    if r.get("conflicts"):
+        bad.append(f"{r['conflicts']} conflicting voxels")
+    head = f"{r['build_seconds']:.3g} s"
+    return head + (
+        ": " + ", ".join(bad) if bad else ": holds (p95 " + f"{r['worst_p95_px']:.2g} px)"
+    )
+
+
+def table(results):
+    """The failure table in docs/methods.md, between its GENERATED markers."""
+    rows = results["rows"]
+    rigs = [name for name in RIGS if any(r["rig"] == name for r in rows)]
+    w, h = results["size"]
+    lines = [
+        f"Measured by `make bench` at {w}x{h} (`bench/results.json`). Each cell: build time",
+        "and what went wrong (p95 over 1 px, folded quads, stalled rays, voxels two masks",
+        "both claim), or that it holds.",
+        "",
+        "| method | quality | " + " | ".join(RIGS[r] for r in rigs) + " |",
+        "|---|---|" + "---|" * len(rigs),
+    ]
+    for method in IMAGE_METHODS + FIELD_METHODS:
+        for quality in QUALITIES:
+            cells = [
+                next(
+                    (
+                        r
+                        for r in rows
+                        if (r["rig"], r["method"], r["quality"]) == (g, method, quality)
+                    ),
+                    None,
+                )
+                for g in rigs
+            ]
+            if not any(cells):
+                continue
+            text = [_verdict(c) if c else "" for c in cells]
+            lines.append(f"| `{method}` | {quality} | " + " | ".join(text) + " |")
+    body = "\n".join(lines)
+    start, end = "<!-- GENERATED: failure table -->", "<!-- END GENERATED -->"
+    doc = TABLE.read_text()
+    a, b = doc.index(start) + len(start), doc.index(end)
+    TABLE.write_text(doc[:a] + "\n" + body + "\n" + doc[b:])
+    print(f"wrote the table in {TABLE.relative_to(ROOT)}")
 
 
 if __name__ == "__main__":

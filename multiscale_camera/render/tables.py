@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .raycast import march, polyline_segments
+from .raycast import bundle_segments, march
 
 # A handed-on ray starts at least this fraction of the scene's size before its hit: far
 # below anything visible, far above float32 rounding of the stored origins.
@@ -82,7 +82,7 @@ def first_hit_segments(bundle, hits, margin=0.0):
     origin : (R, 3) float64, world units. direction : (R, 3) float64 unit.
     distance : (R,) float64, world units, origin to hit (inf for a miss).
     """
-    seg = polyline_segments(bundle)
+    seg = bundle_segments(bundle)
     r = len(bundle)
     counts = np.diff(seg.offsets)
     # the segment holding arc length d of ray r is the last one starting before d (a hit
@@ -175,7 +175,7 @@ def ray_tables(frame, should_stop=None, progress=None, keep_polylines=False):
 
 def _polylines(bundle):
     """The simplified polylines of one bundle as ``Polylines``."""
-    seg = polyline_segments(bundle)
+    seg = bundle_segments(bundle)
     counts = np.diff(seg.offsets)
     last = seg.offsets[1:] - 1
     end = seg.origin[last] + seg.direction[last] * (seg.length[last] - bundle.reach)[:, None]
