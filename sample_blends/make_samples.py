@@ -4,7 +4,7 @@
     tools/blender -b --factory-startup --python-exit-code 1 \
         --python sample_blends/make_samples.py -- --out DIR --only two_camera
 
-Writes demo.blend, two_camera.blend and volume_demo.blend (compressed, masks packed;
+Writes demo.blend, two_camera.blend, galleon.blend and volume_demo.blend (compressed, masks packed;
 the volume demo's voxels in volume_demo_phantom.nrrd beside it) next to this script,
 or into --out.
 """
@@ -24,6 +24,7 @@ import scenes  # noqa: E402
 BUILDERS = {
     "demo": lambda scene, _out: scenes.build_demo(scene),
     "two_camera": lambda scene, _out: scenes.build_two_camera(scene),
+    "galleon": lambda scene, _out: scenes.build_galleon(scene),
     "volume_demo": scenes.build_volume_demo,
 }
 

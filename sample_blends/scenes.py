@@ -1,8 +1,10 @@
 """Sample scenes for Multiscale Camera, built with bpy into the current file.
 
 ``build_demo(scene)`` makes a town square with a market stall and a teapot on it,
-seen by three cameras at three scales. ``build_two_camera(scene)`` makes the small
-scene the hidden-surface acceptance test renders. Both fill ``scene.multiscale``,
+seen by three cameras at three scales; ``build_galleon(scene)`` a ship, the pirate in
+its crow's nest and the lettered teapot in his hand, about 1000x from end to end.
+``build_two_camera(scene)`` makes the small scene the hidden-surface acceptance test
+renders. All fill ``scene.multiscale``,
 so the package's properties must be registered first.
 
 Every camera here looks at its subject from above, and its ``clip_start`` puts its
@@ -191,6 +193,19 @@ def _setup_render(scene, width, height):
         layer.use_pass_z = True
         layer.use_pass_normal = True
         layer.use_pass_object_index = True
+
+
+def _ring_masks(cams, width, height, radii):
+    """Masks "Mask <camera name>" for three cameras about the image centre: the last owns
+    the disk of radius ``radii["cam3"]`` pixels, the middle one the ring between
+    ``cam2_inner`` and ``cam2_outer``, the first everything beyond ``cam1``."""
+    r = _radius(width, height)
+    inside = {
+        0: lambda x, y: r(x, y) >= radii["cam1"],
+        1: lambda x, y: (r(x, y) >= radii["cam2_inner"]) & (r(x, y) <= radii["cam2_outer"]),
+        2: lambda x, y: r(x, y) <= radii["cam3"],
+    }
+    return [make_mask(f"Mask {c.name}", width, height, inside[i]) for i, c in enumerate(cams)]
 
 
 def _add_cameras(scene, cameras_and_masks):
@@ -430,18 +445,155 @@ def build_demo(scene):
     ]
     # three scales 17x apart on one uniform grid: HIGH keeps every camera within 0.5 px
     scene.multiscale.quality = "HIGH"
-    r, radii = _radius(width, height), DEMO_RADII
-    masks = [
-        make_mask("Mask Cam1 Square", width, height, lambda x, y: r(x, y) >= radii["cam1"]),
-        make_mask(
-            "Mask Cam2 Stall",
-            width,
-            height,
-            lambda x, y: (r(x, y) >= radii["cam2_inner"]) & (r(x, y) <= radii["cam2_outer"]),
-        ),
-        make_mask("Mask Cam3 Object", width, height, lambda x, y: r(x, y) <= radii["cam3"]),
+    _add_cameras(scene, list(zip(cams, _ring_masks(cams, width, height, DEMO_RADII))))
+
+
+# --- galleon: a ship, the pirate in its crow's nest, the teapot in his hand ---
+
+GALLEON_SIZE = (640, 360)
+# The teapot the pirate holds out over the rail of the crow's nest: every camera looks here.
+GALLEON_TEAPOT = (1.1, -0.35, 27.55)
+# Mask radii as fractions of the image width: camera 3 owns the disk, camera 2 the
+# ring, camera 1 the outside (the bench's 1000x rig uses the same).
+GALLEON_RADII = {"cam3": 0.12, "cam2_inner": 0.2, "cam2_outer": 0.3, "cam1": 0.42}
+
+
+def _text_object(scene, name, body, size, rgb, pass_index, location, rotation):
+    """A flat mesh of ``body`` in Blender's built-in font (a text curve turned into a
+    mesh, so every renderer sees triangles)."""
+    curve = bpy.data.curves.new(name, type="FONT")
+    curve.body = body
+    curve.size = size
+    curve.align_x = "CENTER"
+    curve.align_y = "CENTER"
+    curve.extrude = size * 0.04
+    tmp = bpy.data.objects.new(name + " (text)", curve)
+    scene.collection.objects.link(tmp)
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    mesh = bpy.data.meshes.new_from_object(tmp.evaluated_get(depsgraph))
+    bpy.data.objects.remove(tmp)
+    bpy.data.curves.remove(curve)
+    mesh.materials.append(_material(name, rgb))
+    obj = bpy.data.objects.new(name, mesh)
+    obj.location = location
+    obj.rotation_euler = [math.radians(a) for a in rotation]
+    obj.pass_index = pass_index
+    scene.collection.objects.link(obj)
+    return obj
+
+
+def build_galleon(scene):
+    """Fill an empty ``scene`` with the paper's galleon, about 1000x from end to end.
+
+    A 40 m ship with three masts; in the crow's nest of the main mast, 26 m up, a
+    pirate holds a 12 cm teapot out over the rail, its band lettered in 8 mm type.
+    Cameras, largest scale first, all aimed at the teapot: "Cam1 Galleon" 75 m away
+    (near plane 30 m from its eye, 21.6 m wide), "Cam2 Pirate" 2.4 m away (near plane
+    0.95 m, 0.68 m wide), "Cam3 Teapot" 7.6 cm away (near plane 3 cm, 2.2 cm wide):
+    about 31.6x per step, 1000x from the first near plane to the last. One uniform grid
+    cannot hold that; SCALAR_FIELD builds nested grids for it at any quality.
+    """
+    width, height = GALLEON_SIZE
+    _setup_render(scene, width, height)
+    _world(scene, (0.55, 0.7, 0.9))
+    wood, dark, sail, cloth = (
+        (0.45, 0.28, 0.14),
+        (0.25, 0.15, 0.08),
+        (0.92, 0.9, 0.82),
+        (0.7, 0.1, 0.1),
+    )
+    skin, porcelain, gold = (0.85, 0.62, 0.48), (0.93, 0.93, 0.97), (0.95, 0.75, 0.2)
+    # the sea and the ship
+    _mesh_object(scene, "Sea", _box, (0.1, 0.3, 0.45), 1, (0, 0, -1.0), scale=(400, 400, 1))
+    _mesh_object(scene, "Hull", _sphere, wood, 10, (0, 0, 2.0), scale=(20, 6, 4), smooth=True)
+    _mesh_object(scene, "Deck", _box, dark, 11, (0, 0, 4.6), scale=(34, 9, 0.4))
+    _mesh_object(scene, "Stern Castle", _box, wood, 12, (-14, 0, 7.0), scale=(8, 8, 5))
+    for n, (x, height_m) in enumerate(((-8.0, 20.0), (0.0, 26.0), (9.0, 18.0))):
+        _mesh_object(
+            scene,
+            f"Mast {n + 1}",
+            _cylinder(0.35, 0.25),
+            dark,
+            20 + n,
+            (x, 0, 4.6 + height_m / 2),
+            scale=(1, 1, height_m),
+        )
+        for k, frac in enumerate((0.35, 0.7)):
+            _mesh_object(
+                scene,
+                f"Sail {n + 1}.{k + 1}",
+                _box,
+                sail,
+                30 + n,
+                (x + 0.6, 0, 4.6 + frac * height_m),
+                scale=(0.2, 10 - 3 * k, 0.28 * height_m),
+            )
+    # the crow's nest on the main mast and the pirate in it
+    _mesh_object(scene, "Crow's Nest", _torus(1.0, 0.08), dark, 40, (0, 0, 26.6))
+    _mesh_object(scene, "Nest Floor", _cylinder(), dark, 40, (0, 0, 25.6), scale=(1.0, 1.0, 0.1))
+    _mesh_object(
+        scene, "Pirate Body", _cylinder(0.22, 0.18), cloth, 41, (0.2, 0, 26.3), scale=(1, 1, 1.3)
+    )
+    _mesh_object(
+        scene, "Pirate Head", _sphere, skin, 42, (0.2, 0, 27.15), scale=(0.13,) * 3, smooth=True
+    )
+    _mesh_object(
+        scene,
+        "Pirate Hat",
+        _cylinder(0.2, 0.05),
+        (0.05, 0.05, 0.05),
+        43,
+        (0.2, 0, 27.32),
+        scale=(1, 1, 0.15),
+    )
+    x, y, z = GALLEON_TEAPOT
+    _mesh_object(
+        scene,
+        "Pirate Arm",
+        _cylinder(0.05, 0.045),
+        skin,
+        44,
+        ((0.2 + x) / 2, y / 2, (26.7 + z - 0.08) / 2),
+        rotation=(0, 62, -18),
+        scale=(1, 1, 1.05),
+    )
+    # the teapot, its band lettered
+    _mesh_object(
+        scene, "Teapot", _sphere, porcelain, 50, (x, y, z), scale=(0.06, 0.06, 0.045), smooth=True
+    )
+    _mesh_object(
+        scene, "Teapot Band", _cylinder(), gold, 51, (x, y, z), scale=(0.061, 0.061, 0.012)
+    )
+    _mesh_object(
+        scene,
+        "Teapot Spout",
+        _cylinder(0.012, 0.006),
+        porcelain,
+        52,
+        (x + 0.07, y, z + 0.015),
+        rotation=(0, 55, 0),
+        scale=(1, 1, 0.05),
+    )
+    _text_object(
+        scene,
+        "Teapot Letters",
+        "MULTISCALE",
+        0.008,
+        (0.1, 0.1, 0.3),
+        53,
+        (x, y - 0.0615, z),
+        rotation=(90, 0, 0),
+    )
+    _light(scene, "Sun", "SUN", 3.0, (0, 0, 60), (40, 10, 30))
+
+    target = GALLEON_TEAPOT
+    cams = [
+        _camera(scene, "Cam1 Galleon", target, 75.0, 0.0, 20.0, clip_start=30.0),
+        _camera(scene, "Cam2 Pirate", target, 2.4, 10.0, 20.0, clip_start=0.95),
+        _camera(scene, "Cam3 Teapot", target, 0.076, 20.0, 20.0, clip_start=0.03),
     ]
-    _add_cameras(scene, list(zip(cams, masks)))
+    radii = {k: v * width for k, v in GALLEON_RADII.items()}
+    _add_cameras(scene, list(zip(cams, _ring_masks(cams, width, height, radii))))
 
 
 # --- two cameras: the hidden-surface acceptance test -------------------------

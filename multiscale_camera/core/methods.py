@@ -599,15 +599,38 @@ METHODS = {
     "VECTOR_FIELD": _strawman("prepare_vector_field"),
     "SCALAR_FIELD": prepare_scalar_field,
 }
-# AUTO picks the cheapest method that meets the accuracy target on this rig; until that
-# choice is measured per rig, the most accurate method.
-AUTO_CHOICE = "SCALAR_FIELD"
+def prepare_auto(rig, settings=None, should_stop=None):
+    """AUTO: the cheapest method that meets the accuracy target on this rig.
+
+    IMAGE_BLEND is the cheapest (no 3D grid) and its preserved rays are exact by
+    construction, so it meets any target unless its transition rays fold; its folds
+    are counted on the rays it would render, and where there are any, SCALAR_FIELD is
+    built (on nested grids where one uniform grid cannot hold the cells the target asks
+    for). LINEAR folds wherever a transition has more than one nearest preserved pixel,
+    and VECTOR_FIELD's preserved rays drift (docs/methods.md), so neither is a candidate.
+    The choice and why are in ``stats["auto"]``.
+    """
+    from .report import fold_map  # the report measures fields; it builds on this module
+
+    fld = prepare_image_blend(rig, settings, should_stop)
+    folds = int(fold_map(fld)[0].sum())
+    if folds == 0:
+        fld.stats["auto"] = "IMAGE_BLEND: its rays do not fold on this rig"
+        return fld
+    if should_stop is not None and should_stop():
+        raise Cancelled()
+    out = prepare_scalar_field(rig, settings, should_stop)
+    out.stats["auto"] = f"SCALAR_FIELD: IMAGE_BLEND would fold {folds} quads on this rig"
+    return out
+
+
+METHODS["AUTO"] = prepare_auto
 
 
 def prepare(rig, method, settings=None, should_stop=None):
     """Prepare the ray field of ``method`` (an enum name of DESIGN.md) for ``rig``."""
     try:
-        builder = METHODS[AUTO_CHOICE if method == "AUTO" else method]
+        builder = METHODS[method]
     except KeyError:
         raise RigError(
             f"Method '{method}' is not available in this version; use one of: " + ", ".join(METHODS)

@@ -93,6 +93,10 @@ def build_report(fld, quality, total_seconds=None):
         "stalled": int(fld.stats.get("stalled", 0)),
         "conflicts": int(fld.stats.get("conflicts", 0)),
         "warnings": list(fld.warnings),
+        # added keys: why AUTO chose the method (absent otherwise); grid levels (1 for one
+        # uniform grid, more for nested grids, 0 without a 3D grid)
+        **({"auto": fld.stats["auto"]} if "auto" in fld.stats else {}),
+        "levels": int(fld.stats.get("levels", len(fld.grids))),
     }
 
 

@@ -148,6 +148,13 @@ def turn100_rig(width=192, height=108):
 
 
 def contradictory_rig(width=192, height=108):
-    """Two cameras at 4x whose masks overlap: the same pixels asked of both."""
+    """Two cameras at 4x whose masks overlap: the same pixels asked of both. As the scene
+    adapter does, the smaller camera keeps the shared pixels, so the two preserved regions
+    touch with no room for a transition."""
+    from multiscale_camera.core.rig import resolve_conflicts
+
     cams = _chain((20.0, 5.0), (8.0, 2.5), (0, 20), width, height)
-    return cams, disk_masks(width, height, 0.3 * width, 0.25 * width)
+    masks, _notices = resolve_conflicts(
+        disk_masks(width, height, 0.3 * width, 0.25 * width), [c.name for c in cams]
+    )
+    return cams, masks

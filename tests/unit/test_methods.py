@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from multiscale_camera.core.errors import RigError
-from multiscale_camera.core.methods import prepare
+from multiscale_camera.core.methods import prepare, settings_for
 from multiscale_camera.core.rig import Rig, resolve_conflicts
 
 from .rigs import two_camera_rig
@@ -29,9 +29,8 @@ def test_image_blend_preserves_each_cameras_pinhole_rays():
     assert (m[free] > 1).any() and (m[free] < 2).all()
 
 
-def test_auto_uses_the_most_accurate_method_and_unknown_method_is_explained():
+def test_an_unknown_method_is_explained():
     cams, masks = two_camera_rig()
-    assert prepare(Rig(cams, masks), "AUTO").method == "SCALAR_FIELD"
     with pytest.raises(RigError, match="Method 'BOGUS' is not available in this version"):
         prepare(Rig(cams, masks), "BOGUS")
 
@@ -57,3 +56,25 @@ def test_resolve_conflicts_gives_shared_pixels_to_the_smaller_scale():
         "4 pixels are in the masks of both 'A' and 'B'; the smaller scale ('B') keeps them "
         "(erase one of the masks there to decide yourself)"
     ]
+
+
+def test_auto_takes_image_blend_where_its_rays_do_not_fold():
+    from multiscale_camera.core.methods import prepare_image_blend
+    from multiscale_camera.core.report import fold_map
+
+    from .rigs import zoom_rig
+
+    cams, masks = zoom_rig(96, 72)
+    assert not fold_map(prepare_image_blend(Rig(cams, masks)))[0].any()
+    fld = prepare(Rig(cams, masks), "AUTO", settings_for("PREVIEW"))
+    assert fld.method == "IMAGE_BLEND"
+    assert fld.stats["auto"] == "IMAGE_BLEND: its rays do not fold on this rig"
+
+
+def test_auto_builds_the_scalar_field_where_image_blend_would_fold():
+    from .rigs import zoom_rig
+
+    cams, masks = zoom_rig(96, 72, turn_deg=60)  # IMAGE_BLEND folds 9 quads here
+    fld = prepare(Rig(cams, masks), "AUTO", settings_for("PREVIEW"))
+    assert fld.method == "SCALAR_FIELD"
+    assert fld.stats["auto"] == "SCALAR_FIELD: IMAGE_BLEND would fold 9 quads on this rig"
