@@ -454,8 +454,8 @@ GALLEON_SIZE = (640, 360)
 # The teapot the pirate holds out over the rail of the crow's nest: every camera looks here.
 GALLEON_TEAPOT = (1.1, -0.35, 27.55)
 # Mask radii as fractions of the image width: camera 3 owns the disk, camera 2 the
-# ring, camera 1 the outside (the bench's 1000x rig uses the same).
-GALLEON_RADII = {"cam3": 0.12, "cam2_inner": 0.2, "cam2_outer": 0.3, "cam1": 0.42}
+# ring, camera 1 the outside.
+GALLEON_RADII = {"cam3": 0.08, "cam2_inner": 0.14, "cam2_outer": 0.22, "cam1": 0.3}
 
 
 def _text_object(scene, name, body, size, rgb, pass_index, location, rotation):
@@ -487,9 +487,9 @@ def build_galleon(scene):
 
     A 40 m ship with three masts; in the crow's nest of the main mast, 26 m up, a
     pirate holds a 12 cm teapot out over the rail, its band lettered in 8 mm type.
-    Cameras, largest scale first, all aimed at the teapot: "Cam1 Galleon" 75 m away
-    (near plane 30 m from its eye, 21.6 m wide), "Cam2 Pirate" 2.4 m away (near plane
-    0.95 m, 0.68 m wide), "Cam3 Teapot" 7.6 cm away (near plane 3 cm, 2.2 cm wide):
+    Cameras, largest scale first, all aimed at the teapot: "Cam1 Galleon" 150 m away
+    (near plane 60 m from its eye, 43 m wide), "Cam2 Pirate" 4.8 m away (near plane
+    1.9 m, 1.37 m wide), "Cam3 Teapot" 15 cm away (near plane 6 cm, 4.3 cm wide):
     about 31.6x per step, 1000x from the first near plane to the last. One uniform grid
     cannot hold that; SCALAR_FIELD builds nested grids for it at any quality.
     """
@@ -588,9 +588,9 @@ def build_galleon(scene):
 
     target = GALLEON_TEAPOT
     cams = [
-        _camera(scene, "Cam1 Galleon", target, 75.0, 0.0, 20.0, clip_start=30.0),
-        _camera(scene, "Cam2 Pirate", target, 2.4, 10.0, 20.0, clip_start=0.95),
-        _camera(scene, "Cam3 Teapot", target, 0.076, 20.0, 20.0, clip_start=0.03),
+        _camera(scene, "Cam1 Galleon", target, 150.0, 0.0, 12.0, clip_start=60.0),
+        _camera(scene, "Cam2 Pirate", target, 4.8, 10.0, 15.0, clip_start=1.9),
+        _camera(scene, "Cam3 Teapot", target, 0.15, 20.0, 15.0, clip_start=0.06),
     ]
     radii = {k: v * width for k, v in GALLEON_RADII.items()}
     _add_cameras(scene, list(zip(cams, _ring_masks(cams, width, height, radii))))
