@@ -491,6 +491,104 @@ def _trace_pixels(tracer, rig, ix, iy, step, max_steps, should_stop):
     return merge(parts, order, len(ix))
 
 
+# --- serialisation (the field cache on disk) -------------------------------------------
+
+# Version of the array layout below; a cache entry of another version is rebuilt.
+ARRAYS_VERSION = 1
+# Fields that belong to the base class or are rebuilt from the scene, not stored.
+_NOT_STORED = ("rig",)
+
+
+def _field_classes():
+    from .strawmen import LinearField
+
+    return {cls.__name__: cls for cls in (TracedField, CurveBlendField, LinearField)}
+
+
+def field_to_arrays(fld):
+    """A prepared RayField as a flat dict of numpy arrays (for ``np.savez``).
+
+    The rig is not stored: the cache key is a digest of it, so whoever loads the field
+    already holds the same rig. Arrays keep their dtype and shape; the ``Traced`` rays
+    and the ``Grid`` are split into their arrays; everything else (method, timings,
+    warnings, stats, ints) goes into a JSON string under ``"meta"``.
+
+    Returns
+    -------
+    dict str -> np.ndarray.
+    """
+    import dataclasses
+    import json
+
+    from .field import Traced
+    from .grid import Grid
+
+    out = {}
+    meta = {"version": ARRAYS_VERSION, "class": type(fld).__name__, "plain": {}}
+    for f in dataclasses.fields(fld):
+        if f.name in _NOT_STORED:
+            continue
+        value = getattr(fld, f.name)
+        if isinstance(value, np.ndarray):
+            out[f"array.{f.name}"] = value
+        elif isinstance(value, Traced):
+            for t in dataclasses.fields(value):
+                out[f"traced.{f.name}.{t.name}"] = np.asarray(getattr(value, t.name))
+        elif isinstance(value, Grid):
+            out[f"grid.{f.name}"] = np.concatenate(
+                [value.origin, [value.cell], np.asarray(value.shape, dtype=np.float64)]
+            )
+        else:
+            meta["plain"][f.name] = value
+    out["meta"] = np.frombuffer(
+        json.dumps(meta, default=lambda o: o.item() if isinstance(o, np.generic) else str(o))
+        .encode(),
+        dtype=np.uint8,
+    )
+    return out
+
+
+def field_from_arrays(arrays, rig):
+    """The RayField ``field_to_arrays`` stored, for ``rig`` (the rig it was built for).
+
+    Parameters
+    ----------
+    arrays : mapping str -> np.ndarray (a dict or an ``np.load`` result).
+    rig : Rig.
+
+    Raises
+    ------
+    ValueError when the arrays are of another layout version or an unknown class.
+    """
+    import json
+
+    from .field import Traced
+    from .grid import Grid
+
+    meta = json.loads(bytes(np.asarray(arrays["meta"], dtype=np.uint8)).decode())
+    if meta.get("version") != ARRAYS_VERSION:
+        raise ValueError(f"field arrays of version {meta.get('version')}, not {ARRAYS_VERSION}")
+    cls = _field_classes().get(meta.get("class"))
+    if cls is None:
+        raise ValueError(f"unknown field class {meta.get('class')!r}")
+    kwargs = dict(meta["plain"])
+    traced = {}
+    for key in arrays.keys():
+        kind, _, rest = key.partition(".")
+        if kind == "array":
+            kwargs[rest] = np.asarray(arrays[key])
+        elif kind == "grid":
+            g = np.asarray(arrays[key], dtype=np.float64)
+            kwargs[rest] = Grid(g[:3], float(g[3]), tuple(int(n) for n in g[4:7]))
+        elif kind == "traced":
+            name, _, part = rest.partition(".")
+            traced.setdefault(name, {})[part] = np.asarray(arrays[key])
+    for name, parts in traced.items():
+        parts["step"] = float(parts["step"])
+        kwargs[name] = Traced(**parts)
+    return cls(rig=rig, **kwargs)
+
+
 def _strawman(name):
     """A builder of ``strawmen``, imported on first use (it builds on this module)."""
 

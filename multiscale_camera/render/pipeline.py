@@ -11,6 +11,7 @@ from ..adapters.meshes import scene_geometry
 from ..adapters.scene import rig_from_scene
 from ..core.fingerprint import field_key
 from ..core.methods import prepare, settings_for
+from ..io import cache
 from .raycast import march
 from .shade import shade
 
@@ -55,14 +56,9 @@ class Frame:
         return self.rig.size
 
 
-# Built fields kept for reuse, newest last: a field depends only on the rig and the
-# settings, so moving a light or editing a material renders again without a rebuild.
-_FIELDS = {}
-KEEP_FIELDS = 2
-
-
 def build_field(scene, should_stop=None):
-    """The scene's ray field, from the cache when the rig and settings are unchanged.
+    """The scene's ray field, from the field cache (``io.cache``: memory, then disk) when
+    the rig and settings are unchanged.
 
     ``scene`` should be an evaluated scene (``depsgraph.scene``), so that object
     matrices are current.
@@ -75,20 +71,22 @@ def build_field(scene, should_stop=None):
     rig = rig_from_scene(scene)
     settings = settings_for(settings_group.quality, settings_group.accuracy_px)
     key = field_key(rig, settings_group.method, settings)
-    if key in _FIELDS:
-        _FIELDS[key] = _FIELDS.pop(key)
-        return _FIELDS[key], False
+    cache.CACHE.limit_mb = float(getattr(settings_group, "cache_limit_mb", cache.DEFAULT_LIMIT_MB))
+    fld = cache.CACHE.get(key, rig)
+    if fld is not None:
+        fld.notices = list(rig.notices)
+        return fld, False
     fld = prepare(rig, settings_group.method, settings, should_stop)
     fld.notices = list(rig.notices)
-    _FIELDS[key] = fld
-    while len(_FIELDS) > KEEP_FIELDS:
-        _FIELDS.pop(next(iter(_FIELDS)))
+    failed = cache.CACHE.put(key, fld)
+    if failed:
+        fld.notices.append(failed)
     return fld, True
 
 
 def clear_fields():
-    """Forget every cached field."""
-    _FIELDS.clear()
+    """Forget every cached field (memory and disk)."""
+    cache.CACHE.clear()
 
 
 def prepare_frame(depsgraph, should_stop=None):
