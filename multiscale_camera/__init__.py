@@ -7,9 +7,9 @@ pure-numpy ``core`` package imports without Blender.
 
 def _modules():
     from .render import engine
-    from .ui import operators, panels, properties
+    from .ui import operators, panels, preview, properties
 
-    return (properties, operators, panels, engine)
+    return (properties, operators, panels, preview, engine)
 
 
 def register():

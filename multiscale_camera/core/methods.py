@@ -33,7 +33,7 @@ from .guides import DEFAULT_SEGMENTS, build_guides, curved_rays
 from .harmonic import mask_weights
 from .solvers import solve_membership
 from .trace import StopReason
-from .validate import check_rig, conflict_messages
+from .validate import check_rig, conflict_messages, guard_messages
 
 
 @dataclass(frozen=True)
@@ -159,19 +159,7 @@ def prepare_image_blend(rig, settings=None, should_stop=None):
 
 def guard_warnings(rig):
     """Warnings for camera pairs whose guides the guard shortened (see ``guides``)."""
-    w, h = rig.size
-    cx, cy = np.meshgrid(np.linspace(0.5, w - 0.5, 9), np.linspace(0.5, h - 0.5, 9))
-    shortened = build_guides(rig.cameras, cx.ravel(), cy.ravel(), rig.beta).shortened
-    out = []
-    for j, count in enumerate(shortened):
-        if count:
-            a, b = rig.cameras[j], rig.cameras[j + 1]
-            out.append(
-                f"Guides from '{a.name}' into '{b.name}' were shortened to keep them in front of "
-                f"'{b.name}' (beta x distance between near planes exceeds its near distance "
-                f"{b.clip_start:g}); move its near plane (Clip Start) farther from its eye"
-            )
-    return out
+    return guard_messages(rig)
 
 
 @dataclass
@@ -541,8 +529,9 @@ def field_to_arrays(fld):
         else:
             meta["plain"][f.name] = value
     out["meta"] = np.frombuffer(
-        json.dumps(meta, default=lambda o: o.item() if isinstance(o, np.generic) else str(o))
-        .encode(),
+        json.dumps(
+            meta, default=lambda o: o.item() if isinstance(o, np.generic) else str(o)
+        ).encode(),
         dtype=np.uint8,
     )
     return out

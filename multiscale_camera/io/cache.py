@@ -117,6 +117,7 @@ class FieldCache:
 
     def _write(self, key, fld):
         arrays = field_to_arrays(fld)
+        os.makedirs(self.folder, exist_ok=True)
         fd, tmp = tempfile.mkstemp(suffix=SUFFIX, dir=self.folder)
         try:
             with os.fdopen(fd, "wb") as out:

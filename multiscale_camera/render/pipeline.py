@@ -11,6 +11,7 @@ from ..adapters.meshes import scene_geometry
 from ..adapters.scene import rig_from_scene
 from ..core.fingerprint import field_key
 from ..core.methods import prepare, settings_for
+from ..core.validate import crossing_messages, empty_mask_messages
 from ..io import cache
 from .raycast import march
 from .shade import shade
@@ -72,12 +73,14 @@ def build_field(scene, should_stop=None):
     settings = settings_for(settings_group.quality, settings_group.accuracy_px)
     key = field_key(rig, settings_group.method, settings)
     cache.CACHE.limit_mb = float(getattr(settings_group, "cache_limit_mb", cache.DEFAULT_LIMIT_MB))
+    # checks before each build that the methods do not make themselves
+    notices = list(rig.notices) + empty_mask_messages(rig) + crossing_messages(rig)
     fld = cache.CACHE.get(key, rig)
     if fld is not None:
-        fld.notices = list(rig.notices)
+        fld.notices = notices
         return fld, False
     fld = prepare(rig, settings_group.method, settings, should_stop)
-    fld.notices = list(rig.notices)
+    fld.notices = notices
     failed = cache.CACHE.put(key, fld)
     if failed:
         fld.notices.append(failed)
@@ -115,6 +118,11 @@ def prepare_frame(depsgraph, should_stop=None):
     else:
         tree, scale = None, 1.0
         notices.append(NO_MESH)
+    if built:  # geometry in the bending stretch hides a camera's view: say so once
+        from ..core.validate import obstruction_messages
+        from .checks import geometry_cast
+
+        notices += obstruction_messages(rig, geometry_cast(geometry, tree))
     t3 = time.perf_counter()
     return Frame(
         rig=rig,

@@ -3,12 +3,11 @@
 import time
 
 import bpy
-from bpy.props import BoolProperty, EnumProperty
+from bpy.props import BoolProperty, EnumProperty, IntProperty
 
 from ..adapters.scene import rig_from_scene
 from ..core.errors import RigError, SolverDidNotConverge
 from ..core.report import build_report, headline, to_json
-from ..render import pipeline
 
 
 def _settings(context):
@@ -95,43 +94,217 @@ class MULTISCALE_OT_validate(bpy.types.Operator):
     bl_label = "Check Rig"
 
     def execute(self, context):
-        try:
-            rig = rig_from_scene(_evaluated(context))
-        except RigError as err:
-            self.report({"ERROR"}, str(err))
-            return {"CANCELLED"}
-        for notice in rig.notices:
-            self.report({"WARNING"}, notice)
-        self.report({"INFO"}, f"The rig of {len(rig.cameras)} cameras is ready to render")
-        return {"FINISHED"}
+        ok, _rig, _messages = run_validation(self, context)
+        return {"FINISHED"} if ok else {"CANCELLED"}
+
+
+def store_validation(settings, errors, warnings):
+    """Keep a check's messages in ``scene.multiscale.validation`` for the panel."""
+    import json
+
+    settings.validation = json.dumps(
+        [{"level": "ERROR", "text": t} for t in errors]
+        + [{"level": "WARNING", "text": t} for t in warnings]
+    )
+
+
+def run_validation(op, context):
+    """Every check of the rig (``render.checks.validate_scene``), reported through the
+    operator ``op`` and kept for the panel. Returns (ok, rig or None, warnings)."""
+    from ..render.checks import validate_scene
+
+    settings = _settings(context)
+    try:
+        rig, messages = validate_scene(context.evaluated_depsgraph_get())
+    except RigError as err:
+        store_validation(settings, [str(err)], [])
+        op.report({"ERROR"}, str(err))
+        return False, None, []
+    store_validation(settings, [], messages)
+    for notice in messages:
+        op.report({"WARNING"}, notice)
+    if not messages:
+        op.report({"INFO"}, f"The rig of {len(rig.cameras)} cameras is ready to render")
+    return True, rig, messages
 
 
 class MULTISCALE_OT_compute_field(bpy.types.Operator):
     """Build the ray field of the camera list (or reuse the cached one) and measure it:
-    preserved-ray error per camera, folds, timings. The report is kept in the scene"""
+    preserved-ray error per camera, folds, timings. The report is kept in the scene.
+    Checks the rig first; in a window the build runs in the background (Esc cancels)"""
 
     bl_idname = "multiscale.compute_field"
     bl_label = "Compute Field"
 
+    _job = None
+    _timer = None
+
     def execute(self, context):
-        scene = context.scene
-        start = time.perf_counter()
-        try:
-            fld, built = pipeline.build_field(_evaluated(context))
-        except (RigError, SolverDidNotConverge) as err:
-            self.report({"ERROR"}, str(err))
+        request = self._request(context)
+        if request is None:
             return {"CANCELLED"}
-        report = build_report(fld, scene.multiscale.quality, sum(fld.seconds.values()))
+        if request.field is None:
+            try:
+                request.run()
+            except (RigError, SolverDidNotConverge) as err:
+                self.report({"ERROR"}, str(err))
+                return {"CANCELLED"}
+        return self._finish(context, request)
+
+    def invoke(self, context, event):
+        if bpy.app.background or context.window is None:
+            return self.execute(context)
+        request = self._request(context)
+        if request is None:
+            return {"CANCELLED"}
+        if request.field is not None:
+            return self._finish(context, request)
+        self._job = BuildJob(request)
+        self._job.start()
+        wm = context.window_manager
+        self._timer = wm.event_timer_add(0.2, window=context.window)
+        wm.progress_begin(0, 100)
+        wm.modal_handler_add(self)
+        context.workspace.status_text_set("Multiscale: building the ray field (Esc cancels)")
+        return {"RUNNING_MODAL"}
+
+    def modal(self, context, event):
+        job = self._job
+        if event.type == "ESC":
+            job.cancel()
+        if event.type != "TIMER":
+            return {"RUNNING_MODAL"} if job.alive() else self._done(context)
+        context.window_manager.progress_update(job.progress())
+        if job.alive():
+            return {"RUNNING_MODAL"}
+        return self._done(context)
+
+    def _done(self, context):
+        wm = context.window_manager
+        wm.event_timer_remove(self._timer)
+        wm.progress_end()
+        context.workspace.status_text_set(None)
+        job = self._job
+        if job.cancelled:
+            self.report({"WARNING"}, "Field build cancelled; nothing was changed")
+            return {"CANCELLED"}
+        if job.error is not None:
+            self.report({"ERROR"}, str(job.error))
+            return {"CANCELLED"}
+        return self._finish(context, job.request)
+
+    def _request(self, context):
+        ok, rig, _messages = run_validation(self, context)
+        return FieldRequest(_settings(context), rig) if ok else None
+
+    def _finish(self, context, request):
+        from . import preview
+
+        scene = context.scene
+        fld, built = request.field, request.built
+        if built:
+            failed = request.store()
+            if failed:
+                self.report({"WARNING"}, failed)
+        report = request.report or build_report(
+            fld, scene.multiscale.quality, sum(fld.seconds.values())
+        )
         report["cached"] = not built
         scene.multiscale.report = to_json(report)
-        for notice in fld.notices + fld.warnings:
+        for notice in fld.warnings:
             self.report({"WARNING"}, notice)
-        line = headline(report)
         self.report(
             {"INFO"},
-            f"{line} ({'built' if built else 'cached'}, {time.perf_counter() - start:.1f} s)",
+            f"{headline(report)} ({'built' if built else 'cached'}, "
+            f"{time.perf_counter() - request.start:.1f} s)",
         )
+        preview.update(scene, fld)
         return {"FINISHED"}
+
+
+class FieldRequest:
+    """A field build asked for by the operator: the rig and settings read from the scene
+    on the main thread; ``run`` (any thread, numpy only) builds the field and its report.
+
+    Attributes
+    ----------
+    field : RayField or None (None until built; set at once on a cache hit).
+    built : bool. report : dict or None.
+    """
+
+    def __init__(self, settings_group, rig):
+        from ..core.fingerprint import field_key
+        from ..core.methods import settings_for
+        from ..io import cache
+
+        self.start = time.perf_counter()
+        self.rig = rig
+        self.method = settings_group.method
+        self.quality = settings_group.quality
+        self.settings = settings_for(settings_group.quality, settings_group.accuracy_px)
+        self.key = field_key(rig, self.method, self.settings)
+        self.cache = cache.CACHE
+        self.cache.limit_mb = float(settings_group.cache_limit_mb)
+        _ = self.cache.folder  # found on the main thread (it asks bpy)
+        self.field = self.cache.get(self.key, rig)
+        self.built = False
+        self.report = None
+        if self.field is not None:
+            self.field.notices = list(rig.notices)
+
+    def run(self, should_stop=None):
+        from ..core.methods import prepare
+
+        fld = prepare(self.rig, self.method, self.settings, should_stop)
+        fld.notices = list(self.rig.notices)
+        self.report = build_report(fld, self.quality, time.perf_counter() - self.start)
+        self.field, self.built = fld, True
+
+    def store(self):
+        return self.cache.put(self.key, self.field)
+
+
+class BuildJob:
+    """``FieldRequest.run`` on a worker thread. The thread touches no bpy: it reads the
+    request's numpy rig and writes its result into the request; the modal operator
+    polls ``alive`` on a timer and finishes on the main thread."""
+
+    def __init__(self, request):
+        import threading
+
+        self.request = request
+        self.cancelled = False
+        self.error = None
+        self._stop = threading.Event()
+        self._checks = 0
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def _should_stop(self):
+        self._checks += 1
+        return self._stop.is_set()
+
+    def _run(self):
+        from ..core.errors import Cancelled
+
+        try:
+            self.request.run(self._should_stop)
+        except Cancelled:
+            self.cancelled = True
+        except Exception as err:  # handed to the main thread, reported there
+            self.error = err
+
+    def start(self):
+        self._thread.start()
+
+    def alive(self):
+        return self._thread.is_alive()
+
+    def cancel(self):
+        self._stop.set()
+
+    def progress(self):
+        """0..99: a rough measure (the build's checks for cancellation so far)."""
+        return min(99, int(100 * (1 - 1 / (1 + self._checks / 40))))
 
 
 class MULTISCALE_OT_render(bpy.types.Operator):
@@ -165,6 +338,303 @@ class MULTISCALE_OT_render(bpy.types.Operator):
         return {"FINISHED"}
 
 
+def _item(context, index=-1):
+    """The camera list item ``index`` (the active one when -1), or None."""
+    settings = _settings(context)
+    i = settings.active_index if index < 0 else index
+    return settings.cameras[i] if 0 <= i < len(settings.cameras) else None
+
+
+class MULTISCALE_OT_camera_select(bpy.types.Operator):
+    """Select this camera in the viewport and make it the active object"""
+
+    bl_idname = "multiscale.camera_select"
+    bl_label = "Select Camera"
+    bl_options = {"REGISTER", "UNDO"}
+
+    index: IntProperty(default=-1, options={"SKIP_SAVE"})
+
+    def execute(self, context):
+        item = _item(context, self.index)
+        if item is None or item.camera is None:
+            self.report({"ERROR"}, "This list item has no camera: pick one first")
+            return {"CANCELLED"}
+        obj = item.camera
+        layer = context.view_layer
+        if layer.objects.get(obj.name) is None:
+            self.report({"ERROR"}, f"Camera '{obj.name}' is not in the current view layer")
+            return {"CANCELLED"}
+        for other in context.selected_objects:
+            other.select_set(False)
+        obj.hide_set(False)
+        obj.select_set(True)
+        layer.objects.active = obj
+        if self.index >= 0:
+            _settings(context).active_index = self.index
+        return {"FINISHED"}
+
+
+class MULTISCALE_OT_camera_view(bpy.types.Operator):
+    """Look through this camera: make it the scene camera and show its view"""
+
+    bl_idname = "multiscale.camera_view"
+    bl_label = "Look Through"
+    bl_options = {"REGISTER", "UNDO"}
+
+    index: IntProperty(default=-1, options={"SKIP_SAVE"})
+
+    def execute(self, context):
+        item = _item(context, self.index)
+        if item is None or item.camera is None:
+            self.report({"ERROR"}, "This list item has no camera: pick one first")
+            return {"CANCELLED"}
+        context.scene.camera = item.camera
+        space = getattr(context, "space_data", None)
+        if space is not None and space.type == "VIEW_3D":
+            space.region_3d.view_perspective = "CAMERA"
+        elif not bpy.app.background:
+            for area in context.screen.areas if context.screen else []:
+                if area.type == "VIEW_3D":
+                    area.spaces.active.region_3d.view_perspective = "CAMERA"
+                    area.tag_redraw()
+                    break
+        return {"FINISHED"}
+
+
+MASK_SUFFIX = " mask"
+GUIDE_SUFFIX = " guide"
+
+
+def _render_guide(context, obj, scene):
+    """The camera's own view as an image: Workbench where a GPU context exists, else
+    our solid raycast. Returns (image, how)."""
+    from ..adapters.cameras import pinhole_from_object, render_size
+    from ..adapters.lights import world_colour
+    from ..adapters.masks import image_from_rgba
+    from ..render.checks import scene_tree
+    from ..render.guide import guide_size, solid_view
+
+    name = obj.name + GUIDE_SUFFIX
+    if not bpy.app.background:
+        try:
+            return _workbench_guide(context, obj, scene, name), "Workbench"
+        except (RuntimeError, OSError) as err:  # no GPU after all: fall back
+            print(f"Multiscale: Workbench guide failed ({err}); using the solid raycast")
+    depsgraph = context.evaluated_depsgraph_get()
+    cam = pinhole_from_object(obj.evaluated_get(depsgraph), depsgraph.scene)
+    geometry, tree = scene_tree(depsgraph)
+    size = guide_size(*render_size(scene))
+    rgba = solid_view(cam, geometry, tree, world_colour(scene), size)
+    return image_from_rgba(name, rgba, colorspace="Linear Rec.709"), "solid raycast"
+
+
+def _workbench_guide(context, obj, scene, name):
+    """Render ``obj``'s view with Workbench into a packed image named ``name``."""
+    import os
+    import tempfile
+
+    from ..render.guide import guide_size
+
+    r = scene.render
+    saved = (
+        scene.camera, r.engine, r.filepath, r.resolution_percentage,
+        r.image_settings.file_format, getattr(r.image_settings, "media_type", None),
+    )
+    path = os.path.join(tempfile.mkdtemp(prefix="multiscale-guide-"), "guide.png")
+    try:
+        scene.camera = obj
+        r.engine = "BLENDER_WORKBENCH"
+        w, h = (r.resolution_x, r.resolution_y)
+        gw, _gh = guide_size(w * r.resolution_percentage // 100, h)
+        r.resolution_percentage = max(1, min(100, round(100 * gw / max(w, 1))))
+        if saved[5] is not None:
+            r.image_settings.media_type = "IMAGE"
+        r.image_settings.file_format = "PNG"
+        r.filepath = path
+        bpy.ops.render.render(write_still=True)
+    finally:
+        scene.camera, r.engine, r.filepath, r.resolution_percentage = saved[:4]
+        if saved[5] is not None:
+            r.image_settings.media_type = saved[5]
+        r.image_settings.file_format = saved[4]
+    old = bpy.data.images.get(name)
+    if old is not None:
+        bpy.data.images.remove(old)
+    img = bpy.data.images.load(path)
+    img.name = name
+    img.pack()
+    img.filepath = ""
+    return img
+
+
+class MULTISCALE_OT_mask_new(bpy.types.Operator):
+    """Make a black mask at render resolution for the active camera (paint white where
+    its view is kept) and a quick picture of its view to paint over"""
+
+    bl_idname = "multiscale.mask_new"
+    bl_label = "New Mask"
+    bl_options = {"REGISTER", "UNDO"}
+
+    guide: BoolProperty(
+        name="Guide", default=True, description="Render the camera's view to paint over"
+    )
+
+    @classmethod
+    def poll(cls, context):
+        item = _item(context)
+        if item is None or item.camera is None:
+            cls.poll_message_set("Pick a camera in the Multiscale list first")
+            return False
+        return True
+
+    def execute(self, context):
+        from ..adapters.cameras import render_size
+        from ..adapters.masks import new_mask_image
+
+        scene = context.scene
+        item = _item(context)
+        obj = item.camera
+        if obj.type != "CAMERA":
+            self.report({"ERROR"}, f"'{obj.name}' is not a camera; pick a camera object")
+            return {"CANCELLED"}
+        width, height = render_size(scene)
+        item.mask = new_mask_image(obj.name + MASK_SUFFIX, width, height)
+        how = "no guide"
+        if self.guide:
+            try:
+                item.guide, how = _render_guide(context, obj, scene)
+            except Exception as err:  # the mask is made; only the picture failed
+                self.report({"WARNING"}, f"No guide picture for '{obj.name}': {err}")
+        self.report(
+            {"INFO"},
+            f"Mask '{item.mask.name}' ({width}x{height}) made for '{obj.name}' ({how}); "
+            "paint white where its view is kept",
+        )
+        return {"FINISHED"}
+
+
+class MULTISCALE_OT_mask_paint(bpy.types.Operator):
+    """Open the active camera's mask in an Image Editor in Paint mode, white brush, its
+    guide shown underneath"""
+
+    bl_idname = "multiscale.mask_paint"
+    bl_label = "Paint Mask"
+
+    @classmethod
+    def poll(cls, context):
+        item = _item(context)
+        if bpy.app.background or context.window is None:
+            cls.poll_message_set("Painting needs a Blender window (not available in background)")
+            return False
+        if item is None or item.mask is None:
+            cls.poll_message_set("Make a mask for the active camera first (New Mask)")
+            return False
+        return True
+
+    def execute(self, context):
+        item = _item(context)
+        area = _image_editor_area(context)
+        if area is None:
+            self.report({"ERROR"}, "No area could be turned into an Image Editor")
+            return {"CANCELLED"}
+        space = area.spaces.active
+        space.image = item.mask
+        space.ui_mode = "PAINT"
+        _white_brush(context)
+        area.tag_redraw()
+        self.report({"INFO"}, f"Painting '{item.mask.name}': white keeps the view, black hides")
+        return {"FINISHED"}
+
+
+def _image_editor_area(context):
+    """An Image Editor of the current screen, else a new window turned into one."""
+    for area in context.screen.areas:
+        if area.type == "IMAGE_EDITOR":
+            return area
+    before = set(context.window_manager.windows[:])
+    bpy.ops.wm.window_new()
+    new = [w for w in context.window_manager.windows if w not in before]
+    if not new:
+        return None
+    area = max(new[0].screen.areas, key=lambda a: a.width * a.height)
+    area.type = "IMAGE_EDITOR"
+    return area
+
+
+def _white_brush(context):
+    """A hard white brush for the mask, as far as this Blender version allows."""
+    paint = context.tool_settings.image_paint
+    unified = getattr(context.tool_settings, "unified_paint_settings", None)
+    if unified is not None:
+        unified.color = (1.0, 1.0, 1.0)
+        unified.secondary_color = (0.0, 0.0, 0.0)
+    brush = paint.brush
+    if brush is not None:
+        brush.color = (1.0, 1.0, 1.0)
+        brush.secondary_color = (0.0, 0.0, 0.0)
+        if hasattr(brush, "curve_preset"):
+            brush.curve_preset = "CONSTANT"
+
+
+class MULTISCALE_OT_report_show(bpy.types.Operator):
+    """Show the last build report in full (also kept in the text 'Multiscale Report')"""
+
+    bl_idname = "multiscale.report_show"
+    bl_label = "Full Report"
+
+    lines = []
+
+    @classmethod
+    def poll(cls, context):
+        return bool(_settings(context).report)
+
+    def execute(self, context):
+        import json
+
+        from ..core.report import readable
+
+        try:
+            report = json.loads(_settings(context).report)
+        except ValueError:
+            self.report({"ERROR"}, "The stored report is not readable; compute the field again")
+            return {"CANCELLED"}
+        text = bpy.data.texts.get(REPORT_TEXT) or bpy.data.texts.new(REPORT_TEXT)
+        self.lines = readable(report)
+        text.from_string("\n".join(self.lines) + "\n\n" + _settings(context).report + "\n")
+        return {"FINISHED"}
+
+    def invoke(self, context, event):
+        result = self.execute(context)
+        if "FINISHED" in result:
+            return context.window_manager.invoke_popup(self, width=620)
+        return result
+
+    def draw(self, context):
+        col = self.layout.column(align=True)
+        for line in self.lines:
+            col.label(text=line)
+        col.separator()
+        col.label(text=f"In full (JSON): Text Editor > '{REPORT_TEXT}'", icon="TEXT")
+
+
+REPORT_TEXT = "Multiscale Report"
+
+
+class MULTISCALE_OT_cache_clear(bpy.types.Operator):
+    """Delete every cached ray field (in memory and on disk); the next render rebuilds"""
+
+    bl_idname = "multiscale.cache_clear"
+    bl_label = "Clear Cache"
+
+    def execute(self, context):
+        from ..io import cache
+
+        size = cache.CACHE.size_bytes()
+        removed = cache.CACHE.clear()
+        self.report({"INFO"}, f"Removed {removed} cached fields ({size / 1e6:.1f} MB)")
+        return {"FINISHED"}
+
+
 CLASSES = (
     MULTISCALE_OT_camera_add,
     MULTISCALE_OT_camera_remove,
@@ -172,6 +642,12 @@ CLASSES = (
     MULTISCALE_OT_validate,
     MULTISCALE_OT_compute_field,
     MULTISCALE_OT_render,
+    MULTISCALE_OT_camera_select,
+    MULTISCALE_OT_camera_view,
+    MULTISCALE_OT_mask_new,
+    MULTISCALE_OT_mask_paint,
+    MULTISCALE_OT_report_show,
+    MULTISCALE_OT_cache_clear,
 )
 
 

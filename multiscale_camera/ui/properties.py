@@ -6,6 +6,7 @@ The names here are a public contract (DESIGN.md): users' scripts and tests set
 
 import bpy
 from bpy.props import (
+    BoolProperty,
     CollectionProperty,
     EnumProperty,
     FloatProperty,
@@ -42,6 +43,12 @@ SHADING_ITEMS = [
 ]
 
 
+def _preview_toggled(self, context):
+    from . import preview
+
+    preview.update(context.scene)
+
+
 def _poll_camera(_self, obj):
     return obj.type == "CAMERA"
 
@@ -62,6 +69,11 @@ class MultiscaleCameraItem(bpy.types.PropertyGroup):
         name="Transfer Function",
         type=bpy.types.Texture,
         description="Colour ramp from density to colour and opacity, for volumes",
+    )
+    guide: PointerProperty(
+        name="Guide",
+        type=bpy.types.Image,
+        description="This camera's own view, shown under the mask while it is painted",
     )
 
 
@@ -100,6 +112,32 @@ class MultiscaleSettings(bpy.types.PropertyGroup):
     shading: EnumProperty(name="Shading", items=SHADING_ITEMS, default="SOLID")
     report: StringProperty(
         name="Report", default="", description="JSON report of the last field build"
+    )
+    validation: StringProperty(
+        name="Validation",
+        default="",
+        description="JSON list of the messages of the last check of the rig",
+    )
+    cache_limit_mb: IntProperty(
+        name="Cache Limit",
+        default=2048,
+        min=16,
+        max=1 << 20,
+        description="Size limit of the field cache on disk, megabytes (oldest fields go first)",
+    )
+    show_preview: BoolProperty(
+        name="Ray Preview",
+        default=False,
+        description="Draw a sparse grid of the bent rays and the chained frusta in the viewport",
+        update=_preview_toggled,
+    )
+    preview_rays: IntProperty(
+        name="Preview Rays",
+        default=12,
+        min=2,
+        max=64,
+        description="Rays drawn per image side in the ray preview",
+        update=_preview_toggled,
     )
 
 

@@ -94,3 +94,10 @@ def test_a_damaged_entry_is_a_miss_and_is_removed(rig, tmp_path):
     cache = FieldCache(str(tmp_path))
     assert cache.get(key, rig) is None and cache.misses == 1
     assert not (tmp_path / f"{key}.npz").exists()
+
+
+def test_put_creates_a_missing_cache_folder(rig, tmp_path):
+    folder = tmp_path / "not" / "there"
+    cache = FieldCache(str(folder))
+    assert cache.put("k" * 40, prepare(rig, "IMAGE_BLEND", SETTINGS)) is None
+    assert (folder / ("k" * 40 + ".npz")).is_file()
