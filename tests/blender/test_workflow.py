@@ -279,3 +279,23 @@ def test_compute_field_checks_the_rig_first(empty_scene, cache_dir):
     assert msg in operator_error(bpy.ops.multiscale.compute_field)
     assert json.loads(scene.multiscale.validation) == [{"level": "ERROR", "text": msg}]
     assert list(cache_dir.glob("*.npz")) == []
+
+
+def test_viewport_picture_is_the_render_at_sampled_pixels(empty_scene, cache_dir):
+    from multiscale_camera.render import viewport
+
+    scene = empty_scene
+    two_camera_scene(scene)
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    assert viewport.frame_for_view(depsgraph) is None  # not cached: built in the background
+    assert viewport.STATE["message"] == "Multiscale: building the ray field..."
+    job = viewport.STATE["build"]
+    job.thread.join(120)
+    assert viewport._poll_build() is None and viewport.STATE["build"] is None
+    frame = viewport.frame_for_view(depsgraph)
+    assert frame is not None and "field (cached)" in frame.seconds
+    small = viewport.preview_image(frame, max_width=20)
+    ix, iy = viewport.preview_pixels(frame.size, 20)
+    assert small.shape == (len(iy), 20, 4) and len(iy) == 15
+    full = pipeline.render_rows(frame, 0, frame.size[1])["Combined"]
+    np.testing.assert_allclose(small, full[np.ix_(iy, ix)], atol=1e-6)
