@@ -497,7 +497,8 @@ def field_to_arrays(fld):
     """A prepared RayField as a flat dict of numpy arrays (for ``np.savez``).
 
     The rig is not stored: the cache key is a digest of it, so whoever loads the field
-    already holds the same rig. Arrays keep their dtype and shape; the ``Traced`` rays
+    already holds the same rig. A ``report`` attribute (the build report dict, set by
+    whoever measured the field) is kept too. Arrays keep their dtype and shape; the ``Traced`` rays
     and the ``Grid`` are split into their arrays; everything else (method, timings,
     warnings, stats, ints) goes into a JSON string under ``"meta"``.
 
@@ -528,6 +529,8 @@ def field_to_arrays(fld):
             )
         else:
             meta["plain"][f.name] = value
+    if getattr(fld, "report", None) is not None:  # the build report, when one was made
+        meta["report"] = fld.report
     out["meta"] = np.frombuffer(
         json.dumps(
             meta, default=lambda o: o.item() if isinstance(o, np.generic) else str(o)
@@ -575,7 +578,10 @@ def field_from_arrays(arrays, rig):
     for name, parts in traced.items():
         parts["step"] = float(parts["step"])
         kwargs[name] = Traced(**parts)
-    return cls(rig=rig, **kwargs)
+    fld = cls(rig=rig, **kwargs)
+    if "report" in meta:
+        fld.report = meta["report"]
+    return fld
 
 
 def _strawman(name):

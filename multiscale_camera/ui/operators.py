@@ -206,9 +206,10 @@ class MULTISCALE_OT_compute_field(bpy.types.Operator):
             failed = request.store()
             if failed:
                 self.report({"WARNING"}, failed)
-        report = request.report or build_report(
-            fld, scene.multiscale.quality, sum(fld.seconds.values())
-        )
+        report = request.report
+        if report is None:  # a field cached without its report: measure it once
+            report = build_report(fld, scene.multiscale.quality, sum(fld.seconds.values()))
+            fld.report = dict(report)
         report["cached"] = not built
         scene.multiscale.report = to_json(report)
         for notice in fld.warnings:
@@ -251,6 +252,9 @@ class FieldRequest:
         self.report = None
         if self.field is not None:
             self.field.notices = list(rig.notices)
+            # the report measured when the field was built (measuring takes a while)
+            kept = getattr(self.field, "report", None)
+            self.report = dict(kept) if kept is not None else None
 
     def run(self, should_stop=None):
         from ..core.methods import prepare
@@ -258,6 +262,7 @@ class FieldRequest:
         fld = prepare(self.rig, self.method, self.settings, should_stop)
         fld.notices = list(self.rig.notices)
         self.report = build_report(fld, self.quality, time.perf_counter() - self.start)
+        fld.report = self.report
         self.field, self.built = fld, True
 
     def store(self):
@@ -540,20 +545,33 @@ class MULTISCALE_OT_mask_paint(bpy.types.Operator):
         space = area.spaces.active
         space.image = item.mask
         space.ui_mode = "PAINT"
-        _white_brush(context)
+        _white_brush(context, area)
         area.tag_redraw()
         self.report({"INFO"}, f"Painting '{item.mask.name}': white keeps the view, black hides")
         return {"FINISHED"}
 
 
 def _image_editor_area(context):
-    """An Image Editor of the current screen, else a new window turned into one."""
-    for area in context.screen.areas:
+    """An Image Editor of the current screen; else the 3D viewport split in two, its right
+    half turned into one; else a new window turned into one."""
+    screen = context.screen
+    for area in screen.areas:
         if area.type == "IMAGE_EDITOR":
             return area
-    before = set(context.window_manager.windows[:])
+    views = [a for a in screen.areas if a.type == "VIEW_3D"]
+    if views:
+        view = max(views, key=lambda a: a.width * a.height)
+        region = next(r for r in view.regions if r.type == "WINDOW")
+        before = {a.as_pointer() for a in screen.areas}
+        with context.temp_override(area=view, region=region):
+            bpy.ops.screen.area_split(direction="VERTICAL", factor=0.5)
+        new = [a for a in screen.areas if a.as_pointer() not in before]
+        if new:
+            new[0].type = "IMAGE_EDITOR"
+            return new[0]
+    before = {w.as_pointer() for w in context.window_manager.windows}
     bpy.ops.wm.window_new()
-    new = [w for w in context.window_manager.windows if w not in before]
+    new = [w for w in context.window_manager.windows if w.as_pointer() not in before]
     if not new:
         return None
     area = max(new[0].screen.areas, key=lambda a: a.width * a.height)
@@ -561,8 +579,21 @@ def _image_editor_area(context):
     return area
 
 
-def _white_brush(context):
+# Blender 4.3+ keeps brushes as assets; this one paints with a hard edge.
+HARD_BRUSH = "brushes/essentials_brushes-mesh_texture.blend/Brush/Paint Hard"
+
+
+def _white_brush(context, area):
     """A hard white brush for the mask, as far as this Blender version allows."""
+    if bpy.app.version >= (4, 3, 0) and hasattr(bpy.ops.brush, "asset_activate"):
+        region = next(r for r in area.regions if r.type == "WINDOW")
+        try:
+            with context.temp_override(area=area, region=region, space_data=area.spaces.active):
+                bpy.ops.brush.asset_activate(
+                    asset_library_type="ESSENTIALS", relative_asset_identifier=HARD_BRUSH
+                )
+        except (RuntimeError, TypeError) as err:
+            print(f"Multiscale: no hard brush ({err}); keeping the current one")
     paint = context.tool_settings.image_paint
     unified = getattr(context.tool_settings, "unified_paint_settings", None)
     if unified is not None:
@@ -572,8 +603,6 @@ def _white_brush(context):
     if brush is not None:
         brush.color = (1.0, 1.0, 1.0)
         brush.secondary_color = (0.0, 0.0, 0.0)
-        if hasattr(brush, "curve_preset"):
-            brush.curve_preset = "CONSTANT"
 
 
 class MULTISCALE_OT_report_show(bpy.types.Operator):

@@ -61,7 +61,7 @@ class MULTISCALE_PT_main(bpy.types.Panel):
             col.prop(settings, "accuracy_px")
         col.prop(settings, "beta")
         col.prop(settings, "samples")
-        if bpy.app.version >= (4, 5, 0):  # the Cycles hand-off needs the OSL camera
+        if shading_option_shown():
             col.prop(settings, "shading")
         row = layout.row(align=True)
         row.operator("multiscale.validate", icon="CHECKMARK")
@@ -76,6 +76,11 @@ class MULTISCALE_PT_main(bpy.types.Panel):
         row = layout.row()
         row.scale_y = 1.4
         row.operator("multiscale.render", icon="RENDER_STILL")
+
+
+def shading_option_shown():
+    """The Cycles hand-off needs the OSL custom camera of Blender 4.5+: hidden before."""
+    return bpy.app.version >= (4, 5, 0)
 
 
 def draw_item_buttons(row, item, index):

@@ -299,3 +299,22 @@ def test_viewport_picture_is_the_render_at_sampled_pixels(empty_scene, cache_dir
     assert small.shape == (len(iy), 20, 4) and len(iy) == 15
     full = pipeline.render_rows(frame, 0, frame.size[1])["Combined"]
     np.testing.assert_allclose(small, full[np.ix_(iy, ix)], atol=1e-6)
+
+
+def test_a_cached_field_brings_its_report_back_from_disk(empty_scene, cache_dir, monkeypatch):
+    from multiscale_camera.ui import operators
+
+    scene = empty_scene
+    two_camera_scene(scene)
+    bpy.ops.multiscale.compute_field()
+    first = json.loads(scene.multiscale.report)
+    cache.CACHE.memory.clear()  # a new session: only the disk has the field
+
+    def measure_again(*args, **kw):
+        raise AssertionError("a cached field with its report is not measured again")
+
+    monkeypatch.setattr(operators, "build_report", measure_again)
+    bpy.ops.multiscale.compute_field()
+    again = json.loads(scene.multiscale.report)
+    assert cache.CACHE.disk_hits == 1 and again["cached"] is True
+    assert again["cameras"] == first["cameras"] and again["folds"] == first["folds"]

@@ -101,3 +101,11 @@ def test_put_creates_a_missing_cache_folder(rig, tmp_path):
     cache = FieldCache(str(folder))
     assert cache.put("k" * 40, prepare(rig, "IMAGE_BLEND", SETTINGS)) is None
     assert (folder / ("k" * 40 + ".npz")).is_file()
+
+
+def test_the_build_report_travels_with_the_field(rig):
+    fld = prepare(rig, "IMAGE_BLEND", SETTINGS)
+    assert not hasattr(field_from_arrays(field_to_arrays(fld), rig), "report")
+    fld.report = {"version": 1, "folds": 3, "cameras": [{"name": "C1"}]}
+    back = field_from_arrays(field_to_arrays(fld), rig)
+    assert back.report == fld.report
