@@ -6,6 +6,7 @@
 #   make demo     install the linux zip in a throwaway user folder, render demo.blend to out/
 #   make bench    speed and accuracy of the solver and of every method: bench/*.json
 #   make lint     ruff
+#   make e2e-real the extension in real Blender 5.2 and 4.3, screenshots to docs/images/
 #
 # BLENDER defaults to tools/blender (Blender's command line on the bpy wheel);
 # point it at a real Blender to run the same tests there.
@@ -34,7 +35,7 @@ SAMPLE_SCRIPTS := $(wildcard sample_blends/*.py)
 RUN_SAMPLES := $(BLENDER) -b --factory-startup --python-exit-code 1 \
 	--python sample_blends/make_samples.py
 
-.PHONY: venv build test samples demo bench lint clean distclean
+.PHONY: venv build test samples demo bench lint clean distclean e2e-real
 
 venv: $(VENV_STAMP)
 
@@ -81,6 +82,12 @@ demo: build sample_blends/demo.blend
 bench: venv
 	$(PY) bench/solvers.py --sizes 64 128 256 320 --diffusion-sizes 64 128 --cap 480
 	$(PY) bench/methods.py --width 1920 --height 1080
+
+# The extension in real Blender 5.2 and 4.3 (../shared/tools/realblender; needs root, and
+# builds its chroots on first use): install, render, and a scripted run in a real window
+# whose screenshots land in docs/images/. Optional: not part of `make test`.
+e2e-real: build sample_blends/demo.blend
+	tools/e2e_real/run.sh
 
 lint: venv
 	$(PY) -m ruff check .

@@ -173,7 +173,8 @@ def mask_check():
 
 
 STEPS = [
-    ("setup", setup, 1.0),
+    ("setup", setup, 3.0),
+    ("building shot", lambda: shot("building.png"), 1.0),
     ("wait field", field_ready, None),
     ("tab", sidebar_tab, 1.0),
     ("tab check", lambda: note("sidebar after", category=tab_category()), 1.0),
