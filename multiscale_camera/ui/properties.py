@@ -49,6 +49,17 @@ def _preview_toggled(self, context):
     preview.update(context.scene)
 
 
+def _pack_mask(self, _context):
+    """Keep a mask loaded from a file (PNG, EXR, ... from another tool) inside the .blend,
+    so the render does not depend on the file staying where it was."""
+    image = self.mask
+    if image is not None and image.packed_file is None and image.source == "FILE":
+        try:
+            image.pack()
+        except RuntimeError as err:  # a missing file: the rig check reports the mask
+            print(f"Multiscale: mask '{image.name}' could not be packed ({err})")
+
+
 def _poll_camera(_self, obj):
     return obj.type == "CAMERA"
 
@@ -64,6 +75,7 @@ class MultiscaleCameraItem(bpy.types.PropertyGroup):
         name="Mask",
         type=bpy.types.Image,
         description="White where this camera's view is preserved in the final image",
+        update=_pack_mask,
     )
     transfer_function: PointerProperty(
         name="Transfer Function",

@@ -171,6 +171,12 @@ def test_png_and_exr_masks_from_other_tools_load(empty_scene, tmp_path):
         f.write(str(tmp_path / "m.exr"))
     scene.multiscale.cameras[1].mask = bpy.data.images.load(str(tmp_path / "m.exr"))
     np.testing.assert_array_equal(rig_from_scene(scene).masks[1], want)
+    # a mask from a file is packed: the .blend keeps working without the file
+    assert scene.multiscale.cameras[1].mask.packed_file is not None
+    bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "m.blend"))
+    (tmp_path / "m.exr").unlink()
+    bpy.ops.wm.open_mainfile(filepath=str(tmp_path / "m.blend"))
+    np.testing.assert_array_equal(rig_from_scene(bpy.context.scene).masks[1], want)
 
 
 # --- report ----------------------------------------------------------------------------

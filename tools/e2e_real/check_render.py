@@ -28,7 +28,8 @@ def main(argv):
     summary["enabled"] = [m for m in bpy.context.preferences.addons.keys() if "multiscale" in m]
     module = sys.modules[summary["enabled"][0]] if summary["enabled"] else None
     summary["registered"] = {
-        "engine": "MULTISCALE" in {e.bl_idname for e in bpy.types.RenderEngine.__subclasses__()},
+        "engine": "MULTISCALE"
+        in {getattr(e, "bl_idname", None) for e in bpy.types.RenderEngine.__subclasses__()},
         "panel": hasattr(bpy.types, "MULTISCALE_PT_main"),
         "operators": sorted(n for n in dir(bpy.ops.multiscale) if not n.startswith("_")),
     }
