@@ -97,6 +97,11 @@ def _poll_build():
         job.field.notices = list(job.rig.notices)
         cache.CACHE.put(job.key, job.field)
         STATE["message"] = ""
+        scene = bpy.context.scene
+        if scene is not None and scene.multiscale.show_preview:
+            from ..ui import preview  # the ray preview follows every build
+
+            preview.update(scene, job.field)
     elif job.error is not None:
         STATE["message"] = f"Multiscale: {job.error}"
     for window in bpy.context.window_manager.windows:
