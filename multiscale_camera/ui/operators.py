@@ -170,10 +170,12 @@ class MULTISCALE_OT_compute_field(bpy.types.Operator):
 
     def modal(self, context, event):
         job = self._job
-        if event.type == "ESC":
+        if event.type == "ESC" and event.value == "PRESS":
             job.cancel()
+            return {"RUNNING_MODAL"}
         if event.type != "TIMER":
-            return {"RUNNING_MODAL"} if job.alive() else self._done(context)
+            # everything else goes on to Blender: the build must not block the interface
+            return {"PASS_THROUGH"}
         context.window_manager.progress_update(job.progress())
         if job.alive():
             return {"RUNNING_MODAL"}
@@ -411,8 +413,8 @@ GUIDE_SUFFIX = " guide"
 
 
 def _render_guide(context, obj, scene):
-    """The camera's own view as an image: Workbench where a GPU context exists, else
-    our solid raycast. Returns (image, how)."""
+    """The camera's own view as an image: the viewport's Workbench drawing offscreen where
+    a GPU context exists, else our solid raycast. Returns (image, how)."""
     from ..adapters.cameras import pinhole_from_object, render_size
     from ..adapters.lights import world_colour
     from ..adapters.masks import image_from_rgba
@@ -420,56 +422,63 @@ def _render_guide(context, obj, scene):
     from ..render.guide import guide_size, solid_view
 
     name = obj.name + GUIDE_SUFFIX
+    size = guide_size(*render_size(scene))
     if not bpy.app.background:
         try:
-            return _workbench_guide(context, obj, scene, name), "Workbench"
-        except (RuntimeError, OSError) as err:  # no GPU after all: fall back
+            rgba = _workbench_view(context, obj, size)
+            if rgba is not None:
+                return image_from_rgba(name, rgba), "Workbench"
+        except (RuntimeError, ValueError, SystemError) as err:  # no GPU after all
             print(f"Multiscale: Workbench guide failed ({err}); using the solid raycast")
     depsgraph = context.evaluated_depsgraph_get()
     cam = pinhole_from_object(obj.evaluated_get(depsgraph), depsgraph.scene)
     geometry, tree = scene_tree(depsgraph)
-    size = guide_size(*render_size(scene))
     rgba = solid_view(cam, geometry, tree, world_colour(scene), size)
     return image_from_rgba(name, rgba, colorspace="Linear Rec.709"), "solid raycast"
 
 
-def _workbench_guide(context, obj, scene, name):
-    """Render ``obj``'s view with Workbench into a packed image named ``name``."""
-    import os
-    import tempfile
+def _workbench_view(context, obj, size):
+    """(h, w, 4) float32 display-referred RGBA, row 0 at the top: ``obj``'s view drawn
+    offscreen by a 3D viewport in Solid shading (Workbench), or None without a viewport.
+    Nothing of the scene or its render settings changes."""
+    import gpu
+    import numpy as np
 
-    from ..render.guide import guide_size
-
-    r = scene.render
-    saved = (
-        scene.camera, r.engine, r.filepath, r.resolution_percentage,
-        r.image_settings.file_format, getattr(r.image_settings, "media_type", None),
-    )
-    path = os.path.join(tempfile.mkdtemp(prefix="multiscale-guide-"), "guide.png")
+    screen = getattr(context, "screen", None)
+    views = [a for a in screen.areas if a.type == "VIEW_3D"] if screen else []
+    if not views:
+        return None
+    area = max(views, key=lambda a: a.width * a.height)
+    space = area.spaces.active
+    region = next(r for r in area.regions if r.type == "WINDOW")
+    w, h = size
+    depsgraph = context.evaluated_depsgraph_get()
+    view = obj.matrix_world.normalized().inverted()
+    projection = obj.calc_matrix_camera(depsgraph, x=w, y=h)
+    shading = space.shading.type
+    space.shading.type = "SOLID"  # never our own engine (or Cycles) for the guide
+    offscreen = gpu.types.GPUOffScreen(w, h)
     try:
-        scene.camera = obj
-        r.engine = "BLENDER_WORKBENCH"
-        w, h = (r.resolution_x, r.resolution_y)
-        gw, _gh = guide_size(w * r.resolution_percentage // 100, h)
-        r.resolution_percentage = max(1, min(100, round(100 * gw / max(w, 1))))
-        if saved[5] is not None:
-            r.image_settings.media_type = "IMAGE"
-        r.image_settings.file_format = "PNG"
-        r.filepath = path
-        bpy.ops.render.render(write_still=True)
+        with offscreen.bind():
+            fb = gpu.state.active_framebuffer_get()
+            fb.clear(color=(0.0, 0.0, 0.0, 1.0))
+            offscreen.draw_view3d(
+                context.scene,
+                context.view_layer,
+                space,
+                region,
+                view,
+                projection,
+                do_color_management=True,
+            )
+            buf = fb.read_color(0, 0, w, h, 4, 0, "FLOAT")
     finally:
-        scene.camera, r.engine, r.filepath, r.resolution_percentage = saved[:4]
-        if saved[5] is not None:
-            r.image_settings.media_type = saved[5]
-        r.image_settings.file_format = saved[4]
-    old = bpy.data.images.get(name)
-    if old is not None:
-        bpy.data.images.remove(old)
-    img = bpy.data.images.load(path)
-    img.name = name
-    img.pack()
-    img.filepath = ""
-    return img
+        offscreen.free()
+        space.shading.type = shading
+    buf.dimensions = w * h * 4
+    rgba = np.asarray(buf, dtype=np.float32).reshape(h, w, 4)[::-1].copy()
+    rgba[..., 3] = 1.0
+    return rgba
 
 
 class MULTISCALE_OT_mask_new(bpy.types.Operator):

@@ -24,7 +24,7 @@ class MULTISCALE_UL_cameras(bpy.types.UIList):
             row.alert = True
             row.prop(item, "camera", text="", icon="ERROR")
         else:
-            row.prop(item, "camera", text="", emboss=False, icon="CAMERA_DATA")
+            row.label(text=item.camera.name, icon="CAMERA_DATA")
         row.label(text="", icon="IMAGE_DATA" if item.mask is not None else "BLANK1")
         draw_item_buttons(row, item, index)
 
@@ -69,13 +69,27 @@ class MULTISCALE_PT_main(bpy.types.Panel):
         report = _report(settings)
         if report is not None:
             box = layout.box()
-            box.label(text=headline(report), icon="INFO")
-            for warning in report.get("warnings", [])[:4]:
-                box.label(text=warning, icon="ERROR")
+            draw_headline(box, report)
             box.operator("multiscale.report_show", icon="TEXT")
         row = layout.row()
         row.scale_y = 1.4
         row.operator("multiscale.render", icon="RENDER_STILL")
+
+
+def draw_headline(layout, report):
+    """The report's headline on two lines and its warnings, wrapped to the sidebar."""
+    line = headline(report)
+    method, _, rest = line.partition(": ")
+    col = layout.column(align=True)
+    col.label(text=f"{method}{' (cached)' if report.get('cached') else ''}", icon="INFO")
+    col.label(text=rest, icon="BLANK1")
+    warnings = report.get("warnings", [])
+    for warning in warnings[:3]:
+        col = layout.column(align=True)
+        for k, text in enumerate(_wrap(warning, 44)[:3]):
+            col.label(text=text, icon="ERROR" if k == 0 else "BLANK1")
+    if len(warnings) > 3:
+        layout.label(text=f"{len(warnings) - 3} more in the full report", icon="BLANK1")
 
 
 def shading_option_shown():
@@ -131,7 +145,7 @@ def draw_camera_settings(layout, context, item):
     row.operator("multiscale.mask_paint", icon="BRUSH_DATA")
     if item.guide is not None:
         layout.label(text=f"Guide: {item.guide.name}", icon="IMAGE_REFERENCE")
-    layout.template_ID(item, "transfer_function", new="texture.new")
+    layout.template_ID(item, "transfer_function", new="texture.new", text="Volume")
 
 
 def _validation(settings):

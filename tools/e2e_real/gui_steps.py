@@ -65,6 +65,23 @@ def setup():
     note("setup", cameras=[i.camera.name for i in scene.multiscale.cameras])
 
 
+def press_n():
+    """While the field builds, the viewport must still take keys: N hides the sidebar."""
+    win, area, _region = view3d()
+    state["ui_before"] = area.spaces.active.show_region_ui
+    x, y = area.x + area.width // 3, win.height - (area.y + area.height // 2)
+    subprocess.run(["xdotool", "mousemove", str(x), str(y), "key", "n"], check=False)
+
+
+def check_toggled():
+    _win, area, _region = view3d()
+    now = area.spaces.active.show_region_ui
+    note("keys during the build", sidebar_before=state["ui_before"], sidebar_after=now)
+    if now == state["ui_before"]:
+        raise RuntimeError("the interface did not take a key while the field was building")
+    area.spaces.active.show_region_ui = True
+
+
 def sidebar_tab():
     """Show the Multiscale tab of the sidebar: set the region's category, else click it."""
     win, area, _region = view3d()
@@ -175,6 +192,8 @@ def mask_check():
 STEPS = [
     ("setup", setup, 3.0),
     ("building shot", lambda: shot("building.png"), 1.0),
+    ("press N while building", press_n, 1.5),
+    ("sidebar toggled", check_toggled, 1.0),
     ("wait field", field_ready, None),
     ("tab", sidebar_tab, 1.0),
     ("tab check", lambda: note("sidebar after", category=tab_category()), 1.0),
