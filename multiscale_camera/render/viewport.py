@@ -177,7 +177,7 @@ class ViewDraw:
 
     def __init__(self):
         self.stale = True
-        self.texture = None
+        self.pixels = None  # (h, w, 4) float32, bottom row first, or None
         self.message = ""
 
     def update(self):
@@ -189,22 +189,25 @@ class ViewDraw:
         from gpu_extras.presets import draw_texture_2d
 
         scene = depsgraph.scene
-        if self.stale or self.texture is None:
+        if self.stale or self.pixels is None:
             frame = frame_for_view(depsgraph)
             if frame is not None:
-                rgba = preview_image(frame)[::-1]  # the texture's first row is the bottom
-                h, w = rgba.shape[:2]
-                buf = gpu.types.Buffer("FLOAT", w * h * 4, rgba.ravel().tolist())
-                self.texture = gpu.types.GPUTexture((w, h), format="RGBA16F", data=buf)
+                self.pixels = np.ascontiguousarray(preview_image(frame)[::-1])
                 self.stale = False
                 STATE["message"] = ""
-        if self.texture is not None:
-            x, y, w, h = camera_rect(context, scene)
+        if self.pixels is not None:
+            # the texture lives only while the viewport draws: a GPU texture freed later,
+            # outside a GPU context (when the engine goes), crashes Blender
+            h, w = self.pixels.shape[:2]
+            buf = gpu.types.Buffer("FLOAT", w * h * 4, self.pixels.ravel().tolist())
+            texture = gpu.types.GPUTexture((w, h), format="RGBA16F", data=buf)
+            x, y, rw, rh = camera_rect(context, scene)
             gpu.state.blend_set("ALPHA_PREMULT")
             engine.bind_display_space_shader(scene)
-            draw_texture_2d(self.texture, (x, y), w, h)
+            draw_texture_2d(texture, (x, y), rw, rh)
             engine.unbind_display_space_shader()
             gpu.state.blend_set("NONE")
+            del texture, buf
         if STATE["message"]:
             blf.position(0, 20, 40, 0)
             blf.size(0, 14)

@@ -59,6 +59,8 @@ def setup():
                 pass
     scene = bpy.context.scene
     with override():
+        if os.environ.get("E2E_FRESH", "1") == "1":  # a real build, not a cache hit
+            bpy.ops.multiscale.cache_clear()
         bpy.ops.multiscale.validate()
         bpy.ops.multiscale.compute_field("INVOKE_DEFAULT")
     scene.multiscale.show_preview = True
