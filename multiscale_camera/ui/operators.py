@@ -593,25 +593,45 @@ HARD_BRUSH = "brushes/essentials_brushes-mesh_texture.blend/Brush/Paint Hard"
 
 
 def _white_brush(context, area):
-    """A hard white brush for the mask, as far as this Blender version allows."""
-    if bpy.app.version >= (4, 3, 0) and hasattr(bpy.ops.brush, "asset_activate"):
-        region = next(r for r in area.regions if r.type == "WINDOW")
-        try:
-            with context.temp_override(area=area, region=region, space_data=area.spaces.active):
-                bpy.ops.brush.asset_activate(
-                    asset_library_type="ESSENTIALS", relative_asset_identifier=HARD_BRUSH
-                )
-        except (RuntimeError, TypeError) as err:
-            print(f"Multiscale: no hard brush ({err}); keeping the current one")
-    paint = context.tool_settings.image_paint
+    """A white brush (black as the secondary colour) for the mask; on Blender 4.3+ the
+    hard round brush asset too, once the new Image Editor has been drawn (activating it
+    in an area that has never been drawn crashes Blender 5.2)."""
     unified = getattr(context.tool_settings, "unified_paint_settings", None)
     if unified is not None:
         unified.color = (1.0, 1.0, 1.0)
         unified.secondary_color = (0.0, 0.0, 0.0)
-    brush = paint.brush
+    brush = context.tool_settings.image_paint.brush
     if brush is not None:
         brush.color = (1.0, 1.0, 1.0)
         brush.secondary_color = (0.0, 0.0, 0.0)
+    if bpy.app.version >= (4, 3, 0) and hasattr(bpy.ops.brush, "asset_activate"):
+        window, pointer = context.window, area.as_pointer()
+        bpy.app.timers.register(lambda: _hard_brush(window, pointer), first_interval=0.5)
+
+
+def _hard_brush(window, pointer):
+    """Timer: activate the hard brush asset in the Image Editor ``pointer`` of
+    ``window``, if it is still there and in Paint mode; then make it white."""
+    try:
+        area = next(a for a in window.screen.areas if a.as_pointer() == pointer)
+    except (StopIteration, ReferenceError):
+        return None
+    space = area.spaces.active
+    if area.type != "IMAGE_EDITOR" or getattr(space, "ui_mode", None) != "PAINT":
+        return None
+    region = next(r for r in area.regions if r.type == "WINDOW")
+    try:
+        with bpy.context.temp_override(window=window, area=area, region=region):
+            bpy.ops.brush.asset_activate(
+                asset_library_type="ESSENTIALS", relative_asset_identifier=HARD_BRUSH
+            )
+    except (RuntimeError, TypeError) as err:
+        print(f"Multiscale: no hard brush ({err}); keeping the current one")
+    brush = bpy.context.tool_settings.image_paint.brush
+    if brush is not None:
+        brush.color = (1.0, 1.0, 1.0)
+        brush.secondary_color = (0.0, 0.0, 0.0)
+    return None
 
 
 class MULTISCALE_OT_report_show(bpy.types.Operator):

@@ -6,6 +6,7 @@ Environment: SHOT_DIR (where the PNGs go), E2E_LOG (a JSON log of what each step
 Quits Blender when done; a step that fails is logged and ends the run.
 """
 
+import faulthandler
 import json
 import os
 import subprocess
@@ -14,6 +15,7 @@ import traceback
 
 import bpy
 
+faulthandler.enable(all_threads=True)  # a crash shows the Python line it came from
 OUT = os.environ.get("SHOT_DIR", ".")
 LOG = os.environ.get("E2E_LOG", os.path.join(OUT, "e2e_log.json"))
 log = {"version": bpy.app.version_string, "steps": []}
