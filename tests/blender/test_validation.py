@@ -182,3 +182,16 @@ def test_a_build_validates_first(rig, capfd):
     assert json.loads(scene.multiscale.validation) == [
         {"level": "WARNING", "text": GUARD_C2.format(near="0.5")}
     ]
+
+
+def test_mask_whose_file_is_missing(rig, tmp_path):
+    scene, _c1, _c2 = rig
+    mid = add_camera(scene, "Mid", (0.3, -8, 6), (0.5, -0.3, 1.8), clip_start=3.0)
+    img = bpy.data.images.new("lost", 4, 4)
+    img.source = "FILE"
+    img.filepath = str(tmp_path / "gone.png")
+    img.reload()
+    item = scene.multiscale.cameras.add()
+    item.camera, item.mask = mid, img
+    scene.multiscale.cameras.move(2, 1)
+    assert "Mask 'lost' has no pixels (is its file missing?); treated as empty" in warnings(scene)

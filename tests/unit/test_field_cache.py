@@ -109,3 +109,26 @@ def test_the_build_report_travels_with_the_field(rig):
     fld.report = {"version": 1, "folds": 3, "cameras": [{"name": "C1"}]}
     back = field_from_arrays(field_to_arrays(fld), rig)
     assert back.report == fld.report
+
+
+def test_an_unwritable_cache_says_so_and_keeps_the_field_in_memory(rig, tmp_path):
+    blocker = tmp_path / "file"
+    blocker.write_text("not a folder")
+    cache = FieldCache(str(blocker))
+    fld = prepare(rig, "IMAGE_BLEND", SETTINGS)
+    said = cache.put("k" * 40, fld)
+    assert said.startswith("The field cache could not be written (")
+    assert said.endswith("); builds are not kept on disk")
+    assert cache.get("k" * 40, rig) is fld
+
+
+def test_voxel_budget_capping_the_accuracy_target_is_explained(rig):
+    import re
+
+    fld = prepare(rig, "SCALAR_FIELD", Settings(0.05, 24**3))
+    pattern = (
+        r"The accuracy target of 0\.05 px wants [0-9.e-]+-unit cells; the voxel budget allows "
+        r"[0-9.e-]+: transitions near the smallest camera may be coarser than asked \(raise "
+        r"the quality, or move that camera's near plane farther from its eye\)"
+    )
+    assert any(re.fullmatch(pattern, w) for w in fld.warnings), fld.warnings
