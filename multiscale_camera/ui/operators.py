@@ -455,8 +455,9 @@ def _workbench_view(context, obj, size):
     depsgraph = context.evaluated_depsgraph_get()
     view = obj.matrix_world.normalized().inverted()
     projection = obj.calc_matrix_camera(depsgraph, x=w, y=h)
-    shading = space.shading.type
+    shading, overlays = space.shading.type, space.overlay.show_overlays
     space.shading.type = "SOLID"  # never our own engine (or Cycles) for the guide
+    space.overlay.show_overlays = False  # the scene only: no cameras, grid or cursor
     offscreen = gpu.types.GPUOffScreen(w, h)
     try:
         with offscreen.bind():
@@ -474,7 +475,7 @@ def _workbench_view(context, obj, size):
             buf = fb.read_color(0, 0, w, h, 4, 0, "FLOAT")
     finally:
         offscreen.free()
-        space.shading.type = shading
+        space.shading.type, space.overlay.show_overlays = shading, overlays
     buf.dimensions = w * h * 4
     rgba = np.asarray(buf, dtype=np.float32).reshape(h, w, 4)[::-1].copy()
     rgba[..., 3] = 1.0

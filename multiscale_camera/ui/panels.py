@@ -24,8 +24,9 @@ class MULTISCALE_UL_cameras(bpy.types.UIList):
             row.alert = True
             row.prop(item, "camera", text="", icon="ERROR")
         else:
-            row.label(text=item.camera.name, icon="CAMERA_DATA")
-        row.label(text="", icon="IMAGE_DATA" if item.mask is not None else "BLANK1")
+            row.label(
+                text=item.camera.name if item.mask is not None else f"{item.camera.name} (no mask)"
+            )
         draw_item_buttons(row, item, index)
 
 
@@ -69,15 +70,24 @@ class MULTISCALE_PT_main(bpy.types.Panel):
         report = _report(settings)
         if report is not None:
             box = layout.box()
-            draw_headline(box, report)
+            draw_headline(box, report, wrap_width(context))
             box.operator("multiscale.report_show", icon="TEXT")
         row = layout.row()
         row.scale_y = 1.4
         row.operator("multiscale.render", icon="RENDER_STILL")
 
 
-def draw_headline(layout, report):
-    """The report's headline on two lines and its warnings, wrapped to the sidebar."""
+def wrap_width(context):
+    """Characters of label text that fit the region's width (about 7 px a character at
+    UI scale 1, less the icon and the margins)."""
+    region = getattr(context, "region", None)
+    width = region.width if region is not None else 300
+    scale = context.preferences.system.ui_scale if context.preferences else 1.0
+    return max(20, int((width - 60) / (6.5 * scale)))
+
+
+def draw_headline(layout, report, chars=44):
+    """The report's headline on two lines and its warnings, wrapped to ``chars``."""
     line = headline(report)
     method, _, rest = line.partition(": ")
     col = layout.column(align=True)
@@ -86,7 +96,7 @@ def draw_headline(layout, report):
     warnings = report.get("warnings", [])
     for warning in warnings[:3]:
         col = layout.column(align=True)
-        for k, text in enumerate(_wrap(warning, 44)[:3]):
+        for k, text in enumerate(_wrap(warning, chars)[:4]):
             col.label(text=text, icon="ERROR" if k == 0 else "BLANK1")
     if len(warnings) > 3:
         layout.label(text=f"{len(warnings) - 3} more in the full report", icon="BLANK1")
@@ -174,7 +184,7 @@ class MULTISCALE_PT_validation(bpy.types.Panel):
             icon = "CANCEL" if entry.get("level") == "ERROR" else "ERROR"
             col = layout.column(align=True)
             col.alert = entry.get("level") == "ERROR"
-            for k, line in enumerate(_wrap(str(entry.get("text", "")), 60)):
+            for k, line in enumerate(_wrap(str(entry.get("text", "")), wrap_width(context))):
                 col.label(text=line, icon=icon if k == 0 else "BLANK1")
 
 

@@ -97,6 +97,42 @@ def check_toggled():
     return True
 
 
+def _builds():
+    import threading
+
+    return [t for t in threading.enumerate() if t.name.endswith("(_run)") and t.is_alive()]
+
+
+def press_esc():
+    """Esc over the viewport cancels the build."""
+    win, area, _region = view3d()
+    state["builds"] = len(_builds())
+    state["pressed"] = time.time()
+    x, y = area.x + area.width // 3, win.height - (area.y + area.height // 2)
+    subprocess.run(["xdotool", "mousemove", str(x), str(y), "key", "Escape"], check=False)
+
+
+def build_stopped():
+    """Condition: the worker thread ended without a report (within 60 s)."""
+    if _builds():
+        if time.time() - state["pressed"] > 60:
+            raise RuntimeError("Esc did not stop the build")
+        return False
+    note(
+        "cancelled",
+        builds_before=state["builds"],
+        seconds=round(time.time() - state["pressed"], 1),
+        report_written=field_ready(),
+    )
+    return True
+
+
+def build_again():
+    with override():
+        bpy.ops.multiscale.compute_field("INVOKE_DEFAULT")
+    note("build restarted")
+
+
 def sidebar_tab():
     """Show the Multiscale tab of the sidebar: set the region's category, else click it."""
     win, area, _region = view3d()
@@ -154,6 +190,7 @@ def viewport_rendered():
     win, area, region = view3d()
     space = area.spaces.active
     space.shading.type = "RENDERED"
+    space.overlay.show_overlays = False
     space.region_3d.view_perspective = "CAMERA"
     bpy.context.scene.multiscale.show_preview = False
     area.tag_redraw()
@@ -162,6 +199,7 @@ def viewport_rendered():
 def mask_new():
     win, area, region = view3d()
     area.spaces.active.shading.type = "SOLID"
+    area.spaces.active.overlay.show_overlays = True
     s = bpy.context.scene.multiscale
     s.active_index = 1
     with override():
@@ -187,10 +225,12 @@ def paint_stroke():
         (cx + int(r * math.cos(t / 12 * math.pi)), cy + int(r * math.sin(t / 12 * math.pi)))
         for t in range(25)
     ]
-    cmd = ["xdotool", "mousemove", str(pts[0][0]), str(pts[0][1]), "mousedown", "1"]
+    start = ["mousemove", str(pts[0][0]), str(pts[0][1])]
+    cmd = ["xdotool", *start, "sleep", "0.5", *start, "sleep", "0.3", "mousedown", "1"]
+    cmd += ["sleep", "0.3"]
     for x, y in pts[1:]:
-        cmd += ["mousemove", "--sync", str(x), str(y), "sleep", "0.05"]
-    cmd += ["mouseup", "1"]
+        cmd += ["mousemove", str(x), str(y), "sleep", "0.08"]
+    cmd += ["sleep", "0.3", "mouseup", "1"]
     subprocess.run(cmd, check=False)
     note("stroke", points=len(pts))
 
@@ -209,6 +249,9 @@ STEPS = [
     ("building shot", lambda: shot("building.png"), 1.0),
     ("press N while building", press_n, 1.5),
     ("sidebar toggled", check_toggled, None),
+    ("press Esc", press_esc, 1.0),
+    ("build cancelled", build_stopped, None),
+    ("build again", build_again, 3.0),
     ("wait field", field_ready, None),
     ("tab", sidebar_tab, 1.0),
     ("tab check", lambda: note("sidebar after", category=tab_category()), 1.0),
