@@ -195,3 +195,14 @@ def test_mask_whose_file_is_missing(rig, tmp_path):
     item.camera, item.mask = mid, img
     scene.multiscale.cameras.move(2, 1)
     assert "Mask 'lost' has no pixels (is its file missing?); treated as empty" in warnings(scene)
+
+
+def test_panel_marks_the_near_distance_that_breaks_the_guard(rig):
+    from multiscale_camera.ui.panels import guard_cameras
+
+    scene, _c1, c2 = rig
+    assert guard_cameras(bpy.context) == set()
+    c2.data.clip_start = 0.5
+    assert guard_cameras(bpy.context) == {"C2"}
+    c2.data.type = "ORTHO"  # a rig the check refuses: the panel only stays quiet
+    assert guard_cameras(bpy.context) == set()
