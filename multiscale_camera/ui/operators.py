@@ -597,14 +597,7 @@ def _white_brush(context, area):
     """A white brush (black as the secondary colour) for the mask; on Blender 4.3+ the
     hard round brush asset too, once the new Image Editor has been drawn (activating it
     in an area that has never been drawn crashes Blender 5.2)."""
-    unified = getattr(context.tool_settings, "unified_paint_settings", None)
-    if unified is not None:
-        unified.color = (1.0, 1.0, 1.0)
-        unified.secondary_color = (0.0, 0.0, 0.0)
-    brush = context.tool_settings.image_paint.brush
-    if brush is not None:
-        brush.color = (1.0, 1.0, 1.0)
-        brush.secondary_color = (0.0, 0.0, 0.0)
+    _white(context.tool_settings)
     if bpy.app.version >= (4, 3, 0) and hasattr(bpy.ops.brush, "asset_activate"):
         window, pointer = context.window, area.as_pointer()
         bpy.app.timers.register(lambda: _hard_brush(window, pointer), first_interval=0.5)
@@ -628,11 +621,23 @@ def _hard_brush(window, pointer):
             )
     except (RuntimeError, TypeError) as err:
         print(f"Multiscale: no hard brush ({err}); keeping the current one")
-    brush = bpy.context.tool_settings.image_paint.brush
-    if brush is not None:
-        brush.color = (1.0, 1.0, 1.0)
-        brush.secondary_color = (0.0, 0.0, 0.0)
+    _white(bpy.context.tool_settings)
     return None
+
+
+def _white(tool_settings):
+    """White paint, black secondary colour: on the brush and on the unified colour, which
+    Blender 5 keeps per paint mode (``image_paint.unified_paint_settings``) and 4.x for
+    all modes (``tool_settings.unified_paint_settings``)."""
+    paint = tool_settings.image_paint
+    for holder in (
+        getattr(paint, "unified_paint_settings", None),
+        getattr(tool_settings, "unified_paint_settings", None),
+        paint.brush,
+    ):
+        if holder is not None:
+            holder.color = (1.0, 1.0, 1.0)
+            holder.secondary_color = (0.0, 0.0, 0.0)
 
 
 class MULTISCALE_OT_report_show(bpy.types.Operator):
