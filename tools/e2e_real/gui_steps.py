@@ -232,6 +232,7 @@ def paint_stroke():
         cmd += ["mousemove", str(x), str(y), "sleep", "0.08"]
     cmd += ["sleep", "0.3", "mouseup", "1"]
     subprocess.run(cmd, check=False)
+    area.tag_redraw()
     note("stroke", points=len(pts))
 
 
@@ -242,6 +243,9 @@ def mask_check():
     px = np.empty(img.size[0] * img.size[1] * 4, np.float32)
     img.pixels.foreach_get(px)
     note("mask painted", white_pixels=int((px.reshape(-1, 4)[:, 0] > 0.5).sum()))
+    for window in bpy.context.window_manager.windows:
+        for area in window.screen.areas:
+            area.tag_redraw()
 
 
 STEPS = [
@@ -265,8 +269,8 @@ STEPS = [
     ("mask", mask_new, 3.0),
     ("mask shot", lambda: shot("mask_new.png"), 1.0),
     ("paint", paint_stroke, 2.0),
+    ("mask check", mask_check, 3.0),
     ("paint shot", lambda: shot("mask_paint.png"), 1.0),
-    ("mask check", mask_check, 0.5),
 ]
 state = {"i": 0, "since": None}
 T0 = time.time()
