@@ -324,3 +324,23 @@ def test_a_cached_field_brings_its_report_back_from_disk(empty_scene, cache_dir,
     again = json.loads(scene.multiscale.report)
     assert cache.CACHE.disk_hits == 1 and again["cached"] is True
     assert again["cameras"] == first["cameras"] and again["folds"] == first["folds"]
+
+
+def test_paint_colour_is_white_where_blender_5_keeps_it_per_paint_mode(empty_scene):
+    from multiscale_camera.ui.operators import _white
+
+    ts = bpy.context.tool_settings
+    holders = [
+        h
+        for h in (
+            getattr(ts.image_paint, "unified_paint_settings", None),
+            getattr(ts, "unified_paint_settings", None),
+        )
+        if h is not None
+    ]
+    assert holders  # one of the two exists in every Blender the extension supports
+    for h in holders:
+        h.color = (0.0, 0.0, 0.0)
+    _white(ts)
+    for h in holders:
+        assert tuple(h.color) == (1.0, 1.0, 1.0) and tuple(h.secondary_color) == (0, 0, 0)
