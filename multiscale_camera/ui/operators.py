@@ -715,11 +715,30 @@ CLASSES = (
 )
 
 
+@bpy.app.handlers.persistent
+def repack_masks(*_args):
+    """Before a save: pack masks and guides that were painted (a packed image keeps its
+    packed pixels otherwise, and a painted mask would revert on reload), and images made
+    in Blender, painted and never saved anywhere (a generated image is saved only as its
+    generator settings). Painted images that live in their own files are left alone."""
+    for scene in bpy.data.scenes:
+        settings = getattr(scene, "multiscale", None)
+        for item in settings.cameras if settings is not None else ():
+            for image in (item.mask, item.guide):
+                if image is None:
+                    continue
+                if image.is_dirty and (image.packed_file or image.source == "GENERATED"):
+                    image.pack()
+
+
 def register():
     for cls in CLASSES:
         bpy.utils.register_class(cls)
+    bpy.app.handlers.save_pre.append(repack_masks)
 
 
 def unregister():
+    if repack_masks in bpy.app.handlers.save_pre:
+        bpy.app.handlers.save_pre.remove(repack_masks)
     for cls in reversed(CLASSES):
         bpy.utils.unregister_class(cls)

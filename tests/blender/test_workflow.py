@@ -344,3 +344,27 @@ def test_paint_colour_is_white_where_blender_5_keeps_it_per_paint_mode(empty_sce
     _white(ts)
     for h in holders:
         assert tuple(h.color) == (1.0, 1.0, 1.0) and tuple(h.secondary_color) == (0, 0, 0)
+
+
+def test_painted_mask_survives_save_without_packing_by_hand(empty_scene, tmp_path):
+    scene = empty_scene
+    two_camera_scene(scene)
+    scene.multiscale.active_index = 1
+    bpy.ops.multiscale.mask_new(guide=False)
+    mask = scene.multiscale.cameras[1].mask
+    white = disk(48, 36, 6)
+    rgba = np.ones((36, 48, 4), np.float32)
+    rgba[..., :3] = white[::-1, :, None]
+    mask.pixels.foreach_set(rgba.ravel())  # as painting does: the packed copy is stale
+    made = bpy.data.images.new("made here", 48, 36)  # painted, never saved anywhere
+    ring = disk(48, 36, 0.3 * 48, inside=False)
+    rgba[..., :3] = ring[::-1, :, None]
+    made.pixels.foreach_set(rgba.ravel())
+    scene.multiscale.cameras[0].mask = made
+    bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "painted.blend"))
+    bpy.ops.wm.open_mainfile(filepath=str(tmp_path / "painted.blend"))
+    from multiscale_camera.adapters.scene import rig_from_scene
+
+    rig = rig_from_scene(bpy.context.scene)
+    np.testing.assert_array_equal(rig.masks[1], white)
+    np.testing.assert_array_equal(rig.masks[0], ring & ~white)
