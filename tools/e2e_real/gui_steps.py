@@ -248,6 +248,14 @@ def mask_check():
             area.tag_redraw()
 
 
+def save_copy():
+    """Save the painted file (run.sh reopens it to check the mask survived)."""
+    path = os.environ.get("E2E_SAVE")
+    if path:
+        bpy.ops.wm.save_as_mainfile(filepath=path, copy=True)
+        note("saved", path=path)
+
+
 STEPS = [
     ("setup", setup, 3.0),
     ("building shot", lambda: shot("building.png"), 1.0),
@@ -271,6 +279,7 @@ STEPS = [
     ("paint", paint_stroke, 2.0),
     ("mask check", mask_check, 3.0),
     ("paint shot", lambda: shot("mask_paint.png"), 1.0),
+    ("save", save_copy, 1.0),
 ]
 state = {"i": 0, "since": None}
 T0 = time.time()

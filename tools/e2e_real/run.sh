@@ -47,10 +47,23 @@ if [ "${E2E_GUI:-1}" = 1 ]; then
   # the newest zip, into the 5.2 user folder (its field cache stays)
   "$RB/run.sh" --command extension install-file -r user_default -e "$ZIP" | tail -1
   echo "== sid: the workflow in a window, screenshots in $SHOTS"
-  RB_ENV="SHOT_DIR=$SHOTS E2E_LOG=$OUT/gui-log.json" \
+  rm -f "$OUT/painted.blend"
+  RB_ENV="SHOT_DIR=$SHOTS E2E_LOG=$OUT/gui-log.json E2E_SAVE=$OUT/painted.blend" \
     "$RB/run.sh" "$REPO/sample_blends/demo.blend" --python "$REPO/tools/e2e_real/gui_steps.py" \
     > "$OUT/gui.log" 2>&1 || true
   "$RB/run.sh" --stop-xvfb
+  # the painted mask survives saving and reopening (no Image > Save)
+  unset RB_DISPLAY
+  "$RB/run.sh" -b "$OUT/painted.blend" --python-exit-code 1 --python-expr "$(cat <<'PY'
+import bpy, numpy as np, sys
+m = bpy.context.scene.multiscale.cameras[1].mask
+px = np.empty(m.size[0] * m.size[1] * 4, np.float32)
+m.pixels.foreach_get(px)
+white = int((px.reshape(-1, 4)[:, 0] > 0.5).sum())
+print("E2E_REOPENED", m.name, "packed" if m.packed_file else "not packed", white, "white pixels")
+sys.exit(0 if white > 0 and m.packed_file else 1)
+PY
+)" 2>&1 | grep E2E_REOPENED
   python3 - "$OUT/gui-log.json" <<'PY'
 import json, sys
 log = json.load(open(sys.argv[1]))
