@@ -134,6 +134,7 @@ def preview_lines(fld, per_side=12):
 # --- Blender side ------------------------------------------------------------------------
 
 # What the 3D viewport draws: preview_lines' dict (or frusta only), None when off.
+# ``_on_load`` (a load_post handler) resets it for each file opened.
 STATE = {"lines": None, "handler": None, "image_handler": None, "note": ""}
 
 
@@ -320,9 +321,25 @@ def _draw_image_guide():
     gpu.state.blend_set("NONE")
 
 
+def _on_load(*_args):
+    """After a file loads: forget the old file's lines; redraw for the new one if its
+    preview is on."""
+    import bpy
+
+    STATE["lines"], STATE["note"] = None, ""
+    scene = bpy.context.scene
+    if scene is not None and hasattr(scene, "multiscale") and scene.multiscale.show_preview:
+        update(scene)
+    else:
+        _remove_handler()
+
+
 def register():
     import bpy
 
+    if _on_load not in bpy.app.handlers.load_post:
+        # persistent: kept across file loads (it is what runs after them)
+        bpy.app.handlers.load_post.append(bpy.app.handlers.persistent(_on_load))
     if _gpu_available() and STATE["image_handler"] is None:
         STATE["image_handler"] = bpy.types.SpaceImageEditor.draw_handler_add(
             _draw_image_guide, (), "WINDOW", "POST_PIXEL"
@@ -332,6 +349,8 @@ def register():
 def unregister():
     import bpy
 
+    if _on_load in bpy.app.handlers.load_post:
+        bpy.app.handlers.load_post.remove(_on_load)
     _remove_handler()
     if STATE["image_handler"] is not None:
         bpy.types.SpaceImageEditor.draw_handler_remove(STATE["image_handler"], "WINDOW")

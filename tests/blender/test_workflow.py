@@ -368,3 +368,20 @@ def test_painted_mask_survives_save_without_packing_by_hand(empty_scene, tmp_pat
     rig = rig_from_scene(bpy.context.scene)
     np.testing.assert_array_equal(rig.masks[1], white)
     np.testing.assert_array_equal(rig.masks[0], ring & ~white)
+
+
+def test_preview_forgets_the_old_files_lines_on_load(empty_scene, cache_dir, tmp_path):
+    scene = empty_scene
+    two_camera_scene(scene)
+    scene.multiscale.show_preview = True
+    assert preview.STATE["lines"] is not None
+    scene.multiscale.show_preview = False
+    bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "off.blend"))
+    scene.multiscale.show_preview = True
+    bpy.ops.wm.open_mainfile(filepath=str(tmp_path / "off.blend"))  # its preview is off
+    assert preview.STATE["lines"] is None
+    bpy.context.scene.multiscale.show_preview = True
+    bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "on.blend"))
+    preview.STATE["lines"] = None
+    bpy.ops.wm.open_mainfile(filepath=str(tmp_path / "on.blend"))  # on: drawn again
+    assert preview.STATE["lines"]["count"] == 0 and len(preview.STATE["lines"]["frusta"])
