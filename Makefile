@@ -7,6 +7,7 @@
 #   make bench    speed and accuracy: solver, every method, the renderer, the Cycles hand-off,
 #                 volume ray casting: bench/*.json
 #   make lint     ruff
+#   make e2e-real the extension in real Blender 5.2 and 4.3, screenshots to docs/images/
 #
 # BLENDER defaults to tools/blender (Blender's command line on the bpy wheel);
 # point it at a real Blender to run the same tests there.
@@ -35,7 +36,7 @@ SAMPLE_SCRIPTS := $(wildcard sample_blends/*.py)
 RUN_SAMPLES := $(BLENDER) -b --factory-startup --python-exit-code 1 \
 	--python sample_blends/make_samples.py
 
-.PHONY: venv build test samples demo bench bench-render lint clean distclean
+.PHONY: venv build test samples demo bench bench-render lint clean distclean e2e-real
 
 venv: $(VENV_STAMP)
 
@@ -92,6 +93,12 @@ bench: venv bench-render
 # render time, cancel latency: bench/render.json.
 bench-render: venv
 	$(PY) bench/render.py --width 1920 --height 1080 --triangles 100000
+
+# The extension in real Blender 5.2 and 4.3 (../shared/tools/realblender; needs root, and
+# builds its chroots on first use): install, render, and a scripted run in a real window
+# whose screenshots land in docs/images/. Optional: not part of `make test`.
+e2e-real: build sample_blends/demo.blend
+	tools/e2e_real/run.sh
 
 lint: venv
 	$(PY) -m ruff check .

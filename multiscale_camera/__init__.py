@@ -7,9 +7,9 @@ pure-numpy ``core`` package imports without Blender.
 
 def _modules():
     from .render import engine
-    from .ui import operators, panels, properties, volume
+    from .ui import operators, panels, preview, properties, volume
 
-    return (properties, volume, operators, panels, engine)
+    return (properties, volume, operators, panels, preview, engine)
 
 
 def register():

@@ -55,3 +55,32 @@ def mask_from_image(image, width, height):
         )
         mask = resample_nearest(mask, width, height)
     return mask, notices
+
+
+def image_from_rgba(name, rgba, colorspace=None, pack=True):
+    """A Blender image (replacing one of the same name) from (H, W, 4) float RGBA, row 0 at
+    the top, packed into the .blend file so it survives save and reload."""
+    import bpy
+
+    h, w = rgba.shape[:2]
+    old = bpy.data.images.get(name)
+    if old is not None:
+        bpy.data.images.remove(old)
+    img = bpy.data.images.new(name, w, h, alpha=False, float_buffer=False)
+    if colorspace is not None:
+        try:
+            img.colorspace_settings.name = colorspace
+        except TypeError:  # a colour space this Blender does not know
+            pass
+    img.pixels.foreach_set(np.ascontiguousarray(rgba[::-1], dtype=np.float32).ravel())
+    if pack:
+        img.pack()
+    return img
+
+
+def new_mask_image(name, width, height):
+    """A black (nothing preserved) mask of ``width`` x ``height``, Non-Color, packed.
+    An image of that name is replaced."""
+    rgba = np.zeros((height, width, 4), dtype=np.float32)
+    rgba[..., 3] = 1.0
+    return image_from_rgba(name, rgba, colorspace="Non-Color")

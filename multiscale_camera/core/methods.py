@@ -37,7 +37,7 @@ from .harmonic import mask_weights
 from .nested import NestedDomain, ScaleField, choose_levels, solve_levels
 from .solvers import solve_membership
 from .trace import StopReason
-from .validate import check_rig, conflict_messages
+from .validate import check_rig, conflict_messages, guard_messages
 
 
 @dataclass(frozen=True)
@@ -168,19 +168,7 @@ def prepare_image_blend(rig, settings=None, should_stop=None):
 
 def guard_warnings(rig):
     """Warnings for camera pairs whose guides the guard shortened (see ``guides``)."""
-    w, h = rig.size
-    cx, cy = np.meshgrid(np.linspace(0.5, w - 0.5, 9), np.linspace(0.5, h - 0.5, 9))
-    shortened = build_guides(rig.cameras, cx.ravel(), cy.ravel(), rig.beta).shortened
-    out = []
-    for j, count in enumerate(shortened):
-        if count:
-            a, b = rig.cameras[j], rig.cameras[j + 1]
-            out.append(
-                f"Guides from '{a.name}' into '{b.name}' were shortened to keep them in front of "
-                f"'{b.name}' (beta x distance between near planes exceeds its near distance "
-                f"{b.clip_start:g}); move its near plane (Clip Start) farther from its eye"
-            )
-    return out
+    return guard_messages(rig)
 
 
 @dataclass
@@ -413,14 +401,18 @@ def field_grid(fld, settings):
     voxel budget caps the cell the accuracy target asks for."""
     choice = choose_grid(fld.rig, settings.accuracy_px, settings.max_voxels)
     if choice.capped:
-        fld.warnings.append(
-            f"The accuracy target of {settings.accuracy_px:g} px wants "
-            f"{choice.wanted_cell:.3g}-unit cells; the voxel budget allows "
-            f"{choice.grid.cell:.3g}: transitions near the smallest camera may be coarser "
-            "than asked (raise the quality, or move that camera's near plane farther from "
-            "its eye)"
-        )
+        fld.warnings.append(capped_message(settings, choice.wanted_cell, choice.grid.cell))
     return choice.grid
+
+
+def capped_message(settings, wanted, cell):
+    """The warning for a voxel budget that forced cells coarser than the target asks."""
+    return (
+        f"The accuracy target of {settings.accuracy_px:g} px wants {wanted:.3g}-unit cells; "
+        f"the voxel budget allows {cell:.3g}: transitions near the smallest camera may be "
+        "coarser than asked (raise the quality, or move that camera's near plane farther "
+        "from its eye)"
+    )
 
 
 def trace_field(fld, tracer, fill, settings, should_stop, levels=None):
@@ -514,12 +506,7 @@ def _prepare_nested(rig, settings, should_stop):
     across *= float(os.environ.get("ACROSS", "1"))
     levels = choose_levels(rig, settings.accuracy_px, settings.max_voxels, across, outer.bounds)
     if levels.capped:
-        fld.warnings.append(
-            f"The accuracy target of {settings.accuracy_px:g} px wants "
-            f"{levels.wanted_cell:.3g}-unit cells at the smallest camera; the voxel budget "
-            f"allows {levels.grids[-1].cell:.3g}: its transitions may be coarser than asked "
-            "(raise the quality)"
-        )
+        fld.warnings.append(capped_message(settings, levels.wanted_cell, levels.grids[-1].cell))
     families = [Family(rig.cameras, i, rig.beta) for i in range(len(rig.cameras))]
     solved = solve_levels(rig, levels.grids, families, fill_membership, should_stop)
     t1 = time.perf_counter()
@@ -582,6 +569,117 @@ def _trace_pixels(tracer, rig, ix, iy, step, max_steps, should_stop):
     return merge(parts, order, len(ix))
 
 
+# --- serialisation (the field cache on disk) -------------------------------------------
+
+# Version of the array layout below; a cache entry of another version is rebuilt.
+ARRAYS_VERSION = 1
+# Fields that belong to the base class or are rebuilt from the scene, not stored.
+# Not stored: the rig (the key is its digest), and what only re-tracing needs (nested
+# grids' membership and the step function): ``rays`` reads the traced rays alone.
+_NOT_STORED = ("rig", "domain", "step")
+
+
+def _field_classes():
+    from .strawmen import LinearField
+
+    return {cls.__name__: cls for cls in (TracedField, CurveBlendField, LinearField)}
+
+
+def field_to_arrays(fld):
+    """A prepared RayField as a flat dict of numpy arrays (for ``np.savez``).
+
+    The rig is not stored: the cache key is a digest of it, so whoever loads the field
+    already holds the same rig. A ``report`` attribute (the build report dict, set by
+    whoever measured the field) is kept too. Arrays keep their dtype and shape; the ``Traced`` rays
+    and the ``Grid`` are split into their arrays; everything else (method, timings,
+    warnings, stats, ints) goes into a JSON string under ``"meta"``.
+
+    Returns
+    -------
+    dict str -> np.ndarray.
+    """
+    import dataclasses
+    import json
+
+    from .field import Traced
+    from .grid import Grid
+
+    out = {}
+    meta = {"version": ARRAYS_VERSION, "class": type(fld).__name__, "plain": {}}
+    for f in dataclasses.fields(fld):
+        if f.name in _NOT_STORED:
+            continue
+        value = getattr(fld, f.name)
+        if isinstance(value, np.ndarray):
+            out[f"array.{f.name}"] = value
+        elif isinstance(value, Traced):
+            for t in dataclasses.fields(value):
+                part = getattr(value, t.name)
+                if t.name == "step" and part is None:  # a step that followed the cells
+                    part = np.nan
+                out[f"traced.{f.name}.{t.name}"] = np.asarray(part)
+        elif isinstance(value, Grid):
+            out[f"grid.{f.name}"] = np.concatenate(
+                [value.origin, [value.cell], np.asarray(value.shape, dtype=np.float64)]
+            )
+        else:
+            meta["plain"][f.name] = value
+    if getattr(fld, "report", None) is not None:  # the build report, when one was made
+        meta["report"] = fld.report
+    out["meta"] = np.frombuffer(
+        json.dumps(
+            meta, default=lambda o: o.item() if isinstance(o, np.generic) else str(o)
+        ).encode(),
+        dtype=np.uint8,
+    )
+    return out
+
+
+def field_from_arrays(arrays, rig):
+    """The RayField ``field_to_arrays`` stored, for ``rig`` (the rig it was built for).
+
+    Parameters
+    ----------
+    arrays : mapping str -> np.ndarray (a dict or an ``np.load`` result).
+    rig : Rig.
+
+    Raises
+    ------
+    ValueError when the arrays are of another layout version or an unknown class.
+    """
+    import json
+
+    from .field import Traced
+    from .grid import Grid
+
+    meta = json.loads(bytes(np.asarray(arrays["meta"], dtype=np.uint8)).decode())
+    if meta.get("version") != ARRAYS_VERSION:
+        raise ValueError(f"field arrays of version {meta.get('version')}, not {ARRAYS_VERSION}")
+    cls = _field_classes().get(meta.get("class"))
+    if cls is None:
+        raise ValueError(f"unknown field class {meta.get('class')!r}")
+    kwargs = dict(meta["plain"])
+    traced = {}
+    for key in arrays.keys():
+        kind, _, rest = key.partition(".")
+        if kind == "array":
+            kwargs[rest] = np.asarray(arrays[key])
+        elif kind == "grid":
+            g = np.asarray(arrays[key], dtype=np.float64)
+            kwargs[rest] = Grid(g[:3], float(g[3]), tuple(int(n) for n in g[4:7]))
+        elif kind == "traced":
+            name, _, part = rest.partition(".")
+            traced.setdefault(name, {})[part] = np.asarray(arrays[key])
+    for name, parts in traced.items():
+        step = float(parts["step"])
+        parts["step"] = None if np.isnan(step) else step
+        kwargs[name] = Traced(**parts)
+    fld = cls(rig=rig, **kwargs)
+    if "report" in meta:
+        fld.report = meta["report"]
+    return fld
+
+
 def _strawman(name):
     """A builder of ``strawmen``, imported on first use (it builds on this module)."""
 
@@ -599,6 +697,8 @@ METHODS = {
     "VECTOR_FIELD": _strawman("prepare_vector_field"),
     "SCALAR_FIELD": prepare_scalar_field,
 }
+
+
 def prepare_auto(rig, settings=None, should_stop=None):
     """AUTO: the cheapest method that meets the accuracy target on this rig.
 

@@ -169,37 +169,49 @@ def choose_levels(rig, accuracy_px, max_voxels, cells_across, outer_box):
     wanted = width / cells_across  # the cell each part of the bundle asks for
     finest = wanted.min()
     lo, hi = outer_box
-    scale = 1.0
-    capped = False
-    while True:
-        c0 = wanted[0] * scale
-        levels = int(max(0, np.ceil(np.log2(c0 / (finest * scale)) - 1e-9)))
-        boxes = []
-        for lev in range(1, levels + 1):
-            parent_cell = c0 / 2 ** (lev - 1)
-            need = wanted * scale < START_RATIO * parent_cell
-            # one sample either side of where the level is needed
-            need[:-1] |= need[1:].copy()
-            need[1:] |= need[:-1].copy()
-            sel = pts[need].reshape(-1, 3)
-            pad = MARGIN_CELLS * parent_cell / 2 + BAND_CELLS * parent_cell / 2
-            boxes.append((sel.min(0) - pad, sel.max(0) + pad))
-        # a child box must sit inside its parent: grow parents around their children,
-        # finest first, before laying out the aligned grids coarsest first
-        boxes.insert(0, (np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)))
-        for lev in range(len(boxes) - 2, -1, -1):
-            child_lo, child_hi = boxes[lev + 1]
-            keep = (MARGIN_CELLS + BAND_CELLS + 1) * c0 / 2**lev
-            b_lo, b_hi = boxes[lev]
-            boxes[lev] = (np.minimum(b_lo, child_lo - keep), np.maximum(b_hi, child_hi + keep))
-        grids = [Grid.from_bounds(*boxes[0], c0)]
-        for box_lo, box_hi in boxes[1:]:
-            grids.append(_aligned_child(grids[-1], box_lo, box_hi))
-        total = sum(g.size for g in grids)
-        if total <= max_voxels:
-            return Levels(tuple(grids), float(finest), capped)
-        scale *= 1.1
-        capped = True
+    most = int(max(0, np.ceil(np.log2(wanted[0] / finest) - 1e-9)))
+    # coarsen every level until the budget holds them; where even that cannot (each
+    # level keeps a few cells of margin), give up the finest level and try again
+    for levels in range(most, -1, -1):
+        for attempt in range(MAX_COARSENINGS + 1):
+            scale = 1.1**attempt
+            grids = _layout(pts, wanted, lo, hi, scale, levels)
+            if sum(g.size for g in grids) <= max_voxels:
+                capped = attempt > 0 or levels < most
+                return Levels(tuple(grids), float(finest), capped)
+    return Levels(tuple(grids[:1]), float(finest), True)
+
+
+# Times the cells may grow by 10% to fit the voxel budget before a level is given up.
+MAX_COARSENINGS = 40
+
+
+def _layout(pts, wanted, lo, hi, scale, levels):
+    """The aligned nested grids for cells ``scale`` times those wanted, with ``levels``
+    levels under the coarsest (see ``choose_levels``)."""
+    c0 = wanted[0] * scale
+    boxes = []
+    for lev in range(1, levels + 1):
+        parent_cell = c0 / 2 ** (lev - 1)
+        need = wanted * scale < START_RATIO * parent_cell
+        # one sample either side of where the level is needed
+        need[:-1] |= need[1:].copy()
+        need[1:] |= need[:-1].copy()
+        sel = pts[need].reshape(-1, 3)
+        pad = MARGIN_CELLS * parent_cell / 2 + BAND_CELLS * parent_cell / 2
+        boxes.append((sel.min(0) - pad, sel.max(0) + pad))
+    # a child box must sit inside its parent: grow parents around their children,
+    # finest first, before laying out the aligned grids coarsest first
+    boxes.insert(0, (np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)))
+    for lev in range(len(boxes) - 2, -1, -1):
+        child_lo, child_hi = boxes[lev + 1]
+        keep = (MARGIN_CELLS + BAND_CELLS + 1) * c0 / 2**lev
+        b_lo, b_hi = boxes[lev]
+        boxes[lev] = (np.minimum(b_lo, child_lo - keep), np.maximum(b_hi, child_hi + keep))
+    grids = [Grid.from_bounds(*boxes[0], c0)]
+    for box_lo, box_hi in boxes[1:]:
+        grids.append(_aligned_child(grids[-1], box_lo, box_hi))
+    return grids
 
 
 def _ramp(grid, points, band):

@@ -114,3 +114,42 @@ def to_json(report):
     return json.dumps(
         report, indent=1, default=lambda o: o.item() if isinstance(o, np.generic) else str(o)
     )
+
+
+def readable(report):
+    """The report as lines of text for people: the headline, then per camera and for the
+    build what each figure means."""
+    lines = [headline(report), ""]
+    for cam in report.get("cameras", []):
+        err, ang = cam["preserved_px"], cam["angle_deg"]
+        lines.append(
+            f"'{cam['name']}': {cam['pixels']} preserved pixels measured; error p50 "
+            f"{err['p50']:.2f}, p95 {err['p95']:.2f}, max {err['max']:.2f} px; angle p95 "
+            f"{ang['p95']:.2f} deg"
+        )
+    s = report.get("seconds", {})
+    lines.append("")
+    lines.append(
+        "Time: "
+        + ", ".join(f"{k} {s[k]:.1f} s" for k in ("fill", "solve", "tangents", "trace") if k in s)
+        + f" (total {s.get('total', 0.0):.1f} s{', cached' if report.get('cached') else ''})"
+    )
+    solver = report.get("solver", {})
+    lines.append(
+        f"Solver: {solver.get('iterations', 0)} iterations, residual "
+        f"{solver.get('residual', 0.0):.1e}, "
+        + ("converged" if solver.get("converged") else "NOT converged")
+    )
+    lines.append(
+        f"Grids: {', '.join('x'.join(map(str, g)) for g in report.get('grids', [])) or 'none'}"
+    )
+    lines.append(
+        f"Folds: {report.get('folds', 0)} (quads of neighbouring rays that cross)"
+        f"; stalled rays: {report.get('stalled', 0)}"
+    )
+    warnings = report.get("warnings", [])
+    if warnings:
+        lines.append("")
+        lines.append("Warnings:")
+        lines += [f"- {w}" for w in warnings]
+    return lines

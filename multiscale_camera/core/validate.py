@@ -71,3 +71,202 @@ def conflict_messages(names, overlaps):
                     "coherent (move one of the cameras, or shrink its mask)"
                 )
     return out
+
+
+# --- checks before a build (``preflight``) -----------------------------------------------
+
+# Pixels per side of the lattice the guard check samples (cheap enough for a panel redraw).
+GUARD_LATTICE = 9
+# Preserved pixels sampled per camera by the crossing and obstruction checks: enough to
+# find a crossing a few pixels wide at 1080p, a fraction of a second of work.
+MAX_CHECK_RAYS = 4000
+# Points sampled along each straight preserved ray by the crossing check.
+CROSSING_SAMPLES = 48
+# A crossing or an obstruction is reported once it touches this share of the sampled rays
+# (single rays graze mask edges through rounding).
+MIN_SHARE = 0.002
+
+
+def guard_pairs(cameras, beta, size):
+    """Indices j of consecutive pairs (j, j+1) whose guides the guard shortens: the
+    paper's handle beta L reaches behind camera j+1's eye (beta L >= d_{j+1}).
+
+    Parameters
+    ----------
+    cameras : sequence of PinholeCamera. beta : float. size : (width, height) pixels.
+
+    Returns
+    -------
+    list of int.
+    """
+    from .guides import build_guides
+
+    if len(cameras) < 2:
+        return []
+    w, h = size
+    cx, cy = np.meshgrid(
+        np.linspace(0.5, w - 0.5, GUARD_LATTICE), np.linspace(0.5, h - 0.5, GUARD_LATTICE)
+    )
+    shortened = build_guides(cameras, cx.ravel(), cy.ravel(), beta).shortened
+    return [j for j, count in enumerate(shortened) if count]
+
+
+def guard_message(a, b):
+    """The guard warning for cameras ``a`` -> ``b`` (PinholeCamera)."""
+    return (
+        f"Guides from '{a.name}' into '{b.name}' were shortened to keep them in front of "
+        f"'{b.name}' (beta x distance between near planes exceeds its near distance "
+        f"{b.clip_start:g}); move its near plane (Clip Start) farther from its eye"
+    )
+
+
+def guard_messages(rig):
+    """Guard warnings of a rig (one per shortened pair)."""
+    cams = rig.cameras
+    return [guard_message(cams[j], cams[j + 1]) for j in guard_pairs(cams, rig.beta, rig.size)]
+
+
+def empty_mask_messages(rig):
+    """Notes for intermediate cameras with an empty mask: legitimate (they only bend
+    rays), but worth a word in case the mask was forgotten."""
+    out = []
+    for i, cam in enumerate(rig.cameras[:-1]):
+        if i > 0 and not rig.masks[i].any():
+            out.append(
+                f"The mask of '{cam.name}' is empty: it only bends rays and shows nowhere "
+                "(paint it white where its view should be kept, if that was the intent)"
+            )
+    return out
+
+
+def sample_pixels(mask, limit=MAX_CHECK_RAYS):
+    """(ix, iy) int arrays: the pixels of ``mask`` ((H, W) bool), every k-th in each
+    direction so that at most about ``limit`` are taken."""
+    count = int(mask.sum())
+    stride = max(1, int(np.ceil(np.sqrt(count / limit)))) if count else 1
+    sub = np.zeros_like(mask)
+    sub[::stride, ::stride] = mask[::stride, ::stride]
+    iy, ix = np.nonzero(sub)
+    return ix, iy
+
+
+def _bending_box(rig):
+    """(lo, hi) world box of the bending stretch (the field grid's box)."""
+    from .field import choose_grid
+
+    grid = choose_grid(rig, 2.0, 32**3).grid
+    return grid.bounds
+
+
+def crossing_messages(rig):
+    """Warnings for cameras i and j >= i + 2 whose preserved views cross inside the
+    bending stretch's box: a point on a straight preserved ray of camera j (beyond its
+    near plane) that camera i also sees, beyond its own near plane, through a pixel of
+    its mask. Rays there would have to follow both cameras at once.
+
+    Returns
+    -------
+    list of str, one per crossing pair.
+    """
+    cams = rig.cameras
+    n = len(cams)
+    if n < 3:
+        return []
+    lo, hi = _bending_box(rig)
+    w, h = rig.size
+    out = []
+    for j in range(2, n):
+        ix, iy = sample_pixels(rig.masks[j])
+        if len(ix) == 0:
+            continue
+        cam = cams[j]
+        d = cam.directions(ix + 0.5, iy + 0.5)
+        start = cam.near_points(d)
+        # distance along each ray to where it leaves the box (slab method)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t1 = (lo - start) / d
+            t2 = (hi - start) / d
+        t_exit = np.nanmin(np.where(np.isnan(np.maximum(t1, t2)), np.inf, np.maximum(t1, t2)), 1)
+        t_exit = np.clip(t_exit, 0.0, cam.clip_end)
+        s = np.linspace(0.0, 1.0, CROSSING_SAMPLES)
+        pts = start[:, None] + d[:, None] * (t_exit[:, None, None] * s[None, :, None])
+        inside = ((pts >= lo) & (pts <= hi)).all(-1)
+        for i in range(j - 1):
+            pix, depth = cams[i].project(pts.reshape(-1, 3))
+            pix = pix.reshape(len(ix), CROSSING_SAMPLES, 2)
+            depth = depth.reshape(len(ix), CROSSING_SAMPLES)
+            px, py = np.floor(pix[..., 0]).astype(int), np.floor(pix[..., 1]).astype(int)
+            seen = inside & (depth > cams[i].clip_start) & (px >= 0) & (px < w)
+            seen &= (py >= 0) & (py < h)
+            seen[seen] = rig.masks[i][py[seen], px[seen]]
+            crossing = seen.any(axis=1)
+            if crossing.sum() > max(1, MIN_SHARE * len(ix)):
+                out.append(
+                    f"The preserved views of '{cams[i].name}' and '{cam.name}', which are "
+                    f"not neighbours in the list, cross ({100 * crossing.mean():.0f}% of the "
+                    f"checked rays of '{cam.name}'): rays there cannot follow both (shrink the "
+                    f"mask of '{cams[i].name}' away from where '{cam.name}' looks, or move "
+                    "one of the cameras)"
+                )
+    return out
+
+
+def bending_paths(rig, i, limit=MAX_CHECK_RAYS):
+    """The preserved rays of camera i (0-based, i >= 1) through the bending stretch.
+
+    Returns
+    -------
+    ix, iy : (P,) int, sampled pixels of camera i's mask.
+    stages : list of i arrays (P, S + 1, 3) float64, world units: the rays R_i from
+        camera j's near plane to camera j+1's, for j = 0 .. i-1 (S vertices a stage).
+    """
+    from .guides import DEFAULT_SEGMENTS, build_guides, curved_rays
+
+    ix, iy = sample_pixels(rig.masks[i], limit)
+    if len(ix) == 0:
+        return ix, iy, []
+    g = build_guides(rig.cameras, ix + 0.5, iy + 0.5, rig.beta)
+    rays = curved_rays(g, DEFAULT_SEGMENTS)[i]
+    s = DEFAULT_SEGMENTS
+    return ix, iy, [rays[:, j * s : (j + 1) * s + 1] for j in range(i)]
+
+
+def obstruction_messages(rig, cast):
+    """Warnings for geometry that stands on preserved rays between consecutive near
+    planes: it would hide the smaller camera's view in the multiscale image.
+
+    Parameters
+    ----------
+    rig : Rig.
+    cast : callable ``cast(vertices) -> (hit, names)``: for polylines ``vertices``
+        (P, K, 3) float64, ``hit`` (P,) bool, whether a polyline meets geometry, and
+        ``names`` a list of the names of the objects met.
+
+    Returns
+    -------
+    list of str, at most one per camera: the first stage its rays are blocked in.
+    """
+    cams = rig.cameras
+    out = []
+    for i in range(1, len(cams)):
+        ix, _iy, stages = bending_paths(rig, i)
+        for j, verts in enumerate(stages):
+            hit, names = cast(verts)
+            if hit.sum() > max(0, MIN_SHARE * len(ix)):
+                what = ", ".join(f"'{n}'" for n in sorted(set(names))[:3]) or "Geometry"
+                out.append(
+                    f"{what} stands between the near planes of '{cams[j].name}' and "
+                    f"'{cams[j + 1].name}' on {100 * hit.mean():.0f}% of the preserved rays "
+                    f"of '{cams[i].name}': it hides what '{cams[i].name}' sees there (lower "
+                    f"the Clip Start of '{cams[j + 1].name}' so its near plane lies before "
+                    "the object, or move the camera or the object)"
+                )
+                break
+    return out
+
+
+def preflight(rig):
+    """The checks that need no scene geometry, for ``multiscale.validate`` and before a
+    build: raises ``RigError`` (turns over 90 degrees); returns warnings (order of
+    scales, guard, empty masks, crossing frusta), each naming the camera and the fix."""
+    return check_rig(rig) + guard_messages(rig) + empty_mask_messages(rig) + crossing_messages(rig)

@@ -70,6 +70,21 @@ class MultiscaleRenderEngine(bpy.types.RenderEngine):
         self.report({"ERROR"}, message)
         self.error_set(message)
 
+    # --- the viewport's Rendered shading (render/viewport.py) ---------------------------
+
+    def view_update(self, context, depsgraph):
+        self._viewport().update()
+
+    def view_draw(self, context, depsgraph):
+        self._viewport().draw(self, context, depsgraph)
+
+    def _viewport(self):
+        from . import viewport
+
+        if getattr(self, "_view", None) is None:
+            self._view = viewport.ViewDraw()
+        return self._view
+
     def update_render_passes(self, scene=None, renderlayer=None):
         for name, channels, chan_id, kind in pipeline.PASSES:
             self.register_pass(scene, renderlayer, name, channels, chan_id, kind)

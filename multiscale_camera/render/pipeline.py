@@ -12,6 +12,8 @@ from ..adapters.scene import rig_from_scene
 from ..core.fingerprint import field_key
 from ..core.methods import prepare, settings_for
 from ..core.sampling import DEFAULT_TOLERANCE_PX, RaySampler, sample_offsets
+from ..core.validate import crossing_messages, empty_mask_messages
+from ..io import cache
 from .raycast import march
 from .shade import shade
 from .volume import FrameVolumes, composite_volumes, prepare_volumes
@@ -74,14 +76,9 @@ class Frame:
         return self.rig.size
 
 
-# Built fields kept for reuse, newest last: a field depends only on the rig and the
-# settings, so moving a light or editing a material renders again without a rebuild.
-_FIELDS = {}
-KEEP_FIELDS = 2
-
-
 def build_field(scene, should_stop=None):
-    """The scene's ray field, from the cache when the rig and settings are unchanged.
+    """The scene's ray field, from the field cache (``io.cache``: memory, then disk) when
+    the rig and settings are unchanged.
 
     ``scene`` should be an evaluated scene (``depsgraph.scene``), so that object
     matrices are current.
@@ -94,20 +91,24 @@ def build_field(scene, should_stop=None):
     rig = rig_from_scene(scene)
     settings = settings_for(settings_group.quality, settings_group.accuracy_px)
     key = field_key(rig, settings_group.method, settings)
-    if key in _FIELDS:
-        _FIELDS[key] = _FIELDS.pop(key)
-        return _FIELDS[key], False
+    cache.CACHE.limit_mb = float(getattr(settings_group, "cache_limit_mb", cache.DEFAULT_LIMIT_MB))
+    # checks before each build that the methods do not make themselves
+    notices = list(rig.notices) + empty_mask_messages(rig) + crossing_messages(rig)
+    fld = cache.CACHE.get(key, rig)
+    if fld is not None:
+        fld.notices = notices
+        return fld, False
     fld = prepare(rig, settings_group.method, settings, should_stop)
-    fld.notices = list(rig.notices)
-    _FIELDS[key] = fld
-    while len(_FIELDS) > KEEP_FIELDS:
-        _FIELDS.pop(next(iter(_FIELDS)))
+    fld.notices = notices
+    failed = cache.CACHE.put(key, fld)
+    if failed:
+        fld.notices.append(failed)
     return fld, True
 
 
 def clear_fields():
-    """Forget every cached field."""
-    _FIELDS.clear()
+    """Forget every cached field (memory and disk)."""
+    cache.CACHE.clear()
 
 
 def prepare_frame(depsgraph, should_stop=None):
@@ -149,6 +150,11 @@ def prepare_frame(depsgraph, should_stop=None):
     if not lights and len(geometry):
         notices.append(NO_LIGHTS)
     world = scene_world(scene, notices)
+    if built:  # geometry in the bending stretch hides a camera's view: say so once
+        from ..core.validate import obstruction_messages
+        from .checks import geometry_cast
+
+        notices += obstruction_messages(rig, geometry_cast(geometry, tree))
     t3 = time.perf_counter()
     settings = scene.multiscale
     tol = getattr(settings, "simplify_px", DEFAULT_TOLERANCE_PX)

@@ -36,8 +36,10 @@ class MULTISCALE_UL_cameras(bpy.types.UIList):
             row.alert = True
             row.prop(item, "camera", text="", icon="ERROR")
         else:
-            row.prop(item, "camera", text="", emboss=False, icon="CAMERA_DATA")
-        row.label(text="", icon="IMAGE_DATA" if item.mask is not None else "BLANK1")
+            row.label(
+                text=item.camera.name if item.mask is not None else f"{item.camera.name} (no mask)"
+            )
+        draw_item_buttons(row, item, index)
 
 
 class MULTISCALE_PT_main(bpy.types.Panel):
@@ -64,8 +66,7 @@ class MULTISCALE_PT_main(bpy.types.Panel):
             item = settings.cameras[settings.active_index]
             box = layout.box()
             box.prop(item, "camera")
-            box.template_ID(item, "mask", new="image.new", open="image.open")
-            draw_transfer_function(box, item)
+            draw_camera_settings(box, context, item)
         col = layout.column(align=True)
         col.prop(settings, "method")
         col.prop(settings, "quality")
@@ -84,16 +85,162 @@ class MULTISCALE_PT_main(bpy.types.Panel):
         report = _report(settings)
         if report is not None:
             box = layout.box()
-            box.label(text=headline(report), icon="INFO")
-            for warning in report.get("warnings", [])[:4]:
-                box.label(text=warning, icon="ERROR")
+            draw_headline(box, report, wrap_width(context))
+            box.operator("multiscale.report_show", icon="TEXT")
         row = layout.row()
         row.scale_y = 1.4
         row.operator("multiscale.render", icon="RENDER_STILL")
         layout.operator("multiscale.export_rays", icon="EXPORT")
 
 
-CLASSES = (MULTISCALE_UL_cameras, MULTISCALE_PT_main)
+def wrap_width(context):
+    """Characters of label text that fit the region's width (about 7 px a character at
+    UI scale 1, less the icon and the margins)."""
+    region = getattr(context, "region", None)
+    width = region.width if region is not None else 300
+    scale = context.preferences.system.ui_scale if context.preferences else 1.0
+    return max(20, int((width - 60) / (6.5 * scale)))
+
+
+def draw_headline(layout, report, chars=44):
+    """The report's headline on two lines and its warnings, wrapped to ``chars``."""
+    line = headline(report)
+    method, _, rest = line.partition(": ")
+    col = layout.column(align=True)
+    col.label(text=f"{method}{' (cached)' if report.get('cached') else ''}", icon="INFO")
+    col.label(text=rest, icon="BLANK1")
+    warnings = report.get("warnings", [])
+    for warning in warnings[:3]:
+        col = layout.column(align=True)
+        for k, text in enumerate(_wrap(warning, chars)[:4]):
+            col.label(text=text, icon="ERROR" if k == 0 else "BLANK1")
+    if len(warnings) > 3:
+        layout.label(text=f"{len(warnings) - 3} more in the full report", icon="BLANK1")
+
+
+def shading_option_shown():
+    """The Cycles hand-off needs the OSL custom camera of Blender 4.5+: hidden before."""
+    from ..render.cycles import unsupported_reason
+
+    return unsupported_reason() is None
+
+
+def draw_item_buttons(row, item, index):
+    """Select and look-through buttons of a camera list row."""
+    if item.camera is None:
+        return
+    op = row.operator("multiscale.camera_select", text="", icon="RESTRICT_SELECT_OFF", emboss=False)
+    op.index = index
+    op = row.operator("multiscale.camera_view", text="", icon="VIEW_CAMERA", emboss=False)
+    op.index = index
+
+
+def guard_cameras(context):
+    """Names of the cameras whose near distance breaks the guide guard (the handle from
+    the previous camera would reach behind their eye); empty when the rig cannot tell."""
+    from ..adapters.cameras import pinhole_from_object
+    from ..core.validate import guard_pairs
+
+    settings = context.scene.multiscale
+    objs = [i.camera for i in settings.cameras]
+    if len(objs) < 2 or any(o is None or o.type != "CAMERA" for o in objs):
+        return set()
+    try:
+        cams = [pinhole_from_object(o, context.scene) for o in objs]
+        pairs = guard_pairs(cams, settings.beta, (cams[0].width, cams[0].height))
+    except Exception:  # a rig validation explains; the panel only hints
+        return set()
+    return {cams[j + 1].name for j in pairs}
+
+
+def draw_camera_settings(layout, context, item):
+    """Near distance (with the guard warning), mask, guide, transfer function of the
+    active list item."""
+    obj = item.camera
+    if obj is not None and obj.type == "CAMERA":
+        row = layout.row()
+        broken = obj.name in guard_cameras(context)
+        row.alert = broken
+        row.prop(obj.data, "clip_start", text="Near Distance")
+        if broken:
+            col = layout.column(align=True)
+            col.alert = True
+            col.label(text="Too close to the eye for the guides:", icon="ERROR")
+            col.label(text="raise Near Distance (or lower Beta)")
+    layout.template_ID(item, "mask", new="multiscale.mask_new", open="image.open")
+    row = layout.row(align=True)
+    row.operator("multiscale.mask_new", icon="FILE_NEW")
+    row.operator("multiscale.mask_paint", icon="BRUSH_DATA")
+    if item.guide is not None:
+        layout.label(text=f"Guide: {item.guide.name}", icon="IMAGE_REFERENCE")
+    draw_transfer_function(layout, item)
+
+
+def _validation(settings):
+    try:
+        found = json.loads(settings.validation) if settings.validation else []
+    except ValueError:
+        return []
+    return found if isinstance(found, list) else []
+
+
+class MULTISCALE_PT_validation(bpy.types.Panel):
+    bl_label = "Checks"
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "Multiscale"
+    bl_parent_id = "MULTISCALE_PT_main"
+
+    def draw(self, context):
+        layout = self.layout
+        found = _validation(context.scene.multiscale)
+        if not context.scene.multiscale.validation:
+            layout.label(text="Not checked yet: Check Rig", icon="QUESTION")
+        elif not found:
+            layout.label(text="No problems found", icon="CHECKMARK")
+        for entry in found:
+            icon = "CANCEL" if entry.get("level") == "ERROR" else "ERROR"
+            col = layout.column(align=True)
+            col.alert = entry.get("level") == "ERROR"
+            for k, line in enumerate(_wrap(str(entry.get("text", "")), wrap_width(context))):
+                col.label(text=line, icon=icon if k == 0 else "BLANK1")
+
+
+def _wrap(text, width):
+    import textwrap
+
+    return textwrap.wrap(text, width) or [""]
+
+
+class MULTISCALE_PT_preview(bpy.types.Panel):
+    bl_label = "Preview and Cache"
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "Multiscale"
+    bl_parent_id = "MULTISCALE_PT_main"
+    bl_options = {"DEFAULT_CLOSED"}
+
+    def draw(self, context):
+        from . import preview
+
+        settings = context.scene.multiscale
+        layout = self.layout
+        row = layout.row(align=True)
+        row.prop(settings, "show_preview", icon="LIGHT_SUN", toggle=True)
+        row.prop(settings, "preview_rays", text="Rays")
+        if settings.show_preview and preview.STATE["note"]:
+            layout.label(text=preview.STATE["note"], icon="INFO")
+        row = layout.row(align=True)
+        row.prop(settings, "cache_limit_mb", text="Cache (MB)")
+        row.operator("multiscale.cache_clear", icon="TRASH")
+
+
+CLASSES = (
+    MULTISCALE_UL_cameras,
+    MULTISCALE_PT_main,
+    MULTISCALE_PT_validation,
+    MULTISCALE_PT_preview,
+)
 
 
 def register():

@@ -43,6 +43,23 @@ SHADING_ITEMS = [
 ]
 
 
+def _preview_toggled(self, context):
+    from . import preview
+
+    preview.update(context.scene)
+
+
+def _pack_mask(self, _context):
+    """Keep a mask loaded from a file (PNG, EXR, ... from another tool) inside the .blend,
+    so the render does not depend on the file staying where it was."""
+    image = self.mask
+    if image is not None and image.packed_file is None and image.source == "FILE":
+        try:
+            image.pack()
+        except RuntimeError as err:  # a missing file: the rig check reports the mask
+            print(f"Multiscale: mask '{image.name}' could not be packed ({err})")
+
+
 def _poll_camera(_self, obj):
     return obj.type == "CAMERA"
 
@@ -58,11 +75,17 @@ class MultiscaleCameraItem(bpy.types.PropertyGroup):
         name="Mask",
         type=bpy.types.Image,
         description="White where this camera's view is preserved in the final image",
+        update=_pack_mask,
     )
     transfer_function: PointerProperty(
         name="Transfer Function",
         type=bpy.types.Texture,
         description="Colour ramp from density to colour and opacity, for volumes",
+    )
+    guide: PointerProperty(
+        name="Guide",
+        type=bpy.types.Image,
+        description="This camera's own view, shown under the mask while it is painted",
     )
 
 
@@ -123,6 +146,32 @@ class MultiscaleSettings(bpy.types.PropertyGroup):
         name="Volume Shading",
         default=True,
         description="Shade volume samples by the data's gradient (a light at the eye)",
+    )
+    validation: StringProperty(
+        name="Validation",
+        default="",
+        description="JSON list of the messages of the last check of the rig",
+    )
+    cache_limit_mb: IntProperty(
+        name="Cache Limit",
+        default=2048,
+        min=16,
+        max=1 << 20,
+        description="Size limit of the field cache on disk, megabytes (oldest fields go first)",
+    )
+    show_preview: BoolProperty(
+        name="Ray Preview",
+        default=False,
+        description="Draw a sparse grid of the bent rays and the chained frusta in the viewport",
+        update=_preview_toggled,
+    )
+    preview_rays: IntProperty(
+        name="Preview Rays",
+        default=12,
+        min=2,
+        max=64,
+        description="Rays drawn per image side in the ray preview",
+        update=_preview_toggled,
     )
 
 

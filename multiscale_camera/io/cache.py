@@ -1,0 +1,197 @@
+"""The field cache: built ray fields kept in memory and on disk, keyed by ``field_key``.
+
+A field depends only on the cameras, the masks, the method and its settings (the digest
+``core.fingerprint.field_key``), so moving a light or editing a material renders again
+without a rebuild, and a field built yesterday is still good today. Fields live
+
+- in memory: the ``KEEP_IN_MEMORY`` newest, for renders in a row;
+- on disk: one ``<key>.npz`` per field (``core.methods.field_to_arrays``) in the
+  extension's user folder (``bpy.utils.extension_path_user(__package__, "cache")``),
+  the least recently used removed first once the folder outgrows its size limit.
+
+Only ``default_folder`` touches bpy; the rest is plain Python and numpy.
+"""
+
+import os
+import tempfile
+import zipfile
+
+import numpy as np
+
+from ..core.methods import field_from_arrays, field_to_arrays
+
+# Fields kept in memory, newest last: two covers a render after a preview build.
+KEEP_IN_MEMORY = 2
+# Default size limit of the disk cache, megabytes: a few 1080p three-camera fields.
+DEFAULT_LIMIT_MB = 2048
+# Environment variable that overrides the cache folder (scripts, tests, farms).
+FOLDER_ENV = "MULTISCALE_CACHE_DIR"
+SUFFIX = ".npz"
+
+
+def default_folder():
+    """The cache folder: $MULTISCALE_CACHE_DIR, else the extension's user folder
+    ``cache`` (created), else (the package loaded as a plain add-on) ``multiscale_camera/
+    cache`` in Blender's user config folder."""
+    env = os.environ.get(FOLDER_ENV)
+    if env:
+        os.makedirs(env, exist_ok=True)
+        return env
+    import bpy
+
+    package = __package__.rpartition(".")[0]  # the package, not its io module
+    try:
+        return bpy.utils.extension_path_user(package, path="cache", create=True)
+    except ValueError:  # not installed as an extension
+        folder = os.path.join(bpy.utils.user_resource("CONFIG"), "multiscale_camera", "cache")
+        os.makedirs(folder, exist_ok=True)
+        return folder
+
+
+class FieldCache:
+    """Ray fields by key, in memory and in ``folder`` on disk.
+
+    Parameters
+    ----------
+    folder : str or None, the disk cache (None: memory only, or ``default_folder()``
+        on first use when ``lazy_folder``).
+    limit_mb : float, size limit of the disk cache, megabytes.
+
+    Attributes
+    ----------
+    hits, misses : int, counted by ``get`` (a hit in memory or on disk, or a miss).
+    disk_hits : int, the hits read from disk.
+    """
+
+    def __init__(self, folder=None, limit_mb=DEFAULT_LIMIT_MB, lazy_folder=False):
+        self._folder = folder
+        self._lazy = lazy_folder and folder is None
+        self.limit_mb = float(limit_mb)
+        self.memory = {}
+        self.hits = self.misses = self.disk_hits = 0
+
+    @property
+    def folder(self):
+        if self._folder is None and self._lazy:
+            self._folder = default_folder()
+        return self._folder
+
+    def path(self, key):
+        return os.path.join(self.folder, key + SUFFIX)
+
+    def get(self, key, rig):
+        """The field stored under ``key`` (for ``rig``, the rig it was built from), or
+        None. A disk entry that cannot be read is removed and counts as a miss."""
+        if key in self.memory:
+            self.memory[key] = self.memory.pop(key)
+            self.hits += 1
+            return self.memory[key]
+        fld = self._read(key, rig) if self.folder else None
+        if fld is None:
+            self.misses += 1
+            return None
+        self.hits += 1
+        self.disk_hits += 1
+        self._remember(key, fld)
+        return fld
+
+    def put(self, key, fld):
+        """Keep ``fld`` under ``key`` in memory and on disk (then trim to the limit).
+        A disk that refuses the write leaves the memory entry; the error is returned
+        as a message (None when all went well)."""
+        self._remember(key, fld)
+        if not self.folder:
+            return None
+        try:
+            self._write(key, fld)
+        except OSError as err:
+            return f"The field cache could not be written ({err}); builds are not kept on disk"
+        self.trim()
+        return None
+
+    def _remember(self, key, fld):
+        self.memory.pop(key, None)
+        self.memory[key] = fld
+        while len(self.memory) > KEEP_IN_MEMORY:
+            self.memory.pop(next(iter(self.memory)))
+
+    def _write(self, key, fld):
+        arrays = field_to_arrays(fld)
+        os.makedirs(self.folder, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(suffix=SUFFIX, dir=self.folder)
+        try:
+            with os.fdopen(fd, "wb") as out:
+                np.savez(out, **arrays)
+            os.replace(tmp, self.path(key))
+        except BaseException:
+            if os.path.exists(tmp):
+                os.remove(tmp)
+            raise
+
+    def _read(self, key, rig):
+        path = self.path(key)
+        if not os.path.isfile(path):
+            return None
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                fld = field_from_arrays({k: data[k] for k in data.files}, rig)
+        except (OSError, ValueError, KeyError, TypeError, zipfile.BadZipFile):
+            os.remove(path)
+            return None
+        os.utime(path)  # least recently used goes first
+        return fld
+
+    def entries(self):
+        """[(path, bytes, mtime)] of the disk cache, oldest first."""
+        folder = self.folder
+        if not folder or not os.path.isdir(folder):
+            return []
+        out = []
+        for name in os.listdir(folder):
+            if name.endswith(SUFFIX):
+                p = os.path.join(folder, name)
+                try:
+                    st = os.stat(p)
+                except OSError:
+                    continue
+                out.append((p, st.st_size, st.st_mtime))
+        return sorted(out, key=lambda e: e[2])
+
+    def size_bytes(self):
+        """Bytes the disk cache holds."""
+        return sum(size for _p, size, _t in self.entries())
+
+    def trim(self, limit_mb=None):
+        """Remove the least recently used disk entries until the cache fits its limit
+        (the newest entry stays even if it alone is larger). Returns the files removed."""
+        limit = (self.limit_mb if limit_mb is None else float(limit_mb)) * 1e6
+        entries = self.entries()
+        total = sum(e[1] for e in entries)
+        removed = 0
+        for p, size, _t in entries[:-1]:
+            if total <= limit:
+                break
+            try:
+                os.remove(p)
+            except OSError:
+                continue
+            total -= size
+            removed += 1
+        return removed
+
+    def clear(self, disk=True):
+        """Forget every field in memory and (``disk``) on disk. Returns files removed."""
+        self.memory.clear()
+        removed = 0
+        if disk:
+            for p, _size, _t in self.entries():
+                try:
+                    os.remove(p)
+                    removed += 1
+                except OSError:
+                    pass
+        return removed
+
+
+# The cache the engine and the operators share; its folder is found on first use.
+CACHE = FieldCache(lazy_folder=True)

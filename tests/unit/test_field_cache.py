@@ -1,0 +1,149 @@
+"""Ray fields survive a trip to disk, and the disk cache keeps, finds and trims them."""
+
+import os
+
+import numpy as np
+import pytest
+
+from multiscale_camera.core.fingerprint import field_key
+from multiscale_camera.core.methods import (
+    Settings,
+    field_from_arrays,
+    field_to_arrays,
+    prepare,
+)
+from multiscale_camera.core.rig import Rig
+from multiscale_camera.io.cache import FieldCache
+
+from .rigs import two_camera_rig
+
+SETTINGS = Settings(2.0, 48**3)
+
+
+def all_rays(fld):
+    w, h = fld.rig.size
+    iy, ix = np.mgrid[0:h, 0:w]
+    return fld.rays(ix.ravel(), iy.ravel()), fld.exit_index(ix.ravel(), iy.ravel())
+
+
+@pytest.fixture(scope="module")
+def rig():
+    cams, masks = two_camera_rig(40, 30)
+    return Rig(cams, masks)
+
+
+@pytest.mark.parametrize("method", ["SCALAR_FIELD", "IMAGE_BLEND", "LINEAR"])
+def test_round_trip_through_npz_hands_out_identical_rays(rig, method, tmp_path):
+    fld = prepare(rig, method, SETTINGS)
+    path = tmp_path / "f.npz"
+    np.savez(path, **field_to_arrays(fld))
+    with np.load(path, allow_pickle=False) as data:
+        back = field_from_arrays({k: data[k] for k in data.files}, rig)
+    assert type(back) is type(fld) and back.method == fld.method
+    assert back.warnings == fld.warnings and back.grids == fld.grids
+    assert back.stats == fld.stats and back.solver == fld.solver
+    a, ea = all_rays(fld)
+    b, eb = all_rays(back)
+    for name in ("vertices", "membership", "pixels", "start_depth", "reach"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+    if ea is None:
+        assert eb is None
+    else:
+        np.testing.assert_array_equal(ea, eb)
+
+
+def test_a_nested_field_survives_the_disk_cache(rig, tmp_path):
+    """A field on nested grids holds a step function and the levels' membership, which
+    the npz cannot (and rays do not) need: its rays come back identical."""
+    from dataclasses import replace
+
+    fld = prepare(rig, "SCALAR_FIELD", replace(SETTINGS, nested=True))
+    assert fld.domain is not None and fld.traced.step is None
+    path = tmp_path / "f.npz"
+    np.savez(path, **field_to_arrays(fld))
+    with np.load(path, allow_pickle=False) as data:
+        back = field_from_arrays({k: data[k] for k in data.files}, rig)
+    assert back.traced.step is None and back.domain is None
+    np.testing.assert_array_equal(all_rays(fld)[0].vertices, all_rays(back)[0].vertices)
+
+
+def test_unknown_version_is_refused(rig):
+    arrays = field_to_arrays(prepare(rig, "IMAGE_BLEND", SETTINGS))
+    arrays["meta"] = np.frombuffer(b'{"version": 99, "class": "x", "plain": {}}', np.uint8)
+    with pytest.raises(ValueError, match="field arrays of version 99, not 1"):
+        field_from_arrays(arrays, rig)
+
+
+def test_disk_cache_hit_after_restart_miss_after_change_and_trim(rig, tmp_path):
+    key = field_key(rig, "IMAGE_BLEND", SETTINGS)
+    fld = prepare(rig, "IMAGE_BLEND", SETTINGS)
+    cache = FieldCache(str(tmp_path))
+    assert cache.get(key, rig) is None and cache.misses == 1
+    assert cache.put(key, fld) is None
+    assert os.path.isfile(tmp_path / f"{key}.npz")
+    # a fresh cache (another Blender session) reads it from disk
+    again = FieldCache(str(tmp_path))
+    got = again.get(key, rig)
+    assert got is not None and (again.hits, again.disk_hits, again.misses) == (1, 1, 0)
+    np.testing.assert_array_equal(got.weights, fld.weights)
+    assert again.get(key, rig) is got and again.disk_hits == 1  # then from memory
+    # another mask: another key, a miss
+    masks = rig.masks.copy()
+    masks[1, 10, 10] = not masks[1, 10, 10]
+    other = Rig(rig.cameras, masks)
+    assert field_key(other, "IMAGE_BLEND", SETTINGS) != key
+    assert again.get(field_key(other, "IMAGE_BLEND", SETTINGS), other) is None
+    # size limit: the oldest entry goes first, the newest always stays
+    size = os.path.getsize(tmp_path / f"{key}.npz")
+    again.put("b" * 40, fld)
+    os.utime(tmp_path / f"{key}.npz", (1, 1))
+    again.limit_mb = 1.5 * size / 1e6
+    assert again.trim() == 1
+    assert sorted(os.listdir(tmp_path)) == ["b" * 40 + ".npz"]
+    assert again.clear() == 1 and os.listdir(tmp_path) == [] and again.memory == {}
+
+
+def test_a_damaged_entry_is_a_miss_and_is_removed(rig, tmp_path):
+    key = field_key(rig, "IMAGE_BLEND", SETTINGS)
+    (tmp_path / f"{key}.npz").write_bytes(b"not a zip")
+    cache = FieldCache(str(tmp_path))
+    assert cache.get(key, rig) is None and cache.misses == 1
+    assert not (tmp_path / f"{key}.npz").exists()
+
+
+def test_put_creates_a_missing_cache_folder(rig, tmp_path):
+    folder = tmp_path / "not" / "there"
+    cache = FieldCache(str(folder))
+    assert cache.put("k" * 40, prepare(rig, "IMAGE_BLEND", SETTINGS)) is None
+    assert (folder / ("k" * 40 + ".npz")).is_file()
+
+
+def test_the_build_report_travels_with_the_field(rig):
+    fld = prepare(rig, "IMAGE_BLEND", SETTINGS)
+    assert not hasattr(field_from_arrays(field_to_arrays(fld), rig), "report")
+    fld.report = {"version": 1, "folds": 3, "cameras": [{"name": "C1"}]}
+    back = field_from_arrays(field_to_arrays(fld), rig)
+    assert back.report == fld.report
+
+
+def test_an_unwritable_cache_says_so_and_keeps_the_field_in_memory(rig, tmp_path):
+    blocker = tmp_path / "file"
+    blocker.write_text("not a folder")
+    cache = FieldCache(str(blocker))
+    fld = prepare(rig, "IMAGE_BLEND", SETTINGS)
+    said = cache.put("k" * 40, fld)
+    assert said.startswith("The field cache could not be written (")
+    assert said.endswith("); builds are not kept on disk")
+    assert cache.get("k" * 40, rig) is fld
+
+
+def test_voxel_budget_capping_the_accuracy_target_is_explained(rig):
+    import re
+
+    fld = prepare(rig, "SCALAR_FIELD", Settings(0.05, 24**3))
+    pattern = (
+        r"The accuracy target of 0\.05 px wants [0-9.e-]+-unit cells; the voxel budget allows "
+        r"[0-9.e-]+: transitions near the smallest camera may be coarser than asked \(raise "
+        r"the quality, or move that camera's near plane farther from its eye\)"
+    )
+    assert any(re.fullmatch(pattern, w) for w in fld.warnings), fld.warnings
