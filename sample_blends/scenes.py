@@ -452,7 +452,7 @@ def build_demo(scene):
 
 GALLEON_SIZE = (640, 360)
 # The teapot the pirate holds out over the rail of the crow's nest: every camera looks here.
-GALLEON_TEAPOT = (1.1, -0.35, 27.55)
+GALLEON_TEAPOT = (1.1, -0.35, 19.55)
 # Mask radii as fractions of the image width: camera 3 owns the disk, camera 2 the
 # ring, camera 1 the outside.
 GALLEON_RADII = {"cam3": 0.08, "cam2_inner": 0.14, "cam2_outer": 0.22, "cam1": 0.3}
@@ -485,13 +485,13 @@ def _text_object(scene, name, body, size, rgb, pass_index, location, rotation):
 def build_galleon(scene):
     """Fill an empty ``scene`` with the paper's galleon, about 1000x from end to end.
 
-    A 40 m ship with three masts; in the crow's nest of the main mast, 26 m up, a
+    A 60 m ship with three masts; in the crow's nest of the main mast, 18 m up, a
     pirate holds a 12 cm teapot out over the rail, its band lettered in 8 mm type.
-    Cameras, largest scale first, all aimed at the teapot: "Cam1 Galleon" 150 m away
-    (near plane 60 m from its eye, 43 m wide), "Cam2 Pirate" 4.8 m away (near plane
-    1.9 m, 1.37 m wide), "Cam3 Teapot" 15 cm away (near plane 6 cm, 4.3 cm wide):
-    about 31.6x per step, 1000x from the first near plane to the last. One uniform grid
-    cannot hold that; SCALAR_FIELD builds nested grids for it at any quality.
+    Cameras, largest scale first, all aimed at the teapot: "Cam1 Galleon" 90 m away
+    with a 35 mm lens (near plane 36 m from its eye, 37 m wide), "Cam2 Pirate" 4 m away
+    (near plane 1.62 m, 1.17 m wide), "Cam3 Teapot" 13 cm away (near plane 5.1 cm,
+    3.7 cm wide): about 31.6x per step, 1000x from the first near plane to the last.
+    One uniform grid cannot hold that; SCALAR_FIELD builds nested grids for it.
     """
     width, height = GALLEON_SIZE
     _setup_render(scene, width, height)
@@ -505,10 +505,10 @@ def build_galleon(scene):
     skin, porcelain, gold = (0.85, 0.62, 0.48), (0.93, 0.93, 0.97), (0.95, 0.75, 0.2)
     # the sea and the ship
     _mesh_object(scene, "Sea", _box, (0.1, 0.3, 0.45), 1, (0, 0, -1.0), scale=(400, 400, 1))
-    _mesh_object(scene, "Hull", _sphere, wood, 10, (0, 0, 2.0), scale=(20, 6, 4), smooth=True)
-    _mesh_object(scene, "Deck", _box, dark, 11, (0, 0, 4.6), scale=(34, 9, 0.4))
-    _mesh_object(scene, "Stern Castle", _box, wood, 12, (-14, 0, 7.0), scale=(8, 8, 5))
-    for n, (x, height_m) in enumerate(((-8.0, 20.0), (0.0, 26.0), (9.0, 18.0))):
+    _mesh_object(scene, "Hull", _sphere, wood, 10, (0, 0, 2.0), scale=(30, 8, 4), smooth=True)
+    _mesh_object(scene, "Deck", _box, dark, 11, (0, 0, 4.6), scale=(52, 12, 0.4))
+    _mesh_object(scene, "Stern Castle", _box, wood, 12, (-22, 0, 7.0), scale=(10, 11, 5))
+    for n, (x, height_m) in enumerate(((-13.0, 15.0), (0.0, 18.0), (13.0, 13.0))):
         _mesh_object(
             scene,
             f"Mast {n + 1}",
@@ -529,13 +529,13 @@ def build_galleon(scene):
                 scale=(0.2, 10 - 3 * k, 0.28 * height_m),
             )
     # the crow's nest on the main mast and the pirate in it
-    _mesh_object(scene, "Crow's Nest", _torus(1.0, 0.08), dark, 40, (0, 0, 26.6))
-    _mesh_object(scene, "Nest Floor", _cylinder(), dark, 40, (0, 0, 25.6), scale=(1.0, 1.0, 0.1))
+    _mesh_object(scene, "Crow's Nest", _torus(1.0, 0.08), dark, 40, (0, 0, 18.6))
+    _mesh_object(scene, "Nest Floor", _cylinder(), dark, 40, (0, 0, 17.6), scale=(1.0, 1.0, 0.1))
     _mesh_object(
-        scene, "Pirate Body", _cylinder(0.22, 0.18), cloth, 41, (0.2, 0, 26.3), scale=(1, 1, 1.3)
+        scene, "Pirate Body", _cylinder(0.22, 0.18), cloth, 41, (0.2, 0, 18.3), scale=(1, 1, 1.3)
     )
     _mesh_object(
-        scene, "Pirate Head", _sphere, skin, 42, (0.2, 0, 27.15), scale=(0.13,) * 3, smooth=True
+        scene, "Pirate Head", _sphere, skin, 42, (0.2, 0, 19.15), scale=(0.13,) * 3, smooth=True
     )
     _mesh_object(
         scene,
@@ -543,7 +543,7 @@ def build_galleon(scene):
         _cylinder(0.2, 0.05),
         (0.05, 0.05, 0.05),
         43,
-        (0.2, 0, 27.32),
+        (0.2, 0, 19.32),
         scale=(1, 1, 0.15),
     )
     x, y, z = GALLEON_TEAPOT
@@ -553,7 +553,7 @@ def build_galleon(scene):
         _cylinder(0.05, 0.045),
         skin,
         44,
-        ((0.2 + x) / 2, y / 2, (26.7 + z - 0.08) / 2),
+        ((0.2 + x) / 2, y / 2, (18.7 + z - 0.08) / 2),
         rotation=(0, 62, -18),
         scale=(1, 1, 1.05),
     )
@@ -588,9 +588,9 @@ def build_galleon(scene):
 
     target = GALLEON_TEAPOT
     cams = [
-        _camera(scene, "Cam1 Galleon", target, 150.0, 0.0, 12.0, clip_start=60.0),
-        _camera(scene, "Cam2 Pirate", target, 4.8, 10.0, 15.0, clip_start=1.9),
-        _camera(scene, "Cam3 Teapot", target, 0.15, 20.0, 15.0, clip_start=0.06),
+        _camera(scene, "Cam1 Galleon", target, 90.0, 0.0, 10.0, clip_start=36.0, lens=35.0),
+        _camera(scene, "Cam2 Pirate", target, 4.0, 10.0, 15.0, clip_start=1.62),
+        _camera(scene, "Cam3 Teapot", target, 0.13, 20.0, 15.0, clip_start=0.051),
     ]
     radii = {k: v * width for k, v in GALLEON_RADII.items()}
     _add_cameras(scene, list(zip(cams, _ring_masks(cams, width, height, radii))))
