@@ -73,13 +73,40 @@ def test_when_no_process_can_start_tiles_render_in_process(empty_scene, monkeypa
     two_camera_scene(empty_scene, 64, 48)
     monkeypatch.setattr(workers, "MIN_RAYS", 0)
 
-    class NoPool:
-        def Pool(self, *args, **kwargs):  # noqa: N802 (multiprocessing's name)
-            raise OSError(11, "Resource temporarily unavailable")
+    def no_pool(*args, **kwargs):
+        raise OSError(11, "Resource temporarily unavailable")
 
-    monkeypatch.setattr(workers, "fork_context", lambda: NoPool())
+    monkeypatch.setattr(workers, "ProcessPoolExecutor", no_pool)
     frame = frame_of(empty_scene)
     out = collect(frame, 2)
     assert sorted(out) == pipeline.tiles(frame)
     assert frame.rays == 64 * 48
     assert workers._FRAME is None
+
+
+@pytest.mark.skipif(workers.fork_context() is None, reason="no fork on this platform")
+def test_a_dead_worker_does_not_hang_the_render(empty_scene, monkeypatch):
+    """A worker that dies (here: every one, at its first tile) used to leave the pool
+    waiting forever; the tiles now finish in Blender's process, with a notice."""
+    two_camera_scene(empty_scene, 64, 48)
+    monkeypatch.setattr(workers, "MIN_RAYS", 0)
+    monkeypatch.setattr(pipeline, "rows_per_tile", lambda width, rays=0, samples=1: 8)
+    frame = frame_of(empty_scene)
+    alone = collect(frame, 1)
+    monkeypatch.setattr(workers, "_render_tile", _die)
+    rescued = collect(frame, 2)
+    assert list(rescued) == list(alone)
+    for rows in alone:
+        np.testing.assert_array_equal(rescued[rows]["Combined"], alone[rows]["Combined"])
+    assert workers.WORKER_DIED in frame.notices
+
+
+def test_workers_are_opt_in():
+    assert workers.worker_count(0) == 1 and workers.worker_count(3) == 3
+
+
+def _die(rows):
+    """A worker's tile that kills its process (picklable by name, as pool tasks must be)."""
+    import os
+
+    os._exit(3)
