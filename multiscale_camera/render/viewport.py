@@ -42,18 +42,15 @@ def preview_image(frame, max_width=VIEW_MAX_WIDTH):
     (h, w, 4) float32 linear RGBA, row 0 at the top: pixel (j, i) is the render's pixel
     (iy[j], ix[i]) of ``preview_pixels``.
     """
-    from .raycast import march
-    from .shade import shade
+    from .pipeline import _cast_and_shade, _rgba
 
     ix, iy = preview_pixels(frame.size, max_width)
     gy, gx = np.meshgrid(iy, ix, indexing="ij")
-    bundle = frame.field.rays(gx.ravel(), gy.ravel())
-    hits = march(frame.tree, bundle)
-    colour, _normal = shade(
-        frame.geometry, hits, frame.lights, frame.world, frame.tree, frame.scale
-    )
-    alpha = np.where(hits.hit | (not frame.transparent), 1.0, 0.0).astype(np.float32)
-    rgba = np.concatenate([colour * alpha[:, None], alpha[:, None]], axis=1)
+    gx, gy = gx.ravel(), gy.ravel()
+    # each shown pixel's own ray, as the render casts it (one sample at its centre)
+    seg = frame.sampler.segments(gx + 0.5, gy + 0.5, gx, gy)
+    hits, shaded = _cast_and_shade(frame, seg, None)
+    rgba = _rgba(frame, hits, shaded)
     return rgba.reshape(len(iy), len(ix), 4).astype(np.float32)
 
 
