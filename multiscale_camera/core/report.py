@@ -10,8 +10,9 @@ from .metrics import bending_active, measured_pixels, preserved_error, quad_fold
 VERSION = 1
 
 
-# Rays per chunk when counting folds: bounds memory (chunk x K x 12 bytes per array).
-FOLD_CHUNK_RAYS = 65536
+# Ray vertices per chunk when counting folds: bounds memory (quad_folds holds about ten
+# float64 (rays, K, 3) arrays: about half a GB at this size, whatever K is).
+FOLD_CHUNK_VERTICES = 1 << 21
 # Images up to this many pixels are checked quad by quad; larger ones on every other
 # pixel in each direction (a fold narrower than two pixels is then missed).
 FULL_FOLD_PIXELS = 1 << 20
@@ -28,7 +29,9 @@ def fold_map(fld):
     stride = 1 if w * h <= FULL_FOLD_PIXELS else 2
     xs = np.unique(np.append(np.arange(0, w, stride), w - 1))
     ys = np.unique(np.append(np.arange(0, h, stride), h - 1))
-    rows = max(2, FOLD_CHUNK_RAYS // len(xs))
+    traced = getattr(fld, "traced", None)
+    k = traced.vertices.shape[1] if traced is not None else 64
+    rows = max(2, FOLD_CHUNK_VERTICES // (len(xs) * k))
     out = np.zeros((max(len(ys) - 1, 0), max(len(xs) - 1, 0)), dtype=bool)
     last = fld.rig.cameras[-1]
     for r0 in range(0, len(ys) - 1, rows - 1):
