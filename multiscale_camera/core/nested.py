@@ -236,6 +236,8 @@ class NestedDomain:
     ----------
     grids : sequence of Grid, coarsest first (``Levels.grids``).
     fields : sequence of (nx, ny, nz) float arrays, the membership on each grid.
+    scale : ScaleField or None, what the trace's step follows (``cell_at``).
+    cells_across : float, cells wanted across the scale (``choose_levels``).
     """
 
     def __init__(self, grids, fields, scale=None, cells_across=1.0):
@@ -243,9 +245,7 @@ class NestedDomain:
         self.scale = scale
         self.cells_across = float(cells_across)
         self.samplers = [FieldSampler(g, f) for g, f in zip(grids, fields)]
-        self.fields = [s.rows[:, 0].reshape(g.shape) for s, g in zip(self.samplers, grids)]
         self.bands = [BAND_CELLS * g.cell for g in self.grids]
-        self.log_cells = [np.log(g.cell) for g in self.grids]
 
     @property
     def finest_cell(self):

@@ -97,13 +97,13 @@ def three_camera_rig(width=192, height=108):
     return (c1, c2, c3), masks
 
 
-def _chain(distances, clips, turns, width, height, target=(0.0, 0.0, 0.5)):
+def _chain(distances, clips, turns, width, height, target=(0.0, 0.0, 0.5), elevation=25):
     """Cameras looking at ``target`` from ``distances``, turned ``turns`` degrees about it,
     with near planes at ``clips``."""
     return tuple(
         camera(
             f"C{n + 1}",
-            orbit(target, d, t, 25),
+            orbit(target, d, t, elevation),
             target,
             width,
             height,
@@ -141,9 +141,10 @@ def zoom1000_rig(width=192, height=108):
 
 
 def turn100_rig(width=192, height=108):
-    """Two cameras, the second four times closer and turned 100 degrees about the subject:
-    past what the guides can bend (validation refuses it)."""
-    cams = _chain((20.0, 5.0), (8.0, 2.5), (0, 100), width, height)
+    """Two cameras, the second four times closer and turned 100 degrees about the subject
+    (level with it, so their views turn by 100 degrees): past what the guides can bend
+    (validation refuses it)."""
+    cams = _chain((20.0, 5.0), (8.0, 2.5), (0, 100), width, height, elevation=0)
     return cams, disk_masks(width, height, 0.2 * width, 0.35 * width)
 
 
