@@ -11,6 +11,7 @@ from mathutils import Vector
 from mathutils.geometry import barycentric_transform, intersect_point_tri
 
 from multiscale_camera.adapters.masks import mask_from_image
+from multiscale_camera.core.metrics import erode
 from multiscale_camera.render.pipeline import MISS_DEPTH
 from tests.exr import read_passes
 
@@ -192,16 +193,6 @@ class Reference:
             out[x, y] = self.shade(d, loc, nor, face, obj, matrix) if hit else Vector(WORLD)
             self.depth[x, y] = (loc - eye).length if hit else MISS_DEPTH
         return out
-
-
-def erode(mask, pixels=2):
-    out = mask.copy()
-    for _ in range(pixels):
-        m = out.copy()
-        out[1:-1, 1:-1] = m[1:-1, 1:-1] & m[:-2, 1:-1] & m[2:, 1:-1] & m[1:-1, :-2] & m[1:-1, 2:]
-        out[[0, -1], :] = False
-        out[:, [0, -1]] = False
-    return out
 
 
 def psnr(image, reference):

@@ -7,6 +7,7 @@ import sys
 import numpy as np
 import pytest
 
+from multiscale_camera.core.metrics import erode
 from tests.conftest import REPO
 from tests.exr import read_passes
 
@@ -48,16 +49,6 @@ for item in scene.multiscale.cameras:
     result[cam.name] = index.tolist()
 json.dump(result, open(out, "w"))
 """
-
-
-def erode(mask, pixels=2):
-    out = mask.copy()
-    for _ in range(pixels):
-        m = out.copy()
-        out[1:-1, 1:-1] = m[1:-1, 1:-1] & m[:-2, 1:-1] & m[2:, 1:-1] & m[1:-1, :-2] & m[1:-1, 2:]
-        out[[0, -1], :] = False
-        out[:, [0, -1]] = False
-    return out
 
 
 @pytest.mark.e2e

@@ -8,6 +8,7 @@ from scipy.ndimage import map_coordinates
 from multiscale_camera.core import volume as V
 from multiscale_camera.core.camera import pixel_centres
 from multiscale_camera.core.methods import prepare
+from multiscale_camera.core.metrics import erode
 from multiscale_camera.core.rig import Rig
 
 from . import rigs
@@ -191,16 +192,6 @@ def test_box_to_index_places_voxel_centres_in_cells():
     vol = V.ScalarVolume(np.zeros((4, 2, 8), np.float32), m)
     assert vol.voxel_size == pytest.approx(0.5)
     np.testing.assert_allclose(vol.corners().min(0), [0, 1, 1])
-
-
-def erode(mask, pixels=2):
-    out = mask.copy()
-    for _ in range(pixels):
-        m = out.copy()
-        out[1:-1, 1:-1] = m[1:-1, 1:-1] & m[:-2, 1:-1] & m[2:, 1:-1] & m[1:-1, :-2] & m[1:-1, 2:]
-        out[[0, -1], :] = False
-        out[:, [0, -1]] = False
-    return out
 
 
 def slab_volume(shape=(48, 48, 10), seed=5):
