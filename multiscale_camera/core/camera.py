@@ -128,8 +128,10 @@ class PinholeCamera:
         lx = np.asarray(px, dtype=np.float64) * ax + bx
         ly = np.asarray(py, dtype=np.float64) * ay + by
         r = self.rotation
-        d = np.stack([r[k, 0] * lx + r[k, 1] * ly - r[k, 2] for k in range(3)], axis=-1)
-        d /= np.sqrt(lx * lx + ly * ly + 1.0)[..., None]
+        d = np.empty((*np.broadcast(lx, ly).shape, 3))
+        inv = 1.0 / np.sqrt(lx * lx + ly * ly + 1.0)
+        for k in range(3):
+            d[..., k] = (r[k, 0] * lx + r[k, 1] * ly - r[k, 2]) * inv
         return d
 
     def near_points(self, directions):

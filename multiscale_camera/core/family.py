@@ -181,7 +181,7 @@ class Family:
         u[rest], v[rest] = projections[0][0][rest, 0], projections[0][0][rest, 1]
         return u, v, tau
 
-    def invert(self, points, u, v, tau, iterations=8):
+    def invert(self, points, u, v, tau, iterations=8, scale=None):
         """Newton's method for (u, v, tau) with R_i(u, v, tau) = point.
 
         Parameters
@@ -189,7 +189,9 @@ class Family:
         points : (P, 3) float64 world points.
         u, v, tau : (P,) float64 starting values (``start`` or a nearby solution).
         iterations : int, at most this many steps; points already within
-            ``NEWTON_TOLERANCE`` stop early.
+            ``NEWTON_TOLERANCE`` of ``scale`` stop early.
+        scale : (P,) float64 world lengths or None (camera i's near distance), the
+            local scale the tolerance is a fraction of (see ``solve``).
 
         Returns
         -------
@@ -201,7 +203,7 @@ class Family:
         active = np.arange(len(points))
         error = np.full(len(points), np.inf)
         tangent = np.zeros((len(points), 3))
-        tol = NEWTON_TOLERANCE * self.scale
+        tol = np.broadcast_to(NEWTON_TOLERANCE * (self.scale if scale is None else scale), (len(points),))
         for it in range(iterations + 1):
             last = it == iterations
             if last or it % JACOBIAN_EVERY:
@@ -212,7 +214,7 @@ class Family:
             err = np.sqrt(dot3(r, r))
             error[active] = err
             tangent[active] = t
-            keep = err > tol
+            keep = err > tol[active]
             if last or not keep.any():
                 break
             active, r, t, ju, jv = active[keep], r[keep], t[keep], ju[keep], jv[keep]
@@ -246,14 +248,16 @@ class Family:
         """
         points = np.asarray(points, dtype=np.float64)
         scale = self.scale if scale is None else scale
-        u, v, tau, err, tangent = self.invert(points, u, v, tau, iterations)
+        u, v, tau, err, tangent = self.invert(points, u, v, tau, iterations, scale)
         miss = np.flatnonzero(~(err <= RETRY_TOLERANCE * scale))
         if len(miss):
             first = self.cameras[0]
             x, y = first.project(points[miss])[0].T
             # tau from the distances to the near planes, not where the missed run went
             t0 = self.start(points[miss])[2]
-            u2, v2, t2, err2, tan2 = self.invert(points[miss], x, y, t0, RETRY_ITERATIONS)
+            u2, v2, t2, err2, tan2 = self.invert(
+                points[miss], x, y, t0, RETRY_ITERATIONS, np.broadcast_to(scale, err.shape)[miss]
+            )
             better = err2 < np.nan_to_num(err[miss], nan=np.inf)
             sel = miss[better]
             u[sel], v[sel], tau[sel], err[sel], tangent[sel] = (
@@ -274,6 +278,17 @@ class Family:
         return u, v, tau, out, int(lost.sum())
 
 
+def cross3(a, b):
+    """Row-wise cross product of (P, 3) arrays (``np.cross`` moves axes on every call)."""
+    out = np.empty(np.broadcast_shapes(a.shape, b.shape))
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    out[..., 0] = a1 * b2 - a2 * b1
+    out[..., 1] = a2 * b0 - a0 * b2
+    out[..., 2] = a0 * b1 - a1 * b0
+    return out
+
+
 def solve3(a, b, c, r):
     """Solve [a b c] x = r for many 3x3 systems by Cramer's rule.
 
@@ -285,10 +300,12 @@ def solve3(a, b, c, r):
     -------
     (P, 3) float64; rows of singular systems are zero.
     """
-    bc = np.cross(b, c)
+    bc = cross3(b, c)
     det = dot3(a, bc)
     safe = np.where(np.abs(det) > 1e-300, det, np.inf)
-    return (
-        np.stack([dot3(r, bc), dot3(a, np.cross(r, c)), dot3(a, np.cross(b, r))], axis=-1)
-        / safe[:, None]
-    )
+    out = np.empty_like(bc)
+    out[:, 0] = dot3(r, bc)
+    out[:, 1] = dot3(r, cross3(c, a))
+    out[:, 2] = dot3(r, cross3(a, b))
+    out /= safe[:, None]
+    return out

@@ -501,9 +501,6 @@ def _prepare_nested(rig, settings, should_stop):
     t0 = time.perf_counter()
     outer = choose_grid(rig, settings.accuracy_px, 1 << 62).grid
     across = max(MIN_CELLS_ACROSS_NEAR, CELLS_ACROSS_NEAR_PER_PX / settings.accuracy_px)
-    import os
-
-    across *= float(os.environ.get("ACROSS", "1"))
     levels = choose_levels(rig, settings.accuracy_px, settings.max_voxels, across, outer.bounds)
     if levels.capped:
         fld.warnings.append(capped_message(settings, levels.wanted_cell, levels.grids[-1].cell))

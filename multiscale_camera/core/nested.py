@@ -214,21 +214,6 @@ def _layout(pts, wanted, lo, hi, scale, levels):
     return grids
 
 
-def _ramp(grid, points, band):
-    """(P,) float64 in [0, 1]: 0 outside the box of ``grid``'s centres and on its faces,
-    rising smoothly (smoothstep) to 1 at ``band`` world units inside."""
-    lo, hi = grid.bounds
-    p = np.asarray(points, dtype=np.float64)
-    inside = None
-    for a in range(3):  # per column: a reduction over a length-3 axis is slow
-        c = p[:, a]
-        d = np.minimum(c - lo[a], hi[a] - c)
-        inside = d if inside is None else np.minimum(inside, d, out=inside)
-    s = np.clip(inside / band, 0.0, 1.0)
-    s[np.isnan(s)] = 0.0
-    return s * s * (3.0 - 2.0 * s)
-
-
 class NestedDomain:
     """Membership on nested grids, read as one continuous field.
 
@@ -244,8 +229,25 @@ class NestedDomain:
         self.grids = tuple(grids)
         self.scale = scale
         self.cells_across = float(cells_across)
-        self.samplers = [FieldSampler(g, f) for g, f in zip(grids, fields)]
-        self.bands = [BAND_CELLS * g.cell for g in self.grids]
+        self.bands = np.array([BAND_CELLS * g.cell for g in self.grids])
+        # every level's values in one flat float32 array, read by one gather per
+        # corner whatever level each point reads (``_read``)
+        shapes = np.array([g.shape for g in self.grids], dtype=np.intp)
+        sizes = shapes.prod(axis=1)
+        self.values = np.concatenate(
+            [np.ascontiguousarray(f, dtype=np.float32).ravel() for f in fields]
+        )
+        self.offsets = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.intp)
+        self.origins = np.array([g.origin for g in self.grids], dtype=np.float64)
+        self.inv_cells = np.array([1.0 / g.cell for g in self.grids])
+        self.tops = (shapes - 1).astype(np.float64)
+        self.lasts = np.maximum(shapes - 2, 0)
+        strides = np.stack([shapes[:, 1] * shapes[:, 2], shapes[:, 2], np.ones_like(sizes)], 1)
+        self.strides = strides
+        self.steps = strides * (shapes > 1)
+        bounds = [g.bounds for g in self.grids]
+        self.lo = np.array([b[0] for b in bounds])
+        self.hi = np.array([b[1] for b in bounds])
 
     @property
     def finest_cell(self):
@@ -255,28 +257,81 @@ class NestedDomain:
         """(P,) bool: inside the outermost box (the modelled volume)."""
         return self.grids[0].contains(points)
 
-    def _blend(self, points, coarse, finer):
-        """Start from ``coarse`` (P,) and blend in ``finer(level, sel)`` (values on the
-        points ``sel`` of level ``level``) by each level's ramp, coarsest first."""
-        out = coarse
-        # the boxes are nested: only points inside a level's box can be inside its child's
-        cand = np.arange(len(points))
+    def _depth(self, points):
+        """The finest level whose ramp is positive at each point, and that ramp.
+
+        Boxes nest with a level's box at least its parent's band inside the parent's
+        faces (``_aligned_child``), so where a level's ramp is positive its parent's is
+        1: N there is that level's value blended into its parent's alone.
+
+        Returns
+        -------
+        level : (P,) int64, 0 where no finer box holds the point (NaN points too).
+        ramp : (P,) float64 in (0, 1], that level's ramp (1 on level 0).
+        """
+        n = len(points)
+        level = np.zeros(n, dtype=np.int64)
+        inside = np.zeros(n)
         for lev in range(1, len(self.grids)):
-            r = _ramp(self.grids[lev], points[cand], self.bands[lev])
-            keep = r > 0
-            cand, r = cand[keep], r[keep]
-            if not len(cand):
+            lo, hi = self.lo[lev], self.hi[lev]
+            d = None
+            for a in range(3):  # per column: a reduction over a length-3 axis is slow
+                c = points[:, a]
+                e = np.minimum(c - lo[a], hi[a] - c)
+                d = e if d is None else np.minimum(d, e, out=d)
+            deeper = d > 0
+            if not deeper.any():
                 break
-            out[cand] += r * (finer(lev, cand) - out[cand])
-        return out
+            level[deeper] = lev
+            inside[deeper] = d[deeper]
+        s = np.clip(inside / self.bands[level], 0.0, 1.0)
+        s[level == 0] = 1.0
+        return level, s * s * (3.0 - 2.0 * s)
+
+    def _read(self, points, level):
+        """Trilinear N of level ``level[p]`` at each point ``points[p]``: (P,) float64.
+        As ``grid.sample``: clamped to each level's box of centres."""
+        idx = (points - self.origins[level]) * self.inv_cells[level][:, None]
+        np.maximum(idx, 0.0, out=idx)
+        np.minimum(idx, self.tops[level], out=idx)
+        with np.errstate(invalid="ignore"):  # NaN points: corner 0, NaN weights
+            corner = idx.astype(np.intp)
+        np.minimum(corner, self.lasts[level], out=corner)
+        np.maximum(corner, 0, out=corner)
+        f = idx - corner
+        strides, steps = self.strides[level], self.steps[level]
+        base = self.offsets[level] + corner[:, 0] * strides[:, 0]
+        base += corner[:, 1] * strides[:, 1]
+        base += corner[:, 2]
+        fx, fy, fz = f[:, 0], f[:, 1], f[:, 2]
+        sx, sy, sz = steps[:, 0], steps[:, 1], steps[:, 2]
+        vals = self.values
+        # lerp along z, then y, then x
+        z00 = vals[base] + fz * (vals[base + sz] - vals[base])
+        b = base + sy
+        z01 = vals[b] + fz * (vals[b + sz] - vals[b])
+        b = base + sx
+        z10 = vals[b] + fz * (vals[b + sz] - vals[b])
+        b += sy
+        z11 = vals[b] + fz * (vals[b + sz] - vals[b])
+        y0 = z00 + fy * (z01 - z00)
+        y1 = z10 + fy * (z11 - z10)
+        return y0 + fx * (y1 - y0)
 
     def sample(self, points):
-        """Membership N at ``points`` ((P, 3) world units): (P,) float32."""
+        """Membership N at ``points`` ((P, 3) world units): (P,) float32.
+
+        Each level's value is blended into its parent's by its ramp, coarsest first;
+        with the boxes nested (``_depth``) that is at most two trilinear reads a point:
+        the finest level holding it and, inside that level's band, its parent."""
         points = np.asarray(points, dtype=np.float64)
-        out = self.samplers[0](points).astype(np.float64)
-        return self._blend(points, out, lambda lev, sel: self.samplers[lev](points[sel])).astype(
-            np.float32
-        )
+        level, ramp = self._depth(points)
+        out = self._read(points, level)
+        blend = np.flatnonzero(ramp < 1.0)
+        if len(blend):
+            parent = self._read(points[blend], level[blend] - 1)
+            out[blend] = parent + ramp[blend] * (out[blend] - parent)
+        return out.astype(np.float32)
 
     def cell_at(self, points):
         """The cell the accuracy target asks for at ``points`` ((P, 3) world units):

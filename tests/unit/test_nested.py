@@ -7,6 +7,7 @@ import pytest
 
 from multiscale_camera.core.family import Family
 from multiscale_camera.core.field import choose_grid, fill_membership, scheduled_rays
+from multiscale_camera.core.grid import sample
 from multiscale_camera.core.methods import prepare, settings_for
 from multiscale_camera.core.nested import (
     BAND_CELLS,
@@ -58,6 +59,32 @@ def test_a_level_agrees_with_its_parent_on_its_boundary(levels_of_three_cameras)
         want = parent.sample(grid.centres()[shell])
         np.testing.assert_allclose(got, want, atol=1e-6)
     assert domain.sample(levels.grids[-1].centres(flat=True)[:10]).dtype == np.float32
+
+
+def test_membership_reads_two_levels_as_the_full_blend_over_all_levels(
+    levels_of_three_cameras,
+):
+    """N read from the finest level holding a point (and its parent in that level's
+    band) equals blending every level into its parent, coarsest first."""
+    _rig, levels, solved = levels_of_three_cameras
+    domain = NestedDomain(levels.grids, solved.fields)
+    rng = np.random.default_rng(3)
+    pts = []
+    for grid in levels.grids:
+        lo, hi = grid.bounds
+        pad = 4 * grid.cell
+        pts.append(lo - pad + rng.random((4000, 3)) * (hi - lo + 2 * pad))
+    pts = np.concatenate(pts)
+    want = sample(levels.grids[0], solved.fields[0], pts).astype(np.float64)
+    for grid, field in zip(levels.grids[1:], solved.fields[1:]):
+        lo, hi = grid.bounds
+        inside = np.minimum(pts - lo, hi - pts).min(axis=1)
+        s = np.clip(inside / (BAND_CELLS * grid.cell), 0.0, 1.0)
+        ramp = s * s * (3.0 - 2.0 * s)
+        want += ramp * (sample(grid, field, pts) - want)
+    got = domain.sample(pts)
+    assert (domain._depth(pts)[1] < 1).any() and (domain._depth(pts)[0] > 1).any()
+    np.testing.assert_allclose(got, want, atol=2e-6)
 
 
 def test_membership_has_no_seam_where_levels_meet(levels_of_three_cameras):
