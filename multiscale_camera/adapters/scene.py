@@ -13,6 +13,23 @@ EMPTY_LIST = (
 )
 
 
+def processes_of(scene):
+    """Worker processes the scene's Render > Performance > Threads asks for: its count
+    when Fixed, else 0 (one per core)."""
+    render = scene.render
+    return int(render.threads) if render.threads_mode == "FIXED" else 0
+
+
+def field_settings(scene):
+    """The core ``Settings`` of the scene's quality, accuracy target and threads."""
+    from dataclasses import replace
+
+    from ..core.methods import settings_for
+
+    s = scene.multiscale
+    return replace(settings_for(s.quality, s.accuracy_px), processes=processes_of(scene))
+
+
 def rig_from_scene(scene):
     """Build the rig from ``scene.multiscale``.
 

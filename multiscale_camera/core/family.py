@@ -203,7 +203,8 @@ class Family:
         active = np.arange(len(points))
         error = np.full(len(points), np.inf)
         tangent = np.zeros((len(points), 3))
-        tol = np.broadcast_to(NEWTON_TOLERANCE * (self.scale if scale is None else scale), (len(points),))
+        tol = NEWTON_TOLERANCE * (self.scale if scale is None else scale)
+        tol = np.broadcast_to(tol, (len(points),))
         for it in range(iterations + 1):
             last = it == iterations
             if last or it % JACOBIAN_EVERY:

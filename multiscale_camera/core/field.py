@@ -22,6 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import parallel
 from .errors import Cancelled
 from .family import Family, dot3
 from .grid import FieldSampler, Grid
@@ -515,6 +516,11 @@ def _scheduled_chunk(family, u, v, step, vertices, contains):
     return out
 
 
+# A trace is shared among worker processes only when each gets at least this many
+# rays: forking and sending the rays back cost more than tracing fewer.
+MIN_RAYS_PER_PROCESS = 256
+
+
 def blend_weights(nval, count, cubic=False):
     """Eq. 6's weights w(N, i) for i = 1..count.
 
@@ -563,10 +569,15 @@ class FieldTracer:
     domain : ``nested.NestedDomain`` or None: when given, N is read from it (``grid``
         and ``membership`` are then its coarsest level) and the modelled volume is its
         outer box.
+    processes : int, worker processes that share a trace's rays (``parallel``); 0: one
+        per core. The rays come out the same whichever count traced them, to about
+        float32 rounding (numpy may round a float64's last bit differently with the
+        length of an array, and the trace carries that on).
     """
 
-    def __init__(self, rig, grid, membership, cubic=False, domain=None):
+    def __init__(self, rig, grid, membership, cubic=False, domain=None, processes=1):
         self.rig = rig
+        self.processes = processes
         self.grid = grid
         self.domain = domain
         if domain is None:
@@ -696,6 +707,32 @@ class FieldTracer:
         ------
         Cancelled when ``should_stop`` says so.
         """
+        workers = self.processes if self.processes > 0 else parallel.cores()
+        workers = min(workers, len(u0) // MIN_RAYS_PER_PROCESS)
+        if workers > 1:
+            # every workers-th ray to each: neighbours on the lattice run alike, so the
+            # shares take about as long
+            shares = [np.arange(k, len(u0), workers) for k in range(workers)]
+            parts = parallel.forked_map(
+                lambda rows: self._traced_part(u0[rows], v0[rows], step, max_steps),
+                shares,
+                workers,
+                should_stop,
+            )
+            if parts is not None:
+                self.missed += sum(p[1] for p in parts)
+                self.tangent_seconds += float(np.mean([p[2] for p in parts]))
+                return merge([p[0] for p in parts], shares, len(u0))
+        return self._trace_here(u0, v0, step, max_steps, should_stop)
+
+    def _traced_part(self, u0, v0, step, max_steps):
+        """In a worker: (Traced, Newton's missed points, tangent seconds) of some rays."""
+        missed, seconds = self.missed, self.tangent_seconds
+        traced = self._trace_here(u0, v0, step, max_steps)
+        return traced, self.missed - missed, self.tangent_seconds - seconds
+
+    def _trace_here(self, u0, v0, step, max_steps, should_stop=None):
+        """``trace`` in this process."""
         cam1 = self.rig.cameras[0]
         seeds = cam1.near_points(cam1.directions(u0, v0))
         self.params = np.zeros((len(self.families), len(u0), 3))

@@ -51,12 +51,16 @@ class Settings:
         cameras (``nested``); False: one uniform grid, as the paper; None (default):
         nested only where one uniform grid within the budget cannot have the cells the
         accuracy target asks for (scale ratios beyond about 10x).
+    processes : int, worker processes that share the trace (0: one per core; 1: in
+        Blender's process). Not part of the field's identity: every count traces the
+        same rays (to about float32 rounding).
     """
 
     accuracy_px: float = 0.5
     max_voxels: int = 160**3
     cubic: bool = False
     nested: bool = None
+    processes: int = field(default=0, repr=False, compare=False)
 
 
 # Quality presets: accuracy target in pixels and voxel budget (about 0.1, 0.4 and
@@ -476,7 +480,7 @@ def prepare_scalar_field(rig, settings=None, should_stop=None):
             f"{solve.iterations} iterations; simplify the masks or lower the quality"
         )
     fld.membership = solve.x
-    tracer = FieldTracer(rig, fld.grid, solve.x, cubic=settings.cubic)
+    tracer = FieldTracer(rig, fld.grid, solve.x, cubic=settings.cubic, processes=settings.processes)
     trace_field(fld, tracer, fill, settings, should_stop)
     t3 = time.perf_counter()
     fld.seconds.update(
@@ -514,7 +518,14 @@ def _prepare_nested(rig, settings, should_stop):
         )
     fld.grid, fld.membership = levels.grids[0], solved.fields[0]
     domain = fld.domain = NestedDomain(levels.grids, solved.fields, ScaleField(rig.cameras), across)
-    tracer = FieldTracer(rig, fld.grid, fld.membership, cubic=settings.cubic, domain=domain)
+    tracer = FieldTracer(
+        rig,
+        fld.grid,
+        fld.membership,
+        cubic=settings.cubic,
+        domain=domain,
+        processes=settings.processes,
+    )
     fill = _composite_fill(levels.grids, solved.fills)
     trace_field(fld, tracer, fill, settings, should_stop, levels=levels.grids)
     t2 = time.perf_counter()

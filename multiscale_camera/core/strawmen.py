@@ -229,10 +229,11 @@ class VectorFieldTracer(FieldTracer):
     ----------
     rig : Rig. grid : Grid. membership : (nx, ny, nz) float32, N, sampled along the rays
     for the Membership pass. field : (nx, ny, nz, 3) float32, Y.
+    processes : int, as ``FieldTracer``.
     """
 
-    def __init__(self, rig, grid, membership, field):
-        super().__init__(rig, grid, membership)
+    def __init__(self, rig, grid, membership, field, processes=1):
+        super().__init__(rig, grid, membership, processes=processes)
         self.y_of = FieldSampler(grid, field)
 
     def velocity(self, x, rows):
@@ -286,7 +287,8 @@ def prepare_vector_field(rig, settings=None, should_stop=None):
             )
     fld.membership = solves[0].x
     field = np.stack([s.x for s in solves[1:]], axis=-1)
-    trace_field(fld, VectorFieldTracer(rig, grid, solves[0].x, field), fill, settings, should_stop)
+    tracer = VectorFieldTracer(rig, grid, solves[0].x, field, settings.processes)
+    trace_field(fld, tracer, fill, settings, should_stop)
     t4 = time.perf_counter()
     fld.seconds.update(fill=t1 - t0, tangents=t2 - t1, solve=t3 - t2, trace=t4 - t3)
     fld.solver.update(

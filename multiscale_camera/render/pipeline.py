@@ -8,9 +8,9 @@ import numpy as np
 
 from ..adapters.lights import scene_lights, scene_world
 from ..adapters.meshes import scene_geometry
-from ..adapters.scene import rig_from_scene
+from ..adapters.scene import field_settings, processes_of, rig_from_scene
 from ..core.fingerprint import field_key
-from ..core.methods import prepare, settings_for
+from ..core.methods import prepare
 from ..core.sampling import DEFAULT_TOLERANCE_PX, RaySampler, sample_offsets
 from ..core.validate import crossing_messages, empty_mask_messages
 from ..io import cache
@@ -89,7 +89,7 @@ def build_field(scene, should_stop=None):
     """
     settings_group = scene.multiscale
     rig = rig_from_scene(scene)
-    settings = settings_for(settings_group.quality, settings_group.accuracy_px)
+    settings = field_settings(scene)
     key = field_key(rig, settings_group.method, settings)
     cache.CACHE.limit_mb = float(getattr(settings_group, "cache_limit_mb", cache.DEFAULT_LIMIT_MB))
     # checks before each build that the methods do not make themselves
@@ -179,7 +179,7 @@ def prepare_frame(depsgraph, should_stop=None):
         bounds=bounds,
         samples=max(1, int(settings.samples)),
         filter_width=float(getattr(scene.render, "filter_size", 1.5)),
-        processes=int(scene.render.threads) if scene.render.threads_mode == "FIXED" else 0,
+        processes=processes_of(scene),
         volumes=volumes,
     )
 

@@ -113,9 +113,8 @@ def frame_for_view(depsgraph):
     in the background and return None (``STATE["message"]`` says why)."""
     import bpy
 
-    from ..adapters.scene import rig_from_scene
+    from ..adapters.scene import field_settings, rig_from_scene
     from ..core.fingerprint import field_key
-    from ..core.methods import settings_for
     from ..io import cache
     from . import pipeline
 
@@ -126,7 +125,7 @@ def frame_for_view(depsgraph):
     except RigError as err:
         STATE["message"] = f"Multiscale: {err}"
         return None
-    settings = settings_for(s.quality, s.accuracy_px)
+    settings = field_settings(scene)
     key = field_key(rig, s.method, settings)
     _ = cache.CACHE.folder  # resolved on the main thread
     if cache.CACHE.get(key, rig) is None:

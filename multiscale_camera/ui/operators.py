@@ -5,7 +5,7 @@ import time
 import bpy
 from bpy.props import BoolProperty, EnumProperty, IntProperty, StringProperty
 
-from ..adapters.scene import rig_from_scene
+from ..adapters.scene import field_settings, rig_from_scene
 from ..core.errors import RigError, SolverDidNotConverge
 from ..core.report import build_report, headline, to_json
 from ..render import pipeline
@@ -242,14 +242,13 @@ class FieldRequest:
 
     def __init__(self, settings_group, rig):
         from ..core.fingerprint import field_key
-        from ..core.methods import settings_for
         from ..io import cache
 
         self.start = time.perf_counter()
         self.rig = rig
         self.method = settings_group.method
         self.quality = settings_group.quality
-        self.settings = settings_for(settings_group.quality, settings_group.accuracy_px)
+        self.settings = field_settings(settings_group.id_data)
         self.key = field_key(rig, self.method, self.settings)
         self.cache = cache.CACHE
         self.cache.limit_mb = float(settings_group.cache_limit_mb)

@@ -178,14 +178,13 @@ def update(scene, fld=None):
 
 
 def _cached_field(scene):
-    from ..adapters.scene import rig_from_scene
+    from ..adapters.scene import field_settings, rig_from_scene
     from ..core.fingerprint import field_key
-    from ..core.methods import settings_for
     from ..io import cache
 
     s = scene.multiscale
     rig = rig_from_scene(scene)
-    key = field_key(rig, s.method, settings_for(s.quality, s.accuracy_px))
+    key = field_key(rig, s.method, field_settings(scene))
     return cache.CACHE.memory.get(key)
 
 

@@ -1,0 +1,121 @@
+"""Work spread over forked worker processes.
+
+The field's trace and the renderer's casts are Python loops over numpy arrays and
+``BVHTree.ray_cast`` calls: they hold the interpreter lock, so threads cannot share them,
+but forked processes can, each working on its own copy of the parent's memory (page by
+page as it is written: the grids, the tree and the rig are not copied up front).
+
+Only ``fork`` is used: a spawned worker would start a fresh interpreter and import the
+package, and with it ``bpy``, which must not happen inside Blender. Where fork is not
+available (Windows, or a Python that forbids it) the work runs in-process. Workers never
+call bpy.
+"""
+
+import multiprocessing
+import os
+import signal
+import sys
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+
+from .errors import Cancelled
+
+# What forked workers run: the callable is set in the parent just before forking, so
+# the children find it (and everything it holds) in their copy of the parent's memory.
+_TASK = None
+# How often the parent asks ``should_stop`` while it waits for workers, seconds.
+POLL_SECONDS = 0.1
+
+
+def fork_context():
+    """The ``fork`` multiprocessing context, or None where it is unavailable."""
+    if sys.platform == "win32":
+        return None
+    try:
+        return multiprocessing.get_context("fork")
+    except ValueError:
+        return None
+
+
+def cores():
+    """int, the cores this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
+def worker_init():
+    """A worker ends when its pool terminates it, whatever handlers the host installed,
+    and leaves Ctrl+C to the parent."""
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def stop(pool):
+    """Shut a pool down without waiting for work still queued; end its workers."""
+    processes = list(getattr(pool, "_processes", {}).values())
+    pool.shutdown(wait=False, cancel_futures=True)
+    for proc in processes:
+        if proc.is_alive():
+            proc.terminate()
+    for proc in processes:
+        proc.join(timeout=5)
+
+
+def _run(item):
+    return _TASK(item)
+
+
+def forked_map(task, items, processes, should_stop=None):
+    """``[task(item) for item in items]``, the items shared among forked workers.
+
+    Parameters
+    ----------
+    task : callable, item -> picklable result. It runs in the workers on their copy of
+        the parent's memory; what it changes there does not come back.
+    items : sequence of picklable items. processes : int, workers (at most one an item);
+        1, or no fork, runs in-process.
+    should_stop : callable () -> bool, asked while waiting: True ends the workers.
+
+    Returns
+    -------
+    list of results, in the order of ``items``; or None when the work could not be
+    shared (no fork, no processes to be had, or a worker died): the caller then runs
+    it in-process.
+
+    Raises
+    ------
+    Cancelled when ``should_stop`` says so.
+    """
+    global _TASK
+    processes = min(int(processes), len(items))
+    ctx = fork_context()
+    if processes < 2 or ctx is None:
+        return None
+    _TASK = task
+    try:
+        pool = ProcessPoolExecutor(processes, mp_context=ctx, initializer=worker_init)
+    except OSError:  # no processes to be had (limits, sandbox)
+        _TASK = None
+        return None
+    try:
+        futures = [pool.submit(_run, item) for item in items]
+        results = []
+        for future in futures:
+            while True:
+                if should_stop is not None and should_stop():
+                    raise Cancelled()
+                try:
+                    results.append(future.result(timeout=POLL_SECONDS))
+                    break
+                except TimeoutError:
+                    continue
+        return results
+    except BrokenProcessPool:
+        # a worker died (killed, or a forked copy of a threaded host that could not
+        # run): the caller does the work in-process rather than wait on it forever
+        return None
+    finally:
+        stop(pool)
+        _TASK = None

@@ -1,0 +1,85 @@
+"""The trace shared among forked worker processes: the same rays, stoppable, and done
+in-process when a worker dies."""
+
+import os
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from multiscale_camera.core import field as field_module
+from multiscale_camera.core import parallel
+from multiscale_camera.core.errors import Cancelled
+from multiscale_camera.core.methods import prepare, settings_for
+from multiscale_camera.core.rig import Rig
+
+from .rigs import three_camera_rig
+
+needs_fork = pytest.mark.skipif(parallel.fork_context() is None, reason="no fork here")
+
+
+@needs_fork
+def test_rays_traced_in_two_processes_equal_those_traced_in_one(monkeypatch):
+    monkeypatch.setattr(field_module, "MIN_RAYS_PER_PROCESS", 16)
+    calls = []
+    real = parallel.forked_map
+
+    def counting(task, items, processes, should_stop=None):
+        out = real(task, items, processes, should_stop)
+        calls.append(out is not None)
+        return out
+
+    monkeypatch.setattr(parallel, "forked_map", counting)
+    cams, masks = three_camera_rig(96, 54)
+    rig = Rig(cams, masks)
+    base = settings_for("PREVIEW")
+    one = prepare(rig, "SCALAR_FIELD", replace(base, processes=1))
+    assert calls == []
+    two = prepare(rig, "SCALAR_FIELD", replace(base, processes=2))
+    assert calls and all(calls)
+    # numpy's vector loops may round the last bit of a float64 differently with the
+    # length of the arrays a ray shares its steps with, and the trace carries that on:
+    # equal to a millionth of the rig's size (14 units), a few float32 steps
+    np.testing.assert_allclose(one.traced.vertices, two.traced.vertices, rtol=0, atol=1e-5)
+    np.testing.assert_array_equal(one.traced.counts, two.traced.counts)
+    np.testing.assert_array_equal(one.index, two.index)
+    assert one.stats["newton_lost"] == two.stats["newton_lost"]
+
+
+def test_processes_are_not_part_of_the_fields_identity():
+    from multiscale_camera.core.fingerprint import field_key
+
+    cams, masks = three_camera_rig(32, 18)
+    rig = Rig(cams, masks)
+    base = settings_for("STANDARD")
+    assert field_key(rig, "SCALAR_FIELD", base) == field_key(
+        rig, "SCALAR_FIELD", replace(base, processes=3)
+    )
+
+
+@needs_fork
+def test_forked_map_keeps_the_order_of_its_items():
+    assert parallel.forked_map(lambda x: x * x, list(range(7)), 3) == [x * x for x in range(7)]
+
+
+@needs_fork
+def test_a_worker_that_dies_leaves_the_work_to_the_caller():
+    def die(x):
+        os._exit(3)
+
+    assert parallel.forked_map(die, [1, 2], 2) is None
+
+
+@needs_fork
+def test_a_stop_request_ends_the_workers():
+    import time
+
+    start = time.perf_counter()
+    with pytest.raises(Cancelled):
+        parallel.forked_map(lambda x: time.sleep(30), [1, 2], 2, should_stop=lambda: True)
+    assert time.perf_counter() - start < 10
+
+
+def test_without_fork_the_work_stays_in_process(monkeypatch):
+    monkeypatch.setattr(parallel, "fork_context", lambda: None)
+    assert parallel.forked_map(lambda x: x, [1, 2], 2) is None
