@@ -44,6 +44,7 @@ def run_one(rig_name, method, quality, width, height):
     """Build one field in this process; return its row (a dict)."""
     from multiscale_camera.core.errors import RigError
     from multiscale_camera.core.methods import prepare, settings_for
+    from multiscale_camera.core.parallel import cores
     from multiscale_camera.core.report import build_report
     from multiscale_camera.core.rig import Rig
     from tests.unit import rigs
@@ -69,6 +70,7 @@ def run_one(rig_name, method, quality, width, height):
         "seconds": {k: round(v, 3) for k, v in report["seconds"].items()},
         "grids": report["grids"],
         "traced_rays": int(fld.stats.get("traced", 0)),
+        "processes": settings.processes or cores(),
         "cameras": report["cameras"],
         "worst_p95_px": max(c["preserved_px"]["p95"] for c in report["cameras"]),
         "folds": report["folds"],
@@ -76,6 +78,9 @@ def run_one(rig_name, method, quality, width, height):
         "conflicts": report["conflicts"],
         "warnings": report["warnings"],
         "peak_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
+        # the largest worker process that shared the trace (forked: it shares the
+        # parent's pages until it writes them, so this overstates what it added)
+        "peak_mb_worker": round(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024, 1),
     }
 
 
@@ -97,6 +102,13 @@ def main():
     parser.add_argument(
         "--redraw", action="store_true", help="only redraw the chart and table from results.json"
     )
+    parser.add_argument("--methods", nargs="+", help="only these methods")
+    parser.add_argument("--qualities", nargs="+", help="only these qualities")
+    parser.add_argument(
+        "--update",
+        action="store_true",
+        help="replace the rows run in results.json, keep the others (same size only)",
+    )
     parser.add_argument(
         "--one", nargs=3, metavar=("RIG", "METHOD", "QUALITY"), help=argparse.SUPPRESS
     )
@@ -117,6 +129,10 @@ def main():
     )
     print(header)
     for rig, method, quality in configurations(args.rigs):
+        if (args.methods and method not in args.methods) or (
+            args.qualities and quality not in args.qualities
+        ):
+            continue
         cmd = [
             sys.executable,
             __file__,
@@ -156,11 +172,28 @@ def main():
             f"{row['worst_p95_px']:8.3f} {worst_max:8.3f} {row['folds']:6d} {row['stalled']:5d} "
             f"{row['peak_mb']:6.0f}"
         )
+    if args.update and OUT.exists():
+        old = json.loads(OUT.read_text())
+        if old["size"] != [args.width, args.height]:
+            sys.exit(f"--update: {OUT.name} holds {old['size']}, not {args.width}x{args.height}")
+        ran = {(r["rig"], r["method"], r["quality"]) for r in rows}
+        kept = [r for r in old["rows"] if (r["rig"], r["method"], r["quality"]) not in ran]
+        rows = sorted(kept + rows, key=_order)
     results = {"size": [args.width, args.height], "rows": rows}
     OUT.write_text(json.dumps(results, indent=1))
     print(f"wrote {OUT.relative_to(ROOT)}")
     chart(results)
     table(results)
+
+
+def _order(row):
+    """Sort key: the order ``configurations`` runs rows in."""
+    rigs, methods = list(RIGS), list(IMAGE_METHODS + FIELD_METHODS)
+    return (
+        rigs.index(row["rig"]) if row["rig"] in rigs else len(rigs),
+        methods.index(row["method"]) if row["method"] in methods else len(methods),
+        QUALITIES.index(row["quality"]) if row["quality"] in QUALITIES else len(QUALITIES),
+    )
 
 
 MARKERS = {

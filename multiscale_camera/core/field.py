@@ -800,19 +800,27 @@ def run_on(traced, vertices):
 
 def merge(parts, order, total):
     """Combine ``Traced`` parts into one, rays placed at ``order`` (one index array per
-    part) among ``total`` rays."""
+    part) among ``total`` rays. Consumes ``parts``: each entry is released (set to None)
+    once copied, so a large merge holds little more than its result."""
     k = max(p.vertices.shape[1] for p in parts)
-    parts = [run_on(p, k) for p in parts]
     step = parts[0].step
     verts = np.empty((total, k, 3), dtype=np.float32)
     mem = np.empty((total, k), dtype=np.float32)
     counts = np.empty(total, dtype=np.int32)
     reason = np.empty(total, dtype=np.int8)
-    for p, idx in zip(parts, order):
-        verts[idx], mem[idx], counts[idx], reason[idx] = (
-            p.vertices,
-            p.membership,
-            p.counts,
-            p.reason,
-        )
+    for j, idx in enumerate(order):
+        p, parts[j] = parts[j], None
+        counts[idx], reason[idx] = p.counts, p.reason
+        block = max(1, MERGE_BLOCK_VERTICES // k)
+        for s in range(0, len(idx), block):
+            sl = slice(s, s + block)
+            sub = run_on(
+                Traced(p.vertices[sl], p.membership[sl], p.counts[sl], p.reason[sl], step), k
+            )
+            verts[idx[sl]], mem[idx[sl]] = sub.vertices, sub.membership
+        del p
     return Traced(verts, mem, counts, reason, step)
+
+
+# Ray vertices ``merge`` extends at a time.
+MERGE_BLOCK_VERTICES = 1 << 22

@@ -26,10 +26,12 @@ from .field import (
     MAX_STRIDE,
     MIN_CELLS_ACROSS_NEAR,
     FieldTracer,
+    Traced,
     choose_grid,
     fill_membership,
     merge,
     near_plane_width,
+    run_on,
     step_cells,
 )
 from .guides import DEFAULT_SEGMENTS, build_guides, curved_rays
@@ -251,6 +253,11 @@ def _across(d, t):
     return np.linalg.norm(d - (d * t).sum(-1, keepdims=True) * t, axis=-1)
 
 
+# Ray vertices weighed together by ``_AdaptiveLattice.deviation`` (about 24 bytes each
+# in each of its ten or so temporaries).
+DEVIATION_BLOCK_VERTICES = 1 << 20
+
+
 # A cell's interpolation error over its parent's midpoint deviation: 1/4 for smooth rays,
 # 1/2 where N's trilinear kinks make them only once differentiable (the bound used).
 CHILD_ERROR_RATIO = 2.0
@@ -291,8 +298,27 @@ class _AdaptiveLattice:
         self.order.append(np.arange(self.count, self.count + len(px)))
         self.index[py, px] = np.arange(self.count, self.count + len(px))
         self.count += len(px)
-        self.traced = merge(self.parts, self.order, self.count)
-        self.parts, self.order = [self.traced], [np.arange(self.count)]
+
+    def rows(self, ids):
+        """Vertices (n, K, 3) float32 and counts (n,) of traced rays ``ids`` (n,),
+        K the most any part has (shorter rays run straight on, as ``merge`` lays
+        them out). The parts stay apart until ``run`` ends: merging after every round
+        would hold two copies of every ray."""
+        k = max(p.vertices.shape[1] for p in self.parts)
+        ids = np.asarray(ids)
+        verts = np.empty((len(ids), k, 3), dtype=np.float32)
+        counts = np.empty(len(ids), dtype=np.int32)
+        starts = np.array([o[0] for o in self.order])
+        part = np.searchsorted(starts, ids, side="right") - 1
+        for j, p in enumerate(self.parts):
+            sel = np.flatnonzero(part == j)
+            if not len(sel):
+                continue
+            r = ids[sel] - starts[j]
+            sub = Traced(p.vertices[r], p.membership[r], p.counts[r], p.reason[r], p.step)
+            verts[sel] = run_on(sub, k).vertices
+            counts[sel] = p.counts[r]
+        return verts, counts
 
     def deviation(self, mid, a, b, pixels):
         """How far ray(mid) strays from the mean of rays a and b, in pixels.
@@ -302,18 +328,23 @@ class _AdaptiveLattice:
         ray(a)| / pixels): pixels of the multiscale image. Beyond the grid the rays run
         straight and may cross far off, where that spacing vanishes; that stretch is not
         weighed. (P,) arrays of flat pixel keys and pixel distances."""
-        v, counts = self.traced.vertices, self.traced.counts
         ia, ib, im = (self.index.ravel()[k] for k in (a, b, mid))
-        va, vb, vm = (v[i].astype(np.float64) for i in (ia, ib, im))
-        t = np.diff(vm, axis=1, append=2 * vm[:, -1:] - vm[:, -2:-1])
-        t /= np.maximum(np.linalg.norm(t, axis=-1, keepdims=True), 1e-30)
-        d = _across(vm - 0.5 * (va + vb), t)
-        spacing = _across(vb - va, t) / np.maximum(pixels, 1)[:, None]
-        traced = (
-            np.arange(v.shape[1])[None, :]
-            < np.minimum.reduce([counts[ia], counts[ib], counts[im]])[:, None]
-        )
-        return np.where(traced, d / np.maximum(spacing, 1e-12), 0.0).max(axis=1)
+        pixels = np.asarray(pixels)
+        out = np.zeros(len(ia))
+        k = max(p.vertices.shape[1] for p in self.parts)
+        # in blocks: three float64 copies of every ray's vertices would take gigabytes
+        block = max(1, DEVIATION_BLOCK_VERTICES // max(k, 1))
+        for s in range(0, len(ia), block):
+            sl = slice(s, s + block)
+            (va, ca), (vb, cb), (vm, cm) = (self.rows(i[sl]) for i in (ia, ib, im))
+            va, vb, vm = (x.astype(np.float64) for x in (va, vb, vm))
+            t = np.diff(vm, axis=1, append=2 * vm[:, -1:] - vm[:, -2:-1])
+            t /= np.maximum(np.linalg.norm(t, axis=-1, keepdims=True), 1e-30)
+            d = _across(vm - 0.5 * (va + vb), t)
+            spacing = _across(vb - va, t) / np.maximum(pixels[sl], 1)[:, None]
+            traced = np.arange(k)[None, :] < np.minimum.reduce([ca, cb, cm])[:, None]
+            out[sl] = np.where(traced, d / np.maximum(spacing, 1e-12), 0.0).max(axis=1)
+        return out
 
     def _lattice_roughness(self, xs, ys):
         """(cells,) float: for each base cell, the largest deviation of a corner ray from
@@ -388,7 +419,9 @@ class _AdaptiveLattice:
         leaf_of = np.zeros((h, w), dtype=np.int32)
         for n, (a, b, c, d) in enumerate(leaves.tolist()):
             leaf_of[b : d + 1, a : c + 1] = n
-        return self.traced, self.index, leaves, leaf_of
+        parts, order = self.parts, self.order
+        self.parts, self.order = [], []
+        return merge(parts, order, self.count), self.index, leaves, leaf_of
 
 
 def lattice_stride(rig, grid):

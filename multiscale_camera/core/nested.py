@@ -272,18 +272,21 @@ class NestedDomain:
         n = len(points)
         level = np.zeros(n, dtype=np.int64)
         inside = np.zeros(n)
+        # the boxes nest: only points inside a level's box can be inside its child's
+        cand, pts = np.arange(n), points
         for lev in range(1, len(self.grids)):
             lo, hi = self.lo[lev], self.hi[lev]
             d = None
             for a in range(3):  # per column: a reduction over a length-3 axis is slow
-                c = points[:, a]
+                c = pts[:, a]
                 e = np.minimum(c - lo[a], hi[a] - c)
                 d = e if d is None else np.minimum(d, e, out=d)
             deeper = d > 0
-            if not deeper.any():
+            cand, pts = cand[deeper], pts[deeper]
+            if not len(cand):
                 break
-            level[deeper] = lev
-            inside[deeper] = d[deeper]
+            level[cand] = lev
+            inside[cand] = d[deeper]
         s = np.clip(inside / self.bands[level], 0.0, 1.0)
         s[level == 0] = 1.0
         return level, s * s * (3.0 - 2.0 * s)
