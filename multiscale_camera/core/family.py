@@ -181,41 +181,49 @@ class Family:
         u[rest], v[rest] = projections[0][0][rest, 0], projections[0][0][rest, 1]
         return u, v, tau
 
-    def invert(self, points, u, v, tau, iterations=8, scale=None):
+    def invert(self, points, u, v, tau, iterations=8, scale=None, with_jacobian=False):
         """Newton's method for (u, v, tau) with R_i(u, v, tau) = point.
 
         Parameters
         ----------
         points : (P, 3) float64 world points.
         u, v, tau : (P,) float64 starting values (``start`` or a nearby solution).
-        iterations : int, at most this many steps; points already within
-            ``NEWTON_TOLERANCE`` of ``scale`` stop early.
+        iterations : int or (P,) ints, at most this many steps (for each point);
+            points already within ``NEWTON_TOLERANCE`` of ``scale`` stop early.
         scale : (P,) float64 world lengths or None (camera i's near distance), the
             local scale the tolerance is a fraction of (see ``solve``).
+        with_jacobian : bool, also return the last dR/du and dR/dv computed.
 
         Returns
         -------
         u, v, tau : (P,) float64. error : (P,) float64, remaining distance to the point,
         world units. tangent : (P, 3) float64, dR/dtau at the solution.
+        jac_u, jac_v : (P, 3) float64, world units per pixel, at the last iterate where
+        they were computed (with ``with_jacobian``).
         """
         points = np.asarray(points, dtype=np.float64)
+        n = len(points)
         u, v, tau = (np.array(a, dtype=np.float64) for a in (u, v, tau))
-        active = np.arange(len(points))
-        error = np.full(len(points), np.inf)
-        tangent = np.zeros((len(points), 3))
+        active = np.arange(n)
+        error = np.full(n, np.inf)
+        tangent = np.zeros((n, 3))
+        jac_u, jac_v = np.zeros((n, 3)), np.zeros((n, 3))
         tol = NEWTON_TOLERANCE * (self.scale if scale is None else scale)
-        tol = np.broadcast_to(tol, (len(points),))
-        for it in range(iterations + 1):
-            last = it == iterations
+        tol = np.broadcast_to(tol, (n,))
+        its = np.broadcast_to(np.asarray(iterations), (n,))
+        most = int(its.max(initial=0))
+        for it in range(most + 1):
+            last = it == most
             if last or it % JACOBIAN_EVERY:
                 p, t = self.evaluate(u[active], v[active], tau[active])
             else:
                 p, t, ju, jv = self.evaluate(u[active], v[active], tau[active], jacobian=True)
+                jac_u[active], jac_v[active] = ju, jv
             r = p - points[active]
             err = np.sqrt(dot3(r, r))
             error[active] = err
             tangent[active] = t
-            keep = err > tol[active]
+            keep = (err > tol[active]) & (its[active] > it)
             if last or not keep.any():
                 break
             active, r, t, ju, jv = active[keep], r[keep], t[keep], ju[keep], jv[keep]
@@ -226,9 +234,11 @@ class Family:
             u[active] += step[:, 0]
             v[active] += step[:, 1]
             tau[active] = np.maximum(tau[active] + step[:, 2], 0.0)
+        if with_jacobian:
+            return u, v, tau, error, tangent, jac_u, jac_v
         return u, v, tau, error, tangent
 
-    def solve(self, points, u, v, tau, iterations=8, scale=None):
+    def solve(self, points, u, v, tau, iterations=8, scale=None, with_jacobian=False):
         """``invert``, retried from camera 1's pixel where it misses.
 
         Newton can miss from a poor start (a stale warm start, or ``start``'s guess off to
@@ -242,14 +252,22 @@ class Family:
         camera, a fraction of its own near distance would ask for far more than the
         cells there resolve); default camera i's near distance.
 
+        ``iterations``: int or (P,) ints, as ``invert``.
+
         Returns
         -------
         u, v, tau : (P,) float64. tangent : (P, 3) float64, unit and finite.
         missed : int, points whose tangent is camera 1's direction.
+        jacobian : with ``with_jacobian``, (jac_u, jac_v, dR/dtau, ok): the family's
+            Jacobian columns, (P, 3) float64 each, near the solution, and (P,) bool,
+            where they hold (Newton converged without a retry).
         """
         points = np.asarray(points, dtype=np.float64)
         scale = self.scale if scale is None else scale
-        u, v, tau, err, tangent = self.invert(points, u, v, tau, iterations, scale)
+        u, v, tau, err, tangent, jac_u, jac_v = self.invert(
+            points, u, v, tau, iterations, scale, with_jacobian=True
+        )
+        raw = tangent.copy() if with_jacobian else None
         miss = np.flatnonzero(~(err <= RETRY_TOLERANCE * scale))
         if len(miss):
             first = self.cameras[0]
@@ -276,6 +294,10 @@ class Family:
             out[lost] = rel / np.sqrt(dot3(rel, rel))[:, None]
             bad = np.flatnonzero(lost)
             u[bad], v[bad], tau[bad] = self.start(points[bad])
+        if with_jacobian:
+            ok = np.ones(len(points), dtype=bool)
+            ok[miss] = False
+            return u, v, tau, out, int(lost.sum()), (jac_u, jac_v, raw, ok)
         return u, v, tau, out, int(lost.sum())
 
 

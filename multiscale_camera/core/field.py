@@ -24,7 +24,7 @@ import numpy as np
 
 from . import parallel
 from .errors import Cancelled
-from .family import Family, dot3
+from .family import Family, dot3, solve3
 from .grid import FieldSampler, Grid
 from .guides import DEFAULT_SEGMENTS, build_guides, curved_rays
 from .trace import StopReason, rk4_streamlines
@@ -48,6 +48,10 @@ def step_cells(accuracy_px):
 STALL_SPEED = 1e-3
 # Newton iterations per tangent evaluation when warm-started from a point one step away.
 WARM_ITERATIONS = 2
+# ... and when the start is predicted from the Jacobian where the ray's last evaluation
+# converged (``FieldTracer._tangent``): its error is already about the square of the
+# distance moved, and one step squares it again.
+PREDICTED_ITERATIONS = 1
 # Lattice stride bounds in pixels: one traced ray per stride x stride block, the others
 # interpolated (rays bend on the scale of a cell, many pixels wide).
 MAX_STRIDE = 16
@@ -590,10 +594,22 @@ class FieldTracer:
         self.cubic = cubic
         self.tangent_seconds = 0.0
         self.missed = 0  # tangent evaluations Newton could not solve (see Family.solve)
+        self.ready = None  # the Newton state of ``_forget``
+
+    def _forget(self, rays):
+        """Start the per-ray Newton state afresh for ``rays`` rays: where Newton last
+        converged for each ray and family, and the family's Jacobian there (columns
+        d/du, d/dv, d/dtau), for the next evaluation's prediction."""
+        f = len(self.families)
+        self.jacobian = np.zeros((f, rays, 3, 3))
+        self.solved_at = np.zeros((f, rays, 3))
+        self.ready = np.zeros((f, rays), dtype=bool)
 
     def _tangent(self, i, x, params, rows):
         """Unit tangent X_i at points ``x`` for rays ``rows``; updates ``params[i, rows]``."""
         start = time.perf_counter()
+        if self.ready is None or self.ready.shape[1] != params.shape[1]:
+            self._forget(params.shape[1])
         cam = self.rig.cameras[i]
         rel = x - cam.eye
         depth = dot3(rel, cam.forward)
@@ -604,13 +620,35 @@ class FieldTracer:
         bend = np.flatnonzero(~beyond)
         if len(bend):
             r = rows[bend]
+            xb = x[bend]
             scale = None
             if self.domain is not None and self.domain.scale is not None:
-                scale = self.domain.scale(x[bend])
-            u, v, tau, out[bend], missed = self.families[i].solve(
-                x[bend], params[i, r, 0], params[i, r, 1], params[i, r, 2], WARM_ITERATIONS, scale
+                scale = self.domain.scale(xb)
+            u, v, tau = params[i, r, 0], params[i, r, 1], params[i, r, 2]
+            # predict: the parameters move with the point by the inverse of the family's
+            # Jacobian where it was last solved; one Newton step from there is enough
+            ready = np.flatnonzero(self.ready[i, r])
+            iterations = np.full(len(r), WARM_ITERATIONS)
+            if len(ready):
+                rr = r[ready]
+                step = solve3(
+                    self.jacobian[i, rr, 0],
+                    self.jacobian[i, rr, 1],
+                    self.jacobian[i, rr, 2],
+                    xb[ready] - self.solved_at[i, rr],
+                )
+                step[~np.isfinite(step).all(axis=1)] = 0.0
+                u[ready] += step[:, 0]
+                v[ready] += step[:, 1]
+                tau[ready] = np.maximum(tau[ready] + step[:, 2], 0.0)
+                iterations[ready] = PREDICTED_ITERATIONS
+            u, v, tau, out[bend], missed, (ju, jv, jt, ok) = self.families[i].solve(
+                xb, u, v, tau, iterations, scale, with_jacobian=True
             )
             params[i, r, 0], params[i, r, 1], params[i, r, 2] = u, v, tau
+            self.jacobian[i, r, 0], self.jacobian[i, r, 1], self.jacobian[i, r, 2] = ju, jv, jt
+            self.solved_at[i, r] = xb
+            self.ready[i, r] = ok
             self.missed += missed
         self.tangent_seconds += time.perf_counter() - start
         return out
@@ -737,6 +775,7 @@ class FieldTracer:
         seeds = cam1.near_points(cam1.directions(u0, v0))
         self.params = np.zeros((len(self.families), len(u0), 3))
         self.params[:, :, 0], self.params[:, :, 1] = u0, v0
+        self._forget(len(u0))
         lines = rk4_streamlines(
             self.velocity,
             seeds,
