@@ -593,10 +593,14 @@ def _planes(vertices, reach):
 
 def _camera_bounds(scene, nval):
     """Lowest and highest camera (0-based, int32) eq. 6 can weigh at memberships
-    ``nval`` (|N - i| < 1, with ``MEMBERSHIP_SLACK``): floor(N) and ceil(N), clamped."""
+    ``nval`` (|N - i| < 1): floor(N) and ceil(N) with ``MEMBERSHIP_SLACK``, clamped (the
+    highest taken as floor + 1, one more than needed at an exact integer)."""
     ncam = len(scene.tables)
-    lo = np.clip(np.floor(nval - MEMBERSHIP_SLACK), 1, ncam).astype(np.int32) - 1
-    hi = np.clip(np.ceil(nval + MEMBERSHIP_SLACK), 1, ncam).astype(np.int32) - 1
+    lo = (nval - np.float32(MEMBERSHIP_SLACK)).astype(np.int32)
+    hi = (nval + np.float32(MEMBERSHIP_SLACK)).astype(np.int32)
+    np.clip(lo, 1, ncam, out=lo)
+    np.clip(hi, 0, ncam - 1, out=hi)
+    lo -= 1
     return lo, hi
 
 
@@ -615,7 +619,9 @@ def _occupied(scene, b0, b1, cams=None):
     if cams is None:
         grid = np.zeros(np.shape(b0[0]), np.int32)
     else:
-        grid = camera_runs(len(scene.tables))(*cams).astype(np.int32)
+        n = len(scene.tables)
+        table = camera_runs(n)(*np.divmod(np.arange(n * n), n)).astype(np.int32)
+        grid = table.take(cams[0] * n + cams[1])
     lo = [np.minimum(p, q) for p, q in zip(b0, b1)]
     span = [np.abs(p - q) for p, q in zip(b0, b1)]
     variant = span[0] + 2 * span[1] + 4 * span[2]
@@ -670,8 +676,8 @@ def _runs(scene, vertices, membership, reach, stop, h):
         ``nm``, ``dnm`` float64, the membership at the first sample and its change per
         sample; ``sure`` bool, one piece already known to be occupied; ``dir`` (3, C)
         float32, the segment's unit world direction.
-    skipped : (R, K) int64, samples skipped per segment so far (running sum along the
-        ray: entry k counts segments 0..k).
+    skipped : (R, K + 1) int32, samples skipped so far along each ray (entry k counts
+        the empty segments 0..k).
     entry : (R,) float64, arc length of each ray's first sample in the box (inf: none).
     """
     vol = scene.volume
@@ -679,7 +685,12 @@ def _runs(scene, vertices, membership, reach, stop, h):
     m = vol.world_to_index
     w = _planes(vertices, reach)
     r, k1 = w.shape[1:]
-    d = w[:, :, 1:] - w[:, :, :-1]  # (3, R, K) world
+    nv = r * k1
+    # flat planes: segment i runs from vertex i to i + 1 (none from a ray's last vertex)
+    w = w.reshape(3, nv)
+    d = np.zeros((3, nv), np.float32)
+    np.subtract(w[:, 1:], w[:, :-1], out=d[:, :-1])
+    d.reshape(3, r, k1)[:, :, -1] = 0.0
     seglen = np.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
     vox = np.empty_like(w)
     for a in range(3):
@@ -688,46 +699,56 @@ def _runs(scene, vertices, membership, reach, stop, h):
         vox[a] += w[2] * float(m[a, 2])
         vox[a] += float(m[a, 3])
     del w
-    beyond = np.zeros((r, k1 - 1), bool)
-    inside = np.ones((r, k1), bool)
+    beyond = np.zeros(nv, bool)
+    inside = np.ones(nv, bool)
     for a in range(3):
         below = vox[a] < -0.5
         above = vox[a] > shape[a] - 0.5
-        beyond |= below[:, :-1] & below[:, 1:]
-        beyond |= above[:, :-1] & above[:, 1:]
+        beyond[:-1] |= below[:-1] & below[1:]
+        beyond[:-1] |= above[:-1] & above[1:]
         inside &= ~(below | above)
     touch = ~beyond & (seglen > 0)
-    full = inside[:, :-1] & inside[:, 1:]
+    full = np.zeros(nv, bool)
+    np.logical_and(inside[:-1], inside[1:], out=full[:-1])
+    del beyond, inside, below, above
     blk = _blocks(shape, vox)
     mem = np.empty((r, k1), np.float32)
     mem[:, :-1] = membership
     mem[:, -1] = mem[:, -2]
+    mem = mem.ravel()
     cams = None
     if len(scene.tables) > 1:
         c_lo, c_hi = _camera_bounds(scene, mem)
-        cams = (np.minimum(c_lo[:, :-1], c_lo[:, 1:]), np.maximum(c_hi[:, :-1], c_hi[:, 1:]))
+        cams = (np.minimum(c_lo[:-1], c_lo[1:]), np.maximum(c_hi[:-1], c_hi[1:]))
         del c_lo, c_hi
-    busy = _occupied(scene, [b[:, :-1] for b in blk], [b[:, 1:] for b in blk], cams)
+    busy = np.zeros(nv, bool)
+    busy[:-1] = _occupied(scene, [b[:-1] for b in blk], [b[1:] for b in blk], cams)
     del blk, cams
     cum = np.zeros((r, k1))
-    np.cumsum(seglen, axis=1, dtype=np.float64, out=cum[:, 1:])
+    np.cumsum(seglen.reshape(r, k1)[:, :-1], axis=1, dtype=np.float64, out=cum[:, 1:])
+    cum = cum.ravel()
     # samples of the empty segments wholly inside the box, up to the ray's stop
-    first = np.ceil(cum / h)
-    ends = np.minimum(first[:, 1:], np.ceil(stop / h)[:, None])
-    count = np.maximum(ends - first[:, :-1], 0.0).astype(np.int64)
+    first = np.ceil(cum / h).astype(np.int32)
+    count = np.zeros(nv, np.int32)
+    if np.isfinite(stop).any():
+        ends = np.minimum(first.reshape(r, k1), np.ceil(stop / h).astype(np.int32)[:, None])
+        np.subtract(ends.ravel()[1:], first[:-1], out=count[:-1])
+        np.maximum(count, 0, out=count)
+    else:
+        np.subtract(first[1:], first[:-1], out=count[:-1])
     count *= touch & full & ~busy
-    skipped = np.cumsum(count, axis=1)
+    skipped = np.cumsum(count.reshape(r, k1), axis=1)
     entry = np.full(r, np.inf)
-    seen = count > 0
+    seen = (count > 0).reshape(r, k1)
     has = seen.any(axis=1)
     at = seen.argmax(axis=1)[has]
-    entry[has] = first[has, at] * h
+    entry[has] = first.reshape(r, k1)[has, at] * h
 
     cand = np.flatnonzero(touch & (busy | ~full))
     if not len(cand):
         return None, skipped, entry
-    ray, seg = np.divmod(cand, k1 - 1)
-    v0 = ray * k1 + seg
+    v0 = cand
+    ray, seg = np.divmod(cand, k1)
     a = np.stack([vox[c].ravel().take(v0) for c in range(3)]).astype(np.float64)
     dv = np.stack([vox[c].ravel().take(v0 + 1) for c in range(3)]) - a
     length = seglen.ravel().take(cand).astype(np.float64)
