@@ -40,8 +40,13 @@ PIECE_VOXELS = BLOCK
 # translucent material take few rounds.
 ROUND_FIRST = 16
 ROUND_MAX = 256
-# Membership noise tolerated when deciding which cameras' tables a piece can use.
-MEMBERSHIP_SLACK = 1e-4
+# A membership this close to an integer i is taken as i when the tables are blended:
+# the solved field's float noise (up to 1e-3 seen) would otherwise leave a preserved
+# region's neighbouring camera a weight of that size, and with it that camera's opaque
+# blocks, which then could not be skipped.
+MEMBERSHIP_SNAP = 1e-3
+# Rounding allowed for between a piece's end memberships and its samples' ones.
+MEMBERSHIP_ROUNDING = 1e-5
 # Share of a gradient-shaded sample's colour that does not depend on its orientation.
 SHADE_AMBIENT = 0.35
 # Vertices x rays processed at once: bounds the memory of a chunk's polylines
@@ -544,7 +549,8 @@ def _classify(scene, val, nval):
     eq. 6 at memberships ``nval`` (P,); alpha already corrected for the step.
 
     Eq. 6 weighs only the cameras i with |N - i| < 1: the two next to N (one at the
-    ends), whose weights are normalised to sum to one as ``blend_weights``' are.
+    ends), whose weights are normalised to sum to one as ``blend_weights``' are. N is
+    snapped first (``_snap``), so a preserved region's samples use its camera alone.
     """
     ncam, tsize = scene.tables.shape[:2]
     x = np.clip(val, 0.0, 1.0).astype(np.float32) * np.float32(tsize - 1)
@@ -556,7 +562,7 @@ def _classify(scene, val, nval):
         for c in range(4):
             out[c] = look[4 + c].take(lo) * t + look[c].take(lo)
         return out
-    nval = np.asarray(nval, np.float32)
+    nval = _snap(np.asarray(nval, np.float32))
     first = np.clip(np.floor(nval), 1, ncam - 1)  # cameras first and first + 1 (1-based)
     w0 = np.clip(1.0 - np.abs(nval - first), 0.0, 1.0)
     w1 = np.clip(1.0 - np.abs(nval - first - 1.0), 0.0, 1.0)
@@ -591,17 +597,30 @@ def _planes(vertices, reach):
     return out
 
 
-def _camera_bounds(scene, nval):
-    """Lowest and highest camera (0-based, int32) eq. 6 can weigh at memberships
-    ``nval`` (|N - i| < 1): floor(N) and ceil(N) with ``MEMBERSHIP_SLACK``, clamped (the
-    highest taken as floor + 1, one more than needed at an exact integer)."""
+def _camera_bounds(scene, low, high):
+    """Lowest and highest camera (0-based, int32 arrays) whose table can have weight
+    between memberships ``low`` and ``high`` (float32 arrays of one shape).
+
+    Eq. 6 weighs camera i where |N - i| < 1 once N is snapped (``_snap``): cameras
+    floor(N) and ceil(N), one of them within ``MEMBERSHIP_SNAP`` of an integer. The
+    bounds are floor(low + snap) and ceil(high - snap) widened by
+    ``MEMBERSHIP_ROUNDING`` (the highest taken as floor + 1, one more than needed at an
+    exact integer), clamped to the cameras.
+    """
     ncam = len(scene.tables)
-    lo = (nval - np.float32(MEMBERSHIP_SLACK)).astype(np.int32)
-    hi = (nval + np.float32(MEMBERSHIP_SLACK)).astype(np.int32)
+    lo = (low + np.float32(MEMBERSHIP_SNAP - MEMBERSHIP_ROUNDING)).astype(np.int32)
+    hi = (high - np.float32(MEMBERSHIP_SNAP - MEMBERSHIP_ROUNDING)).astype(np.int32)
     np.clip(lo, 1, ncam, out=lo)
     np.clip(hi, 0, ncam - 1, out=hi)
     lo -= 1
     return lo, hi
+
+
+def _snap(nval):
+    """(P,) float32 memberships, those within ``MEMBERSHIP_SNAP`` of an integer set to
+    it."""
+    whole = np.rint(nval)
+    return np.where(np.abs(nval - whole) < MEMBERSHIP_SNAP, whole, nval).astype(np.float32)
 
 
 def _occupied(scene, b0, b1, cams=None):
@@ -718,9 +737,7 @@ def _runs(scene, vertices, membership, reach, stop, h):
     mem = mem.ravel()
     cams = None
     if len(scene.tables) > 1:
-        c_lo, c_hi = _camera_bounds(scene, mem)
-        cams = (np.minimum(c_lo[:-1], c_lo[1:]), np.maximum(c_hi[:-1], c_hi[1:]))
-        del c_lo, c_hi
+        cams = _camera_bounds(scene, np.minimum(mem[:-1], mem[1:]), np.maximum(mem[:-1], mem[1:]))
     busy = np.zeros(nv, bool)
     busy[:-1] = _occupied(scene, [b[:-1] for b in blk], [b[1:] for b in blk], cams)
     del blk, cams
@@ -823,8 +840,8 @@ def _pieces(scene, runs):
         if len(scene.tables) > 1:
             n0 = runs["nm"].take(rt) + it * runs["dnm"].take(rt)
             n1 = n0 + (ct - 1) * runs["dnm"].take(rt)
-            cams = (_camera_bounds(scene, np.minimum(n0, n1))[0],)
-            cams += (_camera_bounds(scene, np.maximum(n0, n1))[1],)
+            low = np.minimum(n0, n1).astype(np.float32)
+            cams = _camera_bounds(scene, low, np.maximum(n0, n1).astype(np.float32))
         busy[test] = _occupied(scene, bp, bq, cams)
     return {"run": run, "i": i, "count": count, "busy": busy}
 
