@@ -7,13 +7,15 @@ RGBA rows over [0, 1]; its alpha is the opacity of one voxel length of material.
 
 Rays are the polylines of a ``RayBundle``. Every ray is sampled at arc lengths
 ``j * step`` from its vertex 0 (a lattice fixed to the ray, so skipping samples never
-shifts the others). At each sample the value is interpolated trilinearly, every
-camera's table is read, and the tables are blended with eq. 6's weights w(N, i) of the
-membership N interpolated along the polyline there; the opacity is corrected for the
-step, optionally shaded by the gradient, and composited front to back. All rays of a
-chunk step together; each keeps its own arc position, so a ray can jump across a block
-of voxels that every transfer function makes transparent (empty-space skipping) and
-stops once nearly opaque (early termination).
+shifts the others). At each sample the value is interpolated trilinearly, the tables
+of the one or two cameras next to the membership N interpolated along the polyline
+there are read and blended with eq. 6's weights w(N, i); the opacity is corrected for
+the step, optionally shaded by the gradient, and composited front to back.
+
+A chunk of rays is handled in bulk: every segment of every ray is tested against the
+blocks of voxels that the cameras its membership can weigh make visible, and only the
+samples of occupied pieces are taken (empty-space skipping), in rounds of growing
+size per ray until it is nearly opaque (early termination).
 """
 
 from concurrent.futures import ThreadPoolExecutor
@@ -847,6 +849,13 @@ def _pieces(scene, runs):
 
 
 def _march_chunk(scene, vertices, membership, reach, stop):
+    """March one chunk of R rays (``march_volume``'s arguments, sliced).
+
+    Returns
+    -------
+    colour (R, 3) float32 premultiplied, alpha (R,) float32, entry (R,) float64, depth
+    (R,) float64, samples taken and samples skipped (int), as in ``VolumeResult``.
+    """
     vol = scene.volume
     shape = vol.shape
     h = scene.step * vol.voxel_size
