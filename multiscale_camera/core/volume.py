@@ -522,21 +522,23 @@ def _lerp8(c, f):
     return c00
 
 
+def _corners(flat, cell):
+    """(8, P) values of ``flat`` at the eight corners of each cell."""
+    base, offsets, _f = cell
+    return flat.take(base + np.array(offsets, dtype=np.int64)[:, None])
+
+
 def _trilinear(flat, cell):
     """(P,) float32 trilinear samples of a flat C-ordered float32 array in ``cell``."""
-    base, offsets, f = cell
-    return _lerp8([flat.take(base + off) for off in offsets], f)
+    return _lerp8(_corners(flat, cell), cell[2])
 
 
 def _directions(packed, cell):
     """(3, P) float32 trilinear blend of packed int8 directions (``gradient_directions``;
     unit = 127) in ``cell``."""
-    base, offsets, f = cell
-    corners = []
-    for off in offsets:
-        g = packed.take(base + off).view(np.int8).reshape(-1, 4)[:, :3]
-        corners.append(np.ascontiguousarray(g.T).astype(np.float32))
-    return _lerp8(corners, f)
+    g = _corners(packed, cell)  # (8, P) int32, four int8 each
+    g = g.view(np.int8).reshape(8, -1, 4).transpose(2, 0, 1)[:3].astype(np.float32, order="C")
+    return _lerp8(g.transpose(1, 0, 2), cell[2])
 
 
 def corrected_tables(tables, step):
