@@ -631,7 +631,7 @@ def _occupied(scene, b0, b1, cams=None):
     """(P,) bool: whether the boxes of blocks between b0 and b1 hold a block occupied
     under the cameras ``cams`` (lo, hi) can weigh.
 
-    b0, b1 : three (P,) int32 arrays each (or any one shape), block coordinates of two
+    b0, b1 : three (P,) int16 arrays each (or any one shape), block coordinates of two
     corners of each box. cams : two int32 arrays of that shape, the lowest and highest
     camera, or None (one camera).
     Boxes of at most two blocks a side take one read of ``scene.bits``, the others eight
@@ -670,9 +670,9 @@ def _occupied(scene, b0, b1, cams=None):
 
 
 def _blocks(shape, p):
-    """Block coordinates (int32) of three coordinate arrays, clamped into the grid."""
+    """Block coordinates (int16) of three coordinate arrays, clamped into the grid."""
     return [
-        (np.clip(p[a], 0.0, shape[a] - 1) * np.float32(1.0 / BLOCK)).astype(np.int32)
+        (np.clip(p[a], 0.0, shape[a] - 1) * np.float32(1.0 / BLOCK)).astype(np.int16)
         for a in range(3)
     ]
 
