@@ -681,8 +681,9 @@ def _runs(scene, vertices, membership, reach, stop, h):
     """The lattice samples of each ray that may be visible, as runs along straight
     segments of the polylines.
 
-    Every segment (the last one run on by ``reach``) is tested at once, in planes of
-    (R, K) values: its ends in voxel space, whether it touches the box [-0.5, n - 0.5]
+    Every segment (the last one run on by ``reach``) is tested at once, in flat planes
+    of one value per vertex (segment i runs from vertex i to i + 1): its ends in voxel
+    space, whether it touches the box [-0.5, n - 0.5]
     (not both ends beyond one face), whether both ends are inside, and whether the box
     of blocks between its ends holds a block occupied under the cameras its membership
     can weigh. Segments that touch the box and are occupied or cross a face are clipped
@@ -699,7 +700,7 @@ def _runs(scene, vertices, membership, reach, stop, h):
         ``nm``, ``dnm`` float64, the membership at the first sample and its change per
         sample; ``sure`` bool, one piece already known to be occupied; ``dir`` (3, C)
         float32, the segment's unit world direction.
-    skipped : (R, K + 1) int32, samples skipped so far along each ray (entry k counts
+    skipped : (R, K + 1) int64, samples skipped so far along each ray (entry k counts
         the empty segments 0..k).
     entry : (R,) float64, arc length of each ray's first sample in the box (inf: none).
     """
