@@ -38,8 +38,9 @@ BLOCK = 8
 # many voxels: the box of its first and last sample then meets at most 2 blocks a side.
 PIECE_VOXELS = BLOCK
 # Samples a ray takes in its first round of marching; each later round doubles it, up
-# to ROUND_MAX: rays that stop early (an opaque skin) waste few samples, rays through
-# translucent material take few rounds.
+# to ROUND_MAX, unless the opacity gathered so far says the ray ends sooner: rays that
+# stop early (an opaque skin) waste few samples, rays through translucent material take
+# few rounds.
 ROUND_FIRST = 16
 ROUND_MAX = 256
 # A membership this close to an integer i is taken as i when the tables are blended:
@@ -916,7 +917,8 @@ def _march_chunk(scene, vertices, membership, reach, stop):
     m_lin = vol.world_to_index[:3, :3]
     kseg = dense_skipped.shape[1]
     samples = 0
-    budget = ROUND_FIRST
+    budget = np.full(len(rid), ROUND_FIRST, np.int64)
+    taken = np.zeros(len(rid), np.int64)
     while len(rid):
         # this round: each ray's next busy pieces, up to ``budget`` samples (at least one)
         upto = np.searchsorted(done_at, done_at[ptr] + budget, side="right") - 1
@@ -987,7 +989,15 @@ def _march_chunk(scene, vertices, membership, reach, stop):
             skipped -= int((tail[rs * kseg + kseg - 1] - tail[rs * kseg + bseg[at_piece]]).sum())
         going = ~stopped & (upto < last)
         rid, ptr, last, piece_end = rid[going], upto[going], last[going], piece_end[going]
-        budget = min(2 * budget, ROUND_MAX)
+        # next round: twice this one, or fewer if the opacity gathered so far says the
+        # ray is near its end (samples taken x ln(T / T_end) / -ln(T))
+        taken = taken[going] + per_ray[going]
+        t_left = t_ray[going].astype(np.float64)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            need = taken * np.log(t_left / (1.0 - EARLY_TERMINATION)) / -np.log(t_left)
+        need = np.where(t_left < 1.0, np.ceil(np.minimum(need, ROUND_MAX)), ROUND_MAX)
+        budget = np.clip(np.minimum(2 * budget[going], need), ROUND_FIRST, ROUND_MAX)
+        budget = budget.astype(np.int64)
     return result(samples, skipped)
 
 
