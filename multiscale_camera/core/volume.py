@@ -52,8 +52,8 @@ MEMBERSHIP_SNAP = 1e-3
 MEMBERSHIP_ROUNDING = 1e-5
 # Share of a gradient-shaded sample's colour that does not depend on its orientation.
 SHADE_AMBIENT = 0.35
-# Vertices x rays processed at once: bounds the memory of a chunk's polylines
-# (about 100 MB of float64 index-space copies).
+# Vertices x rays processed at once: bounds the memory of a chunk's segment stage
+# (about 90 bytes a vertex in per-vertex planes, so under 200 MB).
 CHUNK_VERTICES = 1 << 21
 
 
