@@ -53,7 +53,7 @@ MEMBERSHIP_ROUNDING = 1e-5
 # Share of a gradient-shaded sample's colour that does not depend on its orientation.
 SHADE_AMBIENT = 0.35
 # Vertices x rays processed at once: bounds the memory of a chunk's segment stage
-# (about 90 bytes a vertex in per-vertex planes, so under 200 MB).
+# (about 80 bytes a vertex: 170 MB for a full chunk of the demo's bent rays).
 CHUNK_VERTICES = 1 << 21
 
 
