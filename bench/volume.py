@@ -14,11 +14,14 @@ Each configuration runs in a fresh process (so its peak memory is its own): the 
 is loaded (made once into .cache/), the ray field prepared (timed apart), then every
 image row is rendered tile
 by tile as the renderer does (bundle, march, composite), with gradient shading and the
-default step of one voxel (--step to change it). Prints a table and writes bench/volume.json.
+default step of one voxel (--step to change it). Prints a table and writes bench/volume.json,
+with the CPU seconds of the render and the machine's 1-minute load average before and
+after it (other work may share the cores).
 """
 
 import argparse
 import json
+import os
 import resource
 import subprocess
 import sys
@@ -107,6 +110,7 @@ def run_one(config, width, height, voxels, threads, step):
     scene = V.VolumeScene.build(vol, tables, step=step, shading=True)
     t_setup = time.perf_counter() - start
 
+    load_before = os.getloadavg()[0]
     rows = max(1, 16384 // width)  # render/pipeline.rows_per_tile
     image = np.zeros((height, width, 4), np.float32)
     samples = skipped = 0
@@ -145,6 +149,8 @@ def run_one(config, width, height, voxels, threads, step):
             "render": round(t_setup + t_rays + t_march, 2),
         },
         "cpu_seconds_render": round(cpu, 2),
+        # other work shares the cores: the 1-minute load average before and after
+        "load_average_1min": [round(load_before, 2), round(os.getloadavg()[0], 2)],
         "samples_M": round(samples / 1e6, 2),
         "skipped_samples_M": round(skipped / 1e6, 2),
         "ns_per_sample": round(t_march / max(samples, 1) * 1e9, 1),
@@ -193,7 +199,8 @@ def main():
             f"{config:10s} {row['size'][0]}x{row['size'][1]} {args.voxels}^3: render "
             f"{s['render']:.1f} s (march {s['march']:.1f}, rays {s['rays']:.1f}; field "
             f"{s['field']:.1f}), {row['samples_M']:.0f} M samples, "
-            f"{row['ns_per_sample']:.0f} ns/sample, peak {row['peak_mb']:.0f} MB",
+            f"{row['ns_per_sample']:.0f} ns/sample, peak {row['peak_mb']:.0f} MB "
+            f"(CPU {row['cpu_seconds_render']:.1f} s; load {row['load_average_1min']})",
             flush=True,
         )
     result = {

@@ -7,22 +7,23 @@ RGBA rows over [0, 1]; its alpha is the opacity of one voxel length of material.
 
 Rays are the polylines of a ``RayBundle``. Every ray is sampled at arc lengths
 ``j * step`` from its vertex 0 (a lattice fixed to the ray, so skipping samples never
-shifts the others). At each sample the value is interpolated trilinearly, every
-camera's table is read, and the tables are blended with eq. 6's weights w(N, i) of the
-membership N interpolated along the polyline there; the opacity is corrected for the
-step, optionally shaded by the gradient, and composited front to back. All rays of a
-chunk step together; each keeps its own arc position, so a ray can jump across a block
-of voxels that every transfer function makes transparent (empty-space skipping) and
-stops once nearly opaque (early termination).
+shifts the others). At each sample the value is interpolated trilinearly, the tables
+of the one or two cameras next to the membership N interpolated along the polyline
+there are read and blended with eq. 6's weights w(N, i); the opacity is corrected for
+the step, optionally shaded by the gradient, and composited front to back.
+
+A chunk of rays is handled in bulk: every segment of every ray is tested against the
+blocks of voxels that the cameras its membership can weigh make visible, and only the
+samples of occupied pieces are taken (empty-space skipping), in rounds of growing
+size per ray until it is nearly opaque (early termination).
 """
 
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from .errors import Cancelled
-from .field import blend_weights
 
 # Rows of a transfer function's lookup table: finer than 8-bit data, and a ramp's
 # interpolation between them is linear, as ColorRamp's own LINEAR mode.
@@ -31,15 +32,28 @@ TABLE_SIZE = 256
 # its colour by at most 0.5% of full scale.
 EARLY_TERMINATION = 0.995
 # Voxels per side of the blocks used for empty-space skipping: small enough to hug thin
-# structures, large enough that a jump saves many samples.
+# structures, large enough that one test clears many samples.
 BLOCK = 8
-# Blocks per side of a coarse block: a ray in a wholly empty coarse block crosses it in
-# one jump (in the sample phantom, 3.5 skipping passes per sampling pass without it).
-COARSE = 4
+# A piece (the run of samples tested against the blocks at once) spans at most this
+# many voxels: the box of its first and last sample then meets at most 2 blocks a side.
+PIECE_VOXELS = BLOCK
+# Samples a ray takes in its first round of marching; each later round doubles it, up
+# to ROUND_MAX, unless the opacity gathered so far says the ray ends sooner: rays that
+# stop early (an opaque skin) waste few samples, rays through translucent material take
+# few rounds.
+ROUND_FIRST = 16
+ROUND_MAX = 256
+# A membership this close to an integer i is taken as i when the tables are blended:
+# the solved field's float noise (up to 1e-3 seen) would otherwise leave a preserved
+# region's neighbouring camera a weight of that size, and with it that camera's opaque
+# blocks, which then could not be skipped.
+MEMBERSHIP_SNAP = 1e-3
+# Rounding allowed for between a piece's end memberships and its samples' ones.
+MEMBERSHIP_ROUNDING = 1e-5
 # Share of a gradient-shaded sample's colour that does not depend on its orientation.
 SHADE_AMBIENT = 0.35
-# Vertices x rays processed at once: bounds the memory of a chunk's polylines
-# (about 100 MB of float64 index-space copies).
+# Vertices x rays processed at once: bounds the memory of a chunk's segment stage
+# (about 80 bytes a vertex: 170 MB for a full chunk of the demo's bent rays).
 CHUNK_VERTICES = 1 << 21
 
 
@@ -183,14 +197,6 @@ def _block_reduce(a, block, op):
     return op.reduce(op.reduce(a, axis=4), axis=2)
 
 
-def coarse_blocks(occupied, factor=COARSE):
-    """(cx, cy, cz) bool: whether any block of each ``factor``^3 group is occupied."""
-    pad = [(0, (-n) % factor) for n in occupied.shape]
-    a = np.pad(occupied, pad)
-    cx, cy, cz = (n // factor for n in a.shape)
-    return a.reshape(cx, factor, cy, factor, cz, factor).any(axis=(1, 3, 5))
-
-
 def occupied_blocks(lo, hi, tables):
     """(bx, by, bz) bool: blocks where some transfer function gives some opacity.
 
@@ -204,6 +210,61 @@ def occupied_blocks(lo, hi, tables):
     a = np.clip(np.floor(lo * (t - 1)).astype(np.int64), 0, t - 1)
     b = np.clip(np.ceil(hi * (t - 1)).astype(np.int64), 0, t - 1)
     return range_max[a, b] > 0
+
+
+def camera_runs(count):
+    """Which occupancy grid serves a run of cameras lo..hi (0-based, inclusive).
+
+    Eq. 6 gives a sample weight only for the one or two cameras next to its membership,
+    so a run is nearly always one camera or two neighbours: grid i serves camera i
+    alone, grid count + i the pair (i, i + 1), grid 2 * count - 1 every camera (any
+    longer run). Returns a function (lo, hi) -> grid index, int arrays in and out.
+    """
+
+    def grid(lo, hi):
+        return np.where(hi == lo, lo, np.where(hi == lo + 1, count + lo, 2 * count - 1))
+
+    return grid
+
+
+def run_grids(camera_occupied, occupied):
+    """Block occupancy for each run of ``camera_runs``: (2N, bx, by, bz) bool.
+
+    camera_occupied : (N, bx, by, bz) bool, each camera's occupied blocks. occupied :
+    (bx, by, bz) bool, blocks occupied under some camera.
+    """
+    n = len(camera_occupied)
+    grids = list(camera_occupied)
+    grids += [camera_occupied[i] | camera_occupied[i + 1] for i in range(n - 1)]
+    grids.append(occupied)
+    return np.stack(grids)
+
+
+def occupancy_sums(grids):
+    """Summed-volume tables of ``run_grids``: (G, bx + 1, by + 1, bz + 1) int32, S[g, x,
+    y, z] counting grid g's occupied blocks in [0, x) x [0, y) x [0, z), so any box of
+    blocks is tested with eight reads."""
+    out = np.zeros((len(grids),) + tuple(d + 1 for d in grids.shape[1:]), np.int32)
+    out[:, 1:, 1:, 1:] = grids.astype(np.int32).cumsum(1).cumsum(2).cumsum(3)
+    return out
+
+
+def occupancy_bits(grids):
+    """Occupancy of the boxes of at most two blocks a side: (G, bx, by, bz) uint8 whose
+    bit sx + 2 sy + 4 sz tells whether grid g has an occupied block in [x, x + sx] x
+    [y, y + sy] x [z, z + sz] (sx, sy, sz in {0, 1}), so such a box is one read."""
+    out = np.zeros(grids.shape, np.uint8)
+    for bit in range(8):
+        sx, sy, sz = bit & 1, (bit >> 1) & 1, (bit >> 2) & 1
+        box = grids.copy()
+        if sx:
+            box[:, :-1] |= grids[:, 1:]
+        if sy:
+            box[:, :, :-1] |= box[:, :, 1:].copy()
+        if sz:
+            box[:, :, :, :-1] |= box[:, :, :, 1:].copy()
+        out |= box.astype(np.uint8) << bit
+    return out
 
 
 # Gradients shorter than this (value units per voxel) are noise of a uniform material:
@@ -250,9 +311,16 @@ class VolumeScene:
     """One volume ready to render with a rig's transfer functions (built once per frame).
 
     volume : ScalarVolume. tables : (N, T, 4) float32, camera i's table in row i.
-    occupied : (bx, by, bz) bool (``occupied_blocks``). step : float, samples apart in
-    voxels. shading : bool, gradient shading. cubic : bool, eq. 6's cubic weights.
-    normals : (nx * ny * nz,) int32 or None, ``gradient_directions`` (when shading).
+    occupied : (bx, by, bz) bool, blocks where some camera's table gives some opacity
+    (``occupied_blocks``). step : float, samples apart in voxels. shading : bool,
+    gradient shading. cubic : bool, eq. 6's cubic weights. normals : (nx * ny * nz,)
+    int32 or None, ``gradient_directions`` (when shading). camera_occupied : (N, bx, by,
+    bz) bool or None, each camera's own occupied blocks (None: ``occupied`` for all).
+
+    Derived: ``sums`` and ``bits`` (``occupancy_sums``, ``occupancy_bits`` of the
+    ``run_grids``) and ``lookup`` (8, N * T) float32, column
+    i * T + t holding camera i's step-corrected RGBA at row t and its increase to row
+    t + 1 (a linear interpolation is two reads a channel).
     """
 
     volume: ScalarVolume
@@ -262,11 +330,22 @@ class VolumeScene:
     shading: bool = False
     cubic: bool = False
     normals: np.ndarray = None
-    coarse: np.ndarray = None
+    camera_occupied: np.ndarray = None
+    sums: np.ndarray = field(init=False, repr=False)
+    bits: np.ndarray = field(init=False, repr=False)
+    lookup: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self):
-        if self.coarse is None:
-            self.coarse = coarse_blocks(self.occupied)
+        n = len(self.tables)
+        cams = self.camera_occupied
+        if cams is None:
+            cams = np.broadcast_to(self.occupied, (n,) + self.occupied.shape)
+        grids = run_grids(np.asarray(cams, bool), np.asarray(self.occupied, bool))
+        self.sums = occupancy_sums(grids)
+        self.bits = occupancy_bits(grids)
+        tab = corrected_tables(self.tables, self.step)
+        delta = np.concatenate([np.diff(tab, axis=1), np.zeros_like(tab[:, :1])], axis=1)
+        self.lookup = np.ascontiguousarray(np.concatenate([tab, delta], axis=2).reshape(-1, 8).T)
 
     @classmethod
     def build(cls, volume, tables, step=1.0, shading=False, cubic=False, ranges=None, normals=None):
@@ -280,8 +359,10 @@ class VolumeScene:
         lo, hi = ranges if ranges is not None else block_ranges(volume.values)
         if shading and normals is None:
             normals = gradient_directions(volume.values)
-        occupied = occupied_blocks(lo, hi, tables)
-        return cls(volume, tables, occupied, float(step), shading, cubic, normals)
+        cams = np.stack([occupied_blocks(lo, hi, t[None]) for t in tables])
+        return cls(
+            volume, tables, cams.any(0), float(step), shading, cubic, normals, camera_occupied=cams
+        )
 
 
 @dataclass(frozen=True)
@@ -304,16 +385,6 @@ class VolumeResult:
     depth: np.ndarray
     samples: int = 0
     skipped: int = 0
-
-
-def _extended(vertices, reach):
-    """(R, K+1, 3) float32: the polylines with their last segment run on by ``reach``."""
-    v = np.asarray(vertices, dtype=np.float32)
-    last = (v[:, -1] - v[:, -2]).astype(np.float64)
-    n = np.linalg.norm(last, axis=-1, keepdims=True)
-    last = np.where(n > 0, last / np.where(n > 0, n, 1.0), 0.0)
-    end = v[:, -1] + last * np.asarray(reach, dtype=np.float64)[:, None]
-    return np.concatenate([v, end[:, None].astype(np.float32)], axis=1)
 
 
 def _box_interval(p, d, n):
@@ -387,39 +458,88 @@ def march_volume(scene, vertices, membership, reach, stop=None, should_stop=None
     return VolumeResult(colour, alpha, entry, depth, samples, skipped)
 
 
-def _cell(strides, shape, q):
-    """Base voxel index (P,) int64, the seven other corners' offsets and the fractions
-    (P, 3) float32 of clamped voxel coordinates q (P, 3) inside [0, n - 1]."""
-    top = np.array([max(n - 2, 0) for n in shape])
-    i0 = np.minimum(q.astype(np.int64), top)
-    f = (q - i0).astype(np.float32)
-    base = i0 @ np.asarray(strides, dtype=np.int64)
+def _starts(counts):
+    """(M,) int64 exclusive running sum of ``counts`` (where each group begins)."""
+    out = np.zeros(len(counts), np.int64)
+    np.cumsum(counts[:-1], out=out[1:])
+    return out
+
+
+def _within(counts):
+    """(sum(counts),) int64: 0, 1, ..., counts[g] - 1 for each group g in turn."""
+    total = int(counts.sum())
+    return np.arange(total, dtype=np.int64) - np.repeat(_starts(counts), counts)
+
+
+def _cell(shape, p):
+    """Trilinear cells of clamped voxel coordinates.
+
+    p : three (P,) float32 arrays, x, y and z inside [0, n - 1].
+
+    Returns
+    -------
+    base : (P,) int64, flat C-order index of the cell's first corner; offsets : 8 ints,
+    the corners' flat offsets (x fastest in the corner order); f : three (P,) float32
+    fractions.
+    """
+    strides = (shape[1] * shape[2], shape[2], 1)
+    base = None
+    f = []
+    for axis, n in enumerate(shape):
+        i0 = np.minimum(p[axis].astype(np.int64), max(n - 2, 0))
+        f.append(p[axis] - i0.astype(np.float32))
+        if base is None:
+            base = i0 * strides[0]
+        else:
+            base += i0 * strides[axis] if axis < 2 else i0
     ox, oy, oz = (st * (n > 1) for st, n in zip(strides, shape))
     return base, (0, ox, oy, ox + oy, oz, ox + oz, oy + oz, ox + oy + oz), f
 
 
-def _fetch(flat, index):
-    """float32 values of ``flat`` at ``index``; packed directions (int32) as (P, 3)."""
-    if flat.dtype == np.int32:
-        return flat[index].view(np.int8).reshape(-1, 4)[:, :3].astype(np.float32)
-    return flat[index].astype(np.float32, copy=False)
+def _lerp8(c, f):
+    """Trilinear blend of eight corner arrays ``c`` (x fastest) by fractions ``f``."""
+    fx, fy, fz = f
+    c00 = c[1] - c[0]
+    c00 *= fx
+    c00 += c[0]
+    c10 = c[3] - c[2]
+    c10 *= fx
+    c10 += c[2]
+    c01 = c[5] - c[4]
+    c01 *= fx
+    c01 += c[4]
+    c11 = c[7] - c[6]
+    c11 *= fx
+    c11 += c[6]
+    c10 -= c00
+    c10 *= fy
+    c00 += c10
+    c11 -= c01
+    c11 *= fy
+    c01 += c11
+    c01 -= c00
+    c01 *= fz
+    c00 += c01
+    return c00
+
+
+def _corners(flat, cell):
+    """(8, P) values of ``flat`` at the eight corners of each cell."""
+    base, offsets, _f = cell
+    return flat.take(base + np.array(offsets, dtype=np.int64)[:, None])
 
 
 def _trilinear(flat, cell):
-    """(P,) trilinear samples of a flat C-ordered array (or (P, 3) of packed directions,
-    ``gradient_directions``) in the cells ``_cell`` gave."""
-    base, offsets, f = cell
-    c = [_fetch(flat, base + off) for off in offsets]
-    if c[0].ndim > 1:
-        f = f[:, None, :]
-    fx, fy, fz = f[..., 0], f[..., 1], f[..., 2]
-    c00 = c[0] + (c[1] - c[0]) * fx
-    c10 = c[2] + (c[3] - c[2]) * fx
-    c01 = c[4] + (c[5] - c[4]) * fx
-    c11 = c[6] + (c[7] - c[6]) * fx
-    c0 = c00 + (c10 - c00) * fy
-    c1 = c01 + (c11 - c01) * fy
-    return c0 + (c1 - c0) * fz
+    """(P,) float32 trilinear samples of a flat C-ordered float32 array in ``cell``."""
+    return _lerp8(_corners(flat, cell), cell[2])
+
+
+def _directions(packed, cell):
+    """(3, P) float32 trilinear blend of packed int8 directions (``gradient_directions``;
+    unit = 127) in ``cell``."""
+    g = _corners(packed, cell)  # (8, P) int32, four int8 each
+    g = g.view(np.int8).reshape(8, -1, 4).transpose(2, 0, 1)[:3].astype(np.float32, order="C")
+    return _lerp8(g.transpose(1, 0, 2), cell[2])
 
 
 def corrected_tables(tables, step):
@@ -429,221 +549,456 @@ def corrected_tables(tables, step):
     return out
 
 
-def _classify(scene, tables, val, nval):
-    """(P, 4) float32 RGBA of values ``val`` under the tables blended by eq. 6 at
-    memberships ``nval``; alpha already corrected for the step."""
-    ncam, tsize = tables.shape[:2]
+def _classify(scene, val, nval):
+    """(4, P) float32 RGBA planes of values ``val`` (P,) under the tables blended by
+    eq. 6 at memberships ``nval`` (P,); alpha already corrected for the step.
+
+    Eq. 6 weighs only the cameras i with |N - i| < 1: the two next to N (one at the
+    ends), whose weights are normalised to sum to one as ``blend_weights``' are. N is
+    snapped first (``_snap``), so a preserved region's samples use its camera alone.
+    """
+    ncam, tsize = scene.tables.shape[:2]
     x = np.clip(val, 0.0, 1.0).astype(np.float32) * np.float32(tsize - 1)
     lo = np.minimum(x.astype(np.int32), tsize - 2)
-    t = (x - lo)[:, None]
+    t = x - lo
+    look = scene.lookup
+    out = np.empty((4, len(val)), np.float32)
     if ncam == 1:
-        return tables[0, lo] * (1 - t) + tables[0, lo + 1] * t
-    w = blend_weights(nval, ncam, scene.cubic)
-    w = (w / np.maximum(w.sum(0), 1e-30)).astype(np.float32)
-    rgba = np.zeros((len(val), 4), dtype=np.float32)
-    for i in range(ncam):
-        used = w[i] > 0
-        count = int(np.count_nonzero(used))
-        if count == len(val):
-            rgba += w[i, :, None] * (tables[i, lo] * (1 - t) + tables[i, lo + 1] * t)
-        elif count:
-            sel = np.flatnonzero(used)
-            li, ti = lo[sel], t[sel]
-            rgba[sel] += w[i, sel, None] * (tables[i, li] * (1 - ti) + tables[i, li + 1] * ti)
-    return rgba
+        for c in range(4):
+            out[c] = look[4 + c].take(lo) * t + look[c].take(lo)
+        return out
+    nval = _snap(np.asarray(nval, np.float32))
+    first = np.clip(np.floor(nval), 1, ncam - 1)  # cameras first and first + 1 (1-based)
+    w0 = np.clip(1.0 - np.abs(nval - first), 0.0, 1.0)
+    w1 = np.clip(1.0 - np.abs(nval - first - 1.0), 0.0, 1.0)
+    if scene.cubic:
+        w0 = w0 * w0 * (3.0 - 2.0 * w0)
+        w1 = w1 * w1 * (3.0 - 2.0 * w1)
+    total = np.maximum(w0 + w1, np.float32(1e-30))
+    w0 /= total
+    w1 /= total
+    row0 = (first.astype(np.int32) - 1) * tsize + lo
+    row1 = row0 + tsize
+    for c in range(4):
+        a = look[4 + c].take(row0) * t + look[c].take(row0)
+        a *= w0
+        b = look[4 + c].take(row1) * t + look[c].take(row1)
+        b *= w1
+        np.add(a, b, out=out[c])
+    return out
 
 
-# Consecutive samples each ray takes per pass of the marching loop: amortises numpy's
-# per-call cost; a ray that turns opaque mid-pass wastes at most this many - 1 samples.
-SAMPLES_PER_PASS = 4
+def _planes(vertices, reach):
+    """(3, R, K + 1) float32 world x, y, z of the polylines, the last segment run on by
+    ``reach`` (R,)."""
+    v = np.asarray(vertices, dtype=np.float32)
+    r, k = v.shape[:2]
+    out = np.empty((3, r, k + 1), np.float32)
+    out[:, :, :k] = v.transpose(2, 0, 1)
+    last = (v[:, -1] - v[:, -2]).astype(np.float64)
+    n = np.linalg.norm(last, axis=-1, keepdims=True)
+    last = np.where(n > 0, last / np.where(n > 0, n, 1.0), 0.0)
+    out[:, :, k] = (v[:, -1] + last * np.asarray(reach, dtype=np.float64)[:, None]).T
+    return out
+
+
+def _camera_bounds(scene, low, high):
+    """Lowest and highest camera (0-based, int32 arrays) whose table can have weight
+    between memberships ``low`` and ``high`` (float32 arrays of one shape).
+
+    Eq. 6 weighs camera i where |N - i| < 1 once N is snapped (``_snap``): cameras
+    floor(N) and ceil(N), one of them within ``MEMBERSHIP_SNAP`` of an integer. The
+    bounds are floor(low + snap) and ceil(high - snap) widened by
+    ``MEMBERSHIP_ROUNDING`` (the highest taken as floor + 1, one more than needed at an
+    exact integer), clamped to the cameras.
+    """
+    ncam = len(scene.tables)
+    lo = (low + np.float32(MEMBERSHIP_SNAP - MEMBERSHIP_ROUNDING)).astype(np.int32)
+    hi = (high - np.float32(MEMBERSHIP_SNAP - MEMBERSHIP_ROUNDING)).astype(np.int32)
+    np.clip(lo, 1, ncam, out=lo)
+    np.clip(hi, 0, ncam - 1, out=hi)
+    lo -= 1
+    return lo, hi
+
+
+def _snap(nval):
+    """(P,) float32 memberships, those within ``MEMBERSHIP_SNAP`` of an integer set to
+    it."""
+    whole = np.rint(nval)
+    return np.where(np.abs(nval - whole) < MEMBERSHIP_SNAP, whole, nval).astype(np.float32)
+
+
+def _occupied(scene, b0, b1, cams=None):
+    """(P,) bool: whether the boxes of blocks between b0 and b1 hold a block occupied
+    under the cameras ``cams`` (lo, hi) can weigh.
+
+    b0, b1 : three (P,) int16 arrays each (or any one shape), block coordinates of two
+    corners of each box. cams : two int32 arrays of that shape, the lowest and highest
+    camera, or None (one camera).
+    Boxes of at most two blocks a side take one read of ``scene.bits``, the others eight
+    of ``scene.sums``.
+    """
+    bits = scene.bits
+    _, bx, by, bz = bits.shape
+    if cams is None:
+        grid = np.zeros(np.shape(b0[0]), np.int32)
+    else:
+        n = len(scene.tables)
+        table = camera_runs(n)(*np.divmod(np.arange(n * n), n)).astype(np.int32)
+        grid = table.take(cams[0] * n + cams[1])
+    lo = [np.minimum(p, q) for p, q in zip(b0, b1)]
+    span = [np.abs(p - q) for p, q in zip(b0, b1)]
+    variant = span[0] + 2 * span[1] + 4 * span[2]
+    index = ((grid * bx + lo[0]) * by + lo[1]) * bz + lo[2]
+    busy = (bits.ravel().take(index) >> np.minimum(variant, 7).astype(np.uint8)) & 1 > 0
+    wide = np.nonzero((span[0] > 1) | (span[1] > 1) | (span[2] > 1))
+    if len(wide[0]):
+        _, sx, sy, sz = scene.sums.shape
+        flat = scene.sums.ravel()
+        g = grid[wide].astype(np.int64) * (sx * sy * sz)
+        lo = [x[wide].astype(np.int64) for x in lo]
+        hi = [lo[a] + span[a][wide] + 1 for a in range(3)]
+        x0, x1 = lo[0] * (sy * sz) + g, hi[0] * (sy * sz) + g
+        y0, y1 = lo[1] * sz, hi[1] * sz
+        z0, z1 = lo[2], hi[2]
+        a, b, c, d = x1 + y1, x0 + y1, x1 + y0, x0 + y0
+        total = flat.take(a + z1) - flat.take(a + z0)
+        total -= flat.take(b + z1) - flat.take(b + z0)
+        total -= flat.take(c + z1) - flat.take(c + z0)
+        total += flat.take(d + z1) - flat.take(d + z0)
+        busy[wide] = total > 0
+    return busy
+
+
+def _blocks(shape, p):
+    """Block coordinates (int16) of three coordinate arrays, clamped into the grid."""
+    return [
+        (np.clip(p[a], 0.0, shape[a] - 1) * np.float32(1.0 / BLOCK)).astype(np.int16)
+        for a in range(3)
+    ]
+
+
+def _runs(scene, vertices, membership, reach, stop, h):
+    """The lattice samples of each ray that may be visible, as runs along straight
+    segments of the polylines.
+
+    Every segment (the last one run on by ``reach``) is tested at once, in flat planes
+    of one value per vertex (segment i runs from vertex i to i + 1): its ends in voxel
+    space, whether it touches the box [-0.5, n - 0.5]
+    (not both ends beyond one face), whether both ends are inside, and whether the box
+    of blocks between its ends holds a block occupied under the cameras its membership
+    can weigh. Segments that touch the box and are occupied or cross a face are clipped
+    to the box and to the ray's ``stop`` and become runs: the samples j * h of their
+    clipped arc interval [a, b) (half-open, so a sample on a vertex belongs to one
+    segment). The samples of the other segments inside the box are skipped.
+
+    Returns
+    -------
+    runs : None when no segment needs sampling, else a dict of (C,) arrays, C runs in
+        ray then arc order: ``ray``, ``seg`` int64 (segment within the ray); ``j``
+        int64, the first sample's lattice index; ``n`` int64, samples; ``p``, ``dp``
+        (3, C) float64, the first sample's voxel position and the step between samples;
+        ``nm``, ``dnm`` float64, the membership at the first sample and its change per
+        sample; ``sure`` bool, one piece already known to be occupied; ``dir`` (3, C)
+        float32, the segment's unit world direction.
+    skipped : (R, K + 1) int64, samples skipped so far along each ray (entry k counts
+        the empty segments 0..k).
+    entry : (R,) float64, arc length of each ray's first sample in the box (inf: none).
+    """
+    vol = scene.volume
+    shape = vol.shape
+    m = vol.world_to_index
+    w = _planes(vertices, reach)
+    r, k1 = w.shape[1:]
+    nv = r * k1
+    # flat planes: segment i runs from vertex i to i + 1 (none from a ray's last vertex)
+    w = w.reshape(3, nv)
+    d = np.zeros((3, nv), np.float32)
+    np.subtract(w[:, 1:], w[:, :-1], out=d[:, :-1])
+    d.reshape(3, r, k1)[:, :, -1] = 0.0
+    seglen = np.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
+    vox = np.empty_like(w)
+    for a in range(3):
+        vox[a] = w[0] * float(m[a, 0])
+        vox[a] += w[1] * float(m[a, 1])
+        vox[a] += w[2] * float(m[a, 2])
+        vox[a] += float(m[a, 3])
+    del w
+    beyond = np.zeros(nv, bool)
+    inside = np.ones(nv, bool)
+    for a in range(3):
+        below = vox[a] < -0.5
+        above = vox[a] > shape[a] - 0.5
+        beyond[:-1] |= below[:-1] & below[1:]
+        beyond[:-1] |= above[:-1] & above[1:]
+        inside &= ~(below | above)
+    touch = ~beyond & (seglen > 0)
+    full = np.zeros(nv, bool)
+    np.logical_and(inside[:-1], inside[1:], out=full[:-1])
+    del beyond, inside, below, above
+    blk = _blocks(shape, vox)
+    mem = np.empty((r, k1), np.float32)
+    mem[:, :-1] = membership
+    mem[:, -1] = mem[:, -2]
+    mem = mem.ravel()
+    cams = None
+    if len(scene.tables) > 1:
+        cams = _camera_bounds(scene, np.minimum(mem[:-1], mem[1:]), np.maximum(mem[:-1], mem[1:]))
+    busy = np.zeros(nv, bool)
+    busy[:-1] = _occupied(scene, [b[:-1] for b in blk], [b[1:] for b in blk], cams)
+    del blk, cams
+    cum = np.zeros((r, k1))
+    np.cumsum(seglen.reshape(r, k1)[:, :-1], axis=1, dtype=np.float64, out=cum[:, 1:])
+    cum = cum.ravel()
+    # samples of the empty segments wholly inside the box, up to the ray's stop
+    first = np.ceil(cum / h).astype(np.int32)
+    count = np.zeros(nv, np.int32)
+    if np.isfinite(stop).any():
+        ends = np.minimum(first.reshape(r, k1), np.ceil(stop / h).astype(np.int32)[:, None])
+        np.subtract(ends.ravel()[1:], first[:-1], out=count[:-1])
+        np.maximum(count, 0, out=count)
+    else:
+        np.subtract(first[1:], first[:-1], out=count[:-1])
+    count *= touch & full & ~busy
+    skipped = np.cumsum(count.reshape(r, k1), axis=1)
+    entry = np.full(r, np.inf)
+    seen = (count > 0).reshape(r, k1)
+    has = seen.any(axis=1)
+    at = seen.argmax(axis=1)[has]
+    entry[has] = first.reshape(r, k1)[has, at] * h
+
+    cand = np.flatnonzero(touch & (busy | ~full))
+    if not len(cand):
+        return None, skipped, entry
+    v0 = cand
+    ray, seg = np.divmod(cand, k1)
+    a = np.stack([vox[c].ravel().take(v0) for c in range(3)]).astype(np.float64)
+    dv = np.stack([vox[c].ravel().take(v0 + 1) for c in range(3)]) - a
+    length = seglen.ravel().take(cand).astype(np.float64)
+    start = cum.ravel().take(v0)
+    u0 = np.zeros(len(cand))
+    u1 = np.ones(len(cand))
+    cross = np.flatnonzero(~full.ravel().take(cand))
+    if len(cross):
+        t0, t1 = _box_interval(a[:, cross].T, dv[:, cross].T, shape)
+        u0[cross] = np.maximum(t0, 0.0)
+        u1[cross] = np.minimum(t1, 1.0)
+    sa = start + u0 * length
+    sb = np.minimum(start + u1 * length, stop[ray])
+    ja = np.ceil(sa / h)
+    n = np.ceil(sb / h) - ja
+    keep = np.flatnonzero(n > 0)
+    if not len(keep):
+        return None, skipped, entry
+    ray, seg, cand, v0, a, dv, length, start, ja, n = (
+        x[..., keep] for x in (ray, seg, cand, v0, a, dv, length, start, ja, n)
+    )
+    n = n.astype(np.int64)
+    rise = h / length
+    local = (ja * h - start) / length  # fraction of the segment before the first sample
+    m0 = mem.ravel().take(v0).astype(np.float64)
+    dm = mem.ravel().take(v0 + 1) - m0
+    first_run = np.flatnonzero(np.r_[True, ray[1:] != ray[:-1]])
+    entry[ray[first_run]] = np.minimum(entry[ray[first_run]], ja[first_run] * h)
+    runs = {
+        "ray": ray,
+        "seg": seg,
+        "j": ja.astype(np.int64),
+        "n": n,
+        "p": a + dv * local,
+        "dp": dv * rise,
+        "nm": m0 + dm * local,
+        "dnm": dm * rise,
+        "sure": full.ravel().take(cand) & (n <= _per_piece(scene)),
+        "dir": np.stack([d[c].ravel().take(cand) for c in range(3)]) / seglen.ravel().take(cand),
+    }
+    return runs, skipped, entry
+
+
+def _per_piece(scene):
+    """Samples in a piece: they span at most ``PIECE_VOXELS`` voxels."""
+    return max(1, int(PIECE_VOXELS / scene.step))
+
+
+def _pieces(scene, runs):
+    """Cut runs into pieces of at most ``_per_piece`` samples and test each piece's box
+    of blocks (its first and last sample's) under the cameras its membership can weigh.
+
+    Returns
+    -------
+    dict of (P,) arrays, pieces in ray then arc order: ``run`` int64 (index into the
+    runs), ``i`` int64 (first sample within its run), ``count`` int64, ``busy`` bool.
+    """
+    per = _per_piece(scene)
+    n = runs["n"]
+    pcs = -(-n // per)
+    run = np.repeat(np.arange(len(n)), pcs)
+    i = _within(pcs) * per
+    count = np.minimum(per, n.take(run) - i)
+    busy = runs["sure"].take(run)
+    test = np.flatnonzero(~busy)
+    if len(test):
+        rt, it, ct = run[test], i[test], count[test]
+        p = [runs["p"][c].take(rt) + it * runs["dp"][c].take(rt) for c in range(3)]
+        q = [p[c] + (ct - 1) * runs["dp"][c].take(rt) for c in range(3)]
+        bp, bq = _blocks(scene.volume.shape, p), _blocks(scene.volume.shape, q)
+        cams = None
+        if len(scene.tables) > 1:
+            n0 = runs["nm"].take(rt) + it * runs["dnm"].take(rt)
+            n1 = n0 + (ct - 1) * runs["dnm"].take(rt)
+            low = np.minimum(n0, n1).astype(np.float32)
+            cams = _camera_bounds(scene, low, np.maximum(n0, n1).astype(np.float32))
+        busy[test] = _occupied(scene, bp, bq, cams)
+    return {"run": run, "i": i, "count": count, "busy": busy}
 
 
 def _march_chunk(scene, vertices, membership, reach, stop):
+    """March one chunk of R rays (``march_volume``'s arguments, sliced).
+
+    Returns
+    -------
+    colour (R, 3) float32 premultiplied, alpha (R,) float32, entry (R,) float64, depth
+    (R,) float64, samples taken and samples skipped (int), as in ``VolumeResult``.
+    """
     vol = scene.volume
-    values = vol.values
-    shape = values.shape
-    flat = values.ravel()
-    strides = (shape[1] * shape[2], shape[2], 1)
-    m = vol.world_to_index
-    voxel = vol.voxel_size
-    h = scene.step * voxel
+    shape = vol.shape
+    h = scene.step * vol.voxel_size
     r = len(vertices)
-    tables = corrected_tables(scene.tables, scene.step)
-
-    vw = _extended(vertices, reach)  # (R, K1, 3) world, float32
-    k1 = vw.shape[1]
-    dw = np.diff(vw, axis=1)
-    seglen = np.sqrt((dw * dw).sum(-1))  # (R, K1-1) float32
-    cum = np.zeros((r, k1))
-    np.cumsum(seglen, axis=1, dtype=np.float64, out=cum[:, 1:])
-    m3 = m[:3, :3].T.astype(np.float32)
-    vi = vw @ m3 + m[:3, 3].astype(np.float32)  # voxel space
-    del vw
-    dvi = dw @ m3  # voxel units per world unit once divided by the length
-    del dw
-    np.divide(dvi, seglen[..., None], out=dvi, where=seglen[..., None] > 0)
-    dvi[seglen == 0] = 0.0
-    mem = np.concatenate([membership, membership[:, -1:]], axis=1).astype(np.float64)
-
-    # the arc-length interval each ray spends in the box: segments whose ends are both
-    # beyond the same face (Cohen-Sutherland outcodes) cannot touch it; slab-test the rest
-    below = vi < -0.5
-    above = vi > np.array(shape, dtype=np.float32) - 0.5
-    beyond = (below[:, :-1] & below[:, 1:]) | (above[:, :-1] & above[:, 1:])
-    cand = np.flatnonzero(~beyond.any(axis=-1) & (seglen > 0))
-    t0, t1 = _box_interval(vi[:, :-1].reshape(-1, 3)[cand], dvi.reshape(-1, 3)[cand], shape)
-    t0 = np.maximum(t0, 0.0)
-    t1 = np.minimum(t1, seglen.ravel()[cand])
-    hit = t1 >= t0
-    start = cum[:, :-1].ravel()[cand]
-    enter = np.full(r * (k1 - 1), np.inf)
-    leave = np.full(r * (k1 - 1), -np.inf)
-    enter[cand] = np.where(hit, start + t0, np.inf)
-    leave[cand] = np.where(hit, start + t1, -np.inf)
-    s_in = enter.reshape(r, k1 - 1).min(axis=1)
-    s_out = np.minimum(leave.reshape(r, k1 - 1).max(axis=1), stop)
-    j0 = np.ceil(s_in / h)
-    alive = np.isfinite(s_in) & (j0 * h <= s_out)
-
-    colour = np.zeros((r, 3), dtype=np.float32)
-    alpha = np.zeros(r, dtype=np.float32)
-    entry = np.full(r, np.inf)
+    colour = np.zeros((3, r), dtype=np.float32)
+    trans = np.ones(r, dtype=np.float32)  # transmittance so far
     depth = np.full(r, np.inf)
-    samples = skipped = 0
-    rows = np.flatnonzero(alive)
-    if not len(rows):
-        return colour, alpha, entry, depth, 0, 0
-    s = j0[rows] * h
-    entry[rows] = s
-    # flat per-vertex arrays: row r's vertex k at r * k1 + k
-    cum_f = cum.ravel()
-    vi_f = vi.reshape(-1, 3)
-    dvi_f = np.concatenate([dvi, np.zeros((r, 1, 3), np.float32)], axis=1).reshape(-1, 3)
-    len_f = np.concatenate([seglen, np.ones((r, 1), np.float32)], axis=1).ravel()
-    mem_f = mem.ravel()
-    # one searchsorted finds every sample's segment: rows are offset by more than a ray
-    span = float(cum[:, -1].max()) + 1.0
-    keys = (cum + np.arange(r)[:, None] * span).ravel()
-    inv = np.linalg.inv(m)[:3, :3]
-    block = BLOCK
-    occ = scene.occupied
-    bshape = np.array(occ.shape)
-    bstride = np.array([bshape[1] * bshape[2], bshape[2], 1])
-    occ_flat = occ.ravel()
-    coarse = scene.coarse
-    cshape = np.array(coarse.shape)
-    cstride = np.array([cshape[1] * cshape[2], cshape[2], 1])
-    coarse_flat = coarse.ravel()
-    n_hi = np.array(shape, dtype=np.float64) - 1
-    steps = np.arange(SAMPLES_PER_PASS) * h
 
-    def search(sv, rv):
-        """Flat index of the segment holding arc length ``sv`` of rays ``rv``."""
-        base = rv * k1
-        kk = np.searchsorted(keys, sv + rv * span, side="right") - 1 - base
-        return np.clip(kk, 0, k1 - 2) + base
+    runs, dense_skipped, entry = _runs(scene, vertices, membership, reach, stop, h)
 
-    def advance(fi, sv, rv):
-        """The segment holding ``sv``, from a segment ``fi`` at or before it: a step
-        crosses at most a vertex or two, so two cheap moves, then a search for the rest."""
-        last = rv * k1 + k1 - 2
-        for _ in range(2):
-            late = (sv > cum_f[fi + 1]) & (fi < last)
-            if not late.any():
-                return fi
-            fi = fi + late
-        late = np.flatnonzero((sv > cum_f[fi + 1]) & (fi < last))
-        if len(late):
-            fi[late] = search(sv[late], rv[late])
-        return fi
+    def result(samples, skipped):
+        alpha = (1.0 - trans).astype(np.float32)
+        return colour.T.copy(), alpha, entry, depth, samples, skipped
 
-    def locate(fi, sv):
-        """Offset along segments ``fi``, their direction and the voxel position at
-        arc lengths ``sv``."""
-        local = sv - cum_f[fi]
-        d = dvi_f[fi]
-        return local, d, vi_f[fi] + local[:, None] * d
+    skipped = int(dense_skipped[:, -1].sum())
+    if runs is None:
+        return result(0, skipped)
+    pieces = _pieces(scene, runs)
+    busy = pieces["busy"]
+    # the pieces' skipped samples, less those behind where a ray stopped
+    empty = np.zeros(len(busy) + 1, np.int64)
+    np.cumsum(np.where(busy, 0, pieces["count"]), out=empty[1:])
+    skipped += int(empty[-1])
+    piece_ray = runs["ray"].take(pieces["run"])
+    sel = np.flatnonzero(busy)
+    if not len(sel):
+        return result(0, skipped)
 
-    seg = search(s, rows)
-    while len(rows):
-        fi0 = seg = advance(seg, s, rows)
-        _local0, d0, p0 = locate(fi0, s)
-        # a bent ray may leave the box and come back: samples outside it read nothing
-        inside0 = ((p0 >= -0.5) & (p0 <= n_hi + 0.5)).all(axis=1)
-        pc0 = np.clip(p0, 0.0, n_hi)
-        b0 = np.minimum((pc0 * (1.0 / block)).astype(np.int64), bshape - 1)
-        busy = occ_flat[b0 @ bstride] | ~inside0
-        next_s = s + SAMPLES_PER_PASS * h
+    # the busy pieces, with what their samples need
+    run = pieces["run"][sel]
+    i = pieces["i"][sel]
+    count = pieces["count"][sel]
+    p0 = [
+        (runs["p"][c].take(run) + i * runs["dp"][c].take(run)).astype(np.float32) for c in range(3)
+    ]
+    dp = [runs["dp"][c].take(run).astype(np.float32) for c in range(3)]
+    n0 = (runs["nm"].take(run) + i * runs["dnm"].take(run)).astype(np.float32)
+    dn = runs["dnm"].take(run).astype(np.float32)
+    j0 = runs["j"].take(run) + i
+    wdir = [runs["dir"][c].take(run).astype(np.float32) for c in range(3)]
+    bseg = runs["seg"].take(run)
+    bray = piece_ray[sel]
+    done_at = np.zeros(len(sel) + 1, np.int64)  # samples in busy pieces before each
+    np.cumsum(count, out=done_at[1:])
 
-        # the first sample in an empty block: jump to the first lattice sample past the
-        # block (or past the segment, where the direction changes)
-        free = np.flatnonzero(~busy)
-        if len(free):
-            df = d0[free]
-            bf = b0[free]
-            cb = bf // COARSE
-            wide = ~coarse_flat[cb @ cstride]  # the whole coarse block is empty
-            size = np.where(wide, block * COARSE, block).astype(np.float64)[:, None]
-            lo_b = np.where(wide[:, None], cb * COARSE, bf) * float(block)
-            pf = p0[free]
-            with np.errstate(divide="ignore", invalid="ignore"):
-                exit_t = np.where(
-                    df > 0, (lo_b + size - pf) / df, np.where(df < 0, (lo_b - pf) / df, np.inf)
-                ).min(axis=1)
-            sf = s[free]
-            jump = np.minimum(np.maximum(exit_t, 0.0), cum_f[fi0[free] + 1] - sf)
-            target = np.maximum(np.ceil((sf + jump) / h) * h, sf + h)
-            skipped += int(np.round((target - sf) / h).sum()) - len(free)
-            next_s[free] = target
+    # each ray's busy pieces are sel[first:last]; all its pieces end at piece_end
+    first = np.flatnonzero(np.r_[True, bray[1:] != bray[:-1]])
+    last = np.r_[first[1:], len(sel)]
+    rid = bray[first]
+    piece_end = np.searchsorted(piece_ray, rid, side="right")
+    ptr = first
 
-        # otherwise: sample, classify and composite SAMPLES_PER_PASS samples
-        on = np.flatnonzero(busy)
-        if len(on):
-            ro = rows[on]
-            sj = (s[on, None] + steps).ravel()
-            rj = np.repeat(ro, SAMPLES_PER_PASS)
-            fo = advance(np.repeat(fi0[on], SAMPLES_PER_PASS), sj, rj)
-            local, d, p = locate(fo, sj)
-            ok = ((p >= -0.5) & (p <= n_hi + 0.5)).all(axis=1) & (sj <= s_out[rj])
-            cell = _cell(strides, shape, np.clip(p, 0.0, n_hi))
-            val = _trilinear(flat, cell)
-            t = np.clip(local / len_f[fo], 0.0, 1.0)
-            nval = mem_f[fo] + (mem_f[fo + 1] - mem_f[fo]) * t
-            rgba = _classify(scene, tables, val, nval)
-            rgba[:, 3] *= ok
-            samples += int(ok.sum())
-            rgb = rgba[:, :3]
-            if scene.shading:
-                lit = np.flatnonzero(rgba[:, 3] > 0)
-                sub = (cell[0][lit], cell[1], cell[2][lit])
-                gi = _trilinear(scene.normals, sub)  # voxel space, unit = 127
-                g = gi @ m[:3, :3].astype(np.float32)
-                gn = np.linalg.norm(g, axis=1)
-                dw = (d[lit] @ inv.T).astype(np.float32)  # unit world direction
-                cos = np.abs((g * dw).sum(1)) / np.maximum(gn, 1e-30)
-                shade = SHADE_AMBIENT + (1.0 - SHADE_AMBIENT) * cos
-                length = np.linalg.norm(gi, axis=1)
-                shade = np.where(length > MIN_DIRECTION * 127, shade, 1.0)
-                rgb[lit] *= shade[:, None].astype(rgb.dtype)
-            rgb = rgb.reshape(len(on), SAMPLES_PER_PASS, 3)
-            a_s = rgba[:, 3].reshape(len(on), SAMPLES_PER_PASS)
-            acc = alpha[ro]
-            col = colour[ro]
-            dep = depth[ro]
-            s_on = s[on]
-            for j in range(SAMPLES_PER_PASS):
-                w = (1.0 - acc) * a_s[:, j]
-                col += w[:, None] * rgb[:, j]
-                new = acc + w
-                dep = np.where((acc < 0.5) & (new >= 0.5), s_on + j * h, dep)
-                acc = new
-            alpha[ro], colour[ro], depth[ro] = acc, col, dep
-            next_s[on[acc >= EARLY_TERMINATION]] = np.inf
+    flat = vol.values.ravel()
+    top = [np.float32(n - 1) for n in shape]
+    m_lin = vol.world_to_index[:3, :3]
+    kseg = dense_skipped.shape[1]
+    samples = 0
+    budget = np.full(len(rid), ROUND_FIRST, np.int64)
+    taken = np.zeros(len(rid), np.int64)
+    while len(rid):
+        # this round: each ray's next busy pieces, up to ``budget`` samples (at least one)
+        upto = np.searchsorted(done_at, done_at[ptr] + budget, side="right") - 1
+        upto = np.clip(upto, ptr + 1, last)
+        took = upto - ptr
+        pid = np.repeat(ptr - _starts(took), took) + np.arange(int(took.sum()))
+        cnt = count.take(pid)
+        per_ray = done_at[upto] - done_at[ptr]
+        kf = _within(cnt).astype(np.float32)
+        ps = np.repeat(pid, cnt)
+        samples += len(ps)
+        p = []
+        for c in range(3):
+            x = dp[c].take(ps)
+            x *= kf
+            x += p0[c].take(ps)
+            p.append(np.clip(x, 0.0, top[c], out=x))
+        cell = _cell(shape, p)
+        val = _trilinear(flat, cell)
+        nval = dn.take(ps)
+        nval *= kf
+        nval += n0.take(ps)
+        rgba = _classify(scene, val, nval)
+        a = rgba[3]
+        if scene.shading:
+            lit = np.flatnonzero(a > 0)
+            sub = (cell[0].take(lit), cell[1], [f.take(lit) for f in cell[2]])
+            gi = _directions(scene.normals, sub)  # voxel space, unit = 127
+            g = [gi[0] * m_lin[0, c] + gi[1] * m_lin[1, c] + gi[2] * m_lin[2, c] for c in range(3)]
+            ls = ps.take(lit)
+            dot = g[0] * wdir[0].take(ls) + g[1] * wdir[1].take(ls) + g[2] * wdir[2].take(ls)
+            gn = np.sqrt(g[0] * g[0] + g[1] * g[1] + g[2] * g[2])
+            cos = np.abs(dot) / np.maximum(gn, np.float32(1e-30))
+            shade = np.float32(SHADE_AMBIENT) + np.float32(1.0 - SHADE_AMBIENT) * cos
+            strong = (gi * gi).sum(0) > (MIN_DIRECTION * 127) ** 2
+            shade = np.where(strong, shade, np.float32(1.0))
+            for c in range(3):
+                rgba[c, lit] *= shade
 
-        s = next_s
-        keep = s <= s_out[rows]
-        rows, s, seg = rows[keep], s[keep], seg[keep]
-    return colour, alpha, entry, depth, samples, skipped
+        # front to back within the round: rays in rows, their samples in columns
+        rows = len(rid)
+        width = int(per_ray.max()) + 1
+        row = np.repeat(np.arange(rows), per_ray)
+        at = row * width + _within(per_ray)
+        keep = np.ones(rows * width, np.float32)
+        keep[at + 1] = 1.0 - a
+        keep = np.cumprod(keep.reshape(rows, width), axis=1).ravel()
+        t_ray = trans[rid]
+        t_row = t_ray.take(row)
+        before = keep.take(at) * t_row  # transmittance in front of each sample
+        after = keep.take(at + 1) * t_row
+        wgt = before * a
+        starts = _starts(per_ray)
+        for c in range(3):
+            colour[c, rid] += np.add.reduceat(wgt * rgba[c], starts)
+        half = np.flatnonzero((before > 0.5) & (after <= 0.5))
+        depth[rid[row[half]]] = (j0[ps[half]] + kf[half]) * h
+        t_ray *= keep.reshape(rows, width)[:, -1]
+        trans[rid] = t_ray
+
+        stopped = (1.0 - t_ray) >= EARLY_TERMINATION
+        if stopped.any():  # the skipped samples behind a stopped ray were never reached
+            at_piece = upto[stopped] - 1
+            behind = sel[at_piece] + 1
+            skipped -= int((empty[piece_end[stopped]] - empty[behind]).sum())
+            tail = dense_skipped.ravel()
+            rs = rid[stopped]
+            skipped -= int((tail[rs * kseg + kseg - 1] - tail[rs * kseg + bseg[at_piece]]).sum())
+        going = ~stopped & (upto < last)
+        rid, ptr, last, piece_end = rid[going], upto[going], last[going], piece_end[going]
+        # next round: twice this one, or fewer if the opacity gathered so far says the
+        # ray is near its end (samples taken x ln(T / T_end) / -ln(T))
+        taken = taken[going] + per_ray[going]
+        t_left = t_ray[going].astype(np.float64)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            need = taken * np.log(t_left / (1.0 - EARLY_TERMINATION)) / -np.log(t_left)
+        need = np.where(t_left < 1.0, np.ceil(np.minimum(need, ROUND_MAX)), ROUND_MAX)
+        budget = np.clip(np.minimum(2 * budget[going], need), ROUND_FIRST, ROUND_MAX)
+        budget = budget.astype(np.int64)
+    return result(samples, skipped)
 
 
 def composite_over(layers, behind_colour, behind_alpha):
