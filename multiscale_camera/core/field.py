@@ -523,6 +523,11 @@ def _scheduled_chunk(family, u, v, step, vertices, contains):
 # A trace is shared among worker processes only when each gets at least this many
 # rays: forking and sending the rays back cost more than tracing fewer.
 MIN_RAYS_PER_PROCESS = 256
+# ... and in shares of at most this many rays, so that no worker holds more than a few
+# hundred megabytes of rays at once (they come back pickled).
+MAX_RAYS_PER_SHARE = 16384
+# Ray vertices completed (run-on, membership) at a time after a trace.
+BLOCK_VERTICES = 1 << 20
 
 
 def blend_weights(nval, count, cubic=False):
@@ -710,10 +715,15 @@ class FieldTracer:
         else:
             verts = arc_length_rays(self.families[i], u, v, step, vertices)
         r, k = verts.shape[:2]
-        inside = self.contains(verts.reshape(-1, 3)).reshape(r, k)
+        inside = np.empty((r, k), dtype=bool)
+        membership = np.empty((r, k), dtype=np.float32)
+        block = max(1, BLOCK_VERTICES // k)
+        for s in range(0, r, block):  # N's temporaries at every vertex at once: gigabytes
+            flat = verts[s : s + block].reshape(-1, 3)
+            inside[s : s + block] = self.contains(flat).reshape(-1, k)
+            membership[s : s + block] = self.n_of(flat).reshape(-1, k)
         # the tracer keeps the first point outside the grid as a ray's last vertex
         count = np.where(inside.all(axis=1), k, np.argmin(inside, axis=1) + 1).astype(np.int32)
-        membership = self.n_of(verts.reshape(-1, 3)).reshape(r, k)
         live = np.arange(k)[None, :] < (count[:, None] - 1)
         ok = ~((np.abs(membership - (i + 1)) > 1e-5) & live).any(axis=1)
         reason = np.full(r, StopReason.LEFT_GRID, dtype=np.int8)
@@ -748,9 +758,10 @@ class FieldTracer:
         workers = self.processes if self.processes > 0 else parallel.cores()
         workers = min(workers, len(u0) // MIN_RAYS_PER_PROCESS)
         if workers > 1:
-            # every workers-th ray to each: neighbours on the lattice run alike, so the
+            # every n-th ray to each share: neighbours on the lattice run alike, so the
             # shares take about as long
-            shares = [np.arange(k, len(u0), workers) for k in range(workers)]
+            n = max(workers, -(-len(u0) // MAX_RAYS_PER_SHARE))
+            shares = [np.arange(k, len(u0), n) for k in range(n)]
             parts = parallel.forked_map(
                 lambda rows: self._traced_part(u0[rows], v0[rows], step, max_steps),
                 shares,
@@ -789,26 +800,34 @@ class FieldTracer:
         )
         if not lines.complete:
             raise Cancelled()
-        verts = lines.points.astype(np.float64)
-        r, k = verts.shape[:2]
-        rows = np.arange(r)
-        count = lines.counts.astype(np.int64)
-        last = verts[rows, count - 1]
-        prev = verts[rows, np.maximum(count - 2, 0)]
-        d = last - prev
-        short = np.linalg.norm(d, axis=-1) < 1e-12
-        d[short] = cam1.directions(u0[short], v0[short])
-        d /= np.linalg.norm(d, axis=-1, keepdims=True)
-        # after a ray stops, run straight on along its last direction at the same step,
-        # so vertex k of every ray lies at the same arc length
+        pts = lines.points  # (R, K, 3) float32, completed in place block by block
+        r, k = pts.shape[:2]
+        counts = lines.counts.astype(np.int64)
+        membership = np.empty((r, k), dtype=np.float32)
         ks = np.arange(k)[None, :]
-        after = ks >= count[:, None]
-        spacing = step(last)[:, None] if callable(step) else step
-        run = (ks - (count[:, None] - 1)) * spacing
-        verts = np.where(after[..., None], last[:, None] + d[:, None] * run[..., None], verts)
-        membership = self.n_of(verts.reshape(-1, 3)).reshape(r, k)
+        # in blocks of rays: float64 copies of every vertex, and N's temporaries at
+        # every vertex, would take gigabytes at 1920x1080
+        block = max(1, BLOCK_VERTICES // k)
+        for s in range(0, r, block):
+            sl = slice(s, s + block)
+            verts = pts[sl].astype(np.float64)
+            count = counts[sl]
+            rows = np.arange(len(verts))
+            last = verts[rows, count - 1]
+            d = last - verts[rows, np.maximum(count - 2, 0)]
+            short = np.linalg.norm(d, axis=-1) < 1e-12
+            d[short] = cam1.directions(u0[sl][short], v0[sl][short])
+            d /= np.linalg.norm(d, axis=-1, keepdims=True)
+            # after a ray stops, run straight on along its last direction at the same
+            # step, so vertex k of every ray lies at the same arc length
+            after = ks >= count[:, None]
+            spacing = step(last)[:, None] if callable(step) else step
+            run = (ks - (count[:, None] - 1)) * spacing
+            verts = np.where(after[..., None], last[:, None] + d[:, None] * run[..., None], verts)
+            pts[sl] = verts
+            membership[sl] = self.n_of(verts.reshape(-1, 3)).reshape(len(verts), k)
         return Traced(
-            verts.astype(np.float32),
+            pts,
             membership,
             lines.counts.astype(np.int32),
             lines.reason,

@@ -21,12 +21,16 @@ needs_fork = pytest.mark.skipif(parallel.fork_context() is None, reason="no fork
 @needs_fork
 def test_rays_traced_in_two_processes_equal_those_traced_in_one(monkeypatch):
     monkeypatch.setattr(field_module, "MIN_RAYS_PER_PROCESS", 16)
-    calls = []
+    # shares smaller than the rounds: each worker traces several, as at 1920x1080
+    monkeypatch.setattr(field_module, "MAX_RAYS_PER_SHARE", 40)
+    monkeypatch.setattr(field_module, "BLOCK_VERTICES", 1000)
+    calls, shares = [], []
     real = parallel.forked_map
 
     def counting(task, items, processes, should_stop=None):
         out = real(task, items, processes, should_stop)
         calls.append(out is not None)
+        shares.append(len(items))
         return out
 
     monkeypatch.setattr(parallel, "forked_map", counting)
@@ -36,7 +40,7 @@ def test_rays_traced_in_two_processes_equal_those_traced_in_one(monkeypatch):
     one = prepare(rig, "SCALAR_FIELD", replace(base, processes=1))
     assert calls == []
     two = prepare(rig, "SCALAR_FIELD", replace(base, processes=2))
-    assert calls and all(calls)
+    assert calls and all(calls) and max(shares) > 2
     # numpy's vector loops may round the last bit of a float64 differently with the
     # length of the arrays a ray shares its steps with, and the trace carries that on:
     # equal to a millionth of the rig's size (14 units), a few float32 steps
