@@ -40,6 +40,23 @@ QUALITIES = ("PREVIEW", "STANDARD", "HIGH")
 TIMEOUT_S = 900
 
 
+def _commit():
+    """The measured tree's commit (with "+" if it has changes), or None outside git."""
+    try:
+        head = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no"],
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+        ).stdout.strip()
+    except OSError:
+        return None
+    return (head + ("+" if dirty else "")) or None
+
+
 def run_one(rig_name, method, quality, width, height):
     """Build one field in this process; return its row (a dict)."""
     from multiscale_camera.core.errors import RigError
@@ -71,6 +88,7 @@ def run_one(rig_name, method, quality, width, height):
         "grids": report["grids"],
         "traced_rays": int(fld.stats.get("traced", 0)),
         "processes": settings.processes or cores(),
+        "commit": _commit(),
         "cameras": report["cameras"],
         "worst_p95_px": max(c["preserved_px"]["p95"] for c in report["cameras"]),
         "folds": report["folds"],
