@@ -226,11 +226,17 @@ class TracedField(RayField):
             max(int(self.traced.counts[r].max()) for r, _w in corners) + 1,
         )
         k = max(k, 2)
-        verts = np.zeros((len(ix), k, 3), dtype=np.float32)
-        mem = np.zeros((len(ix), k), dtype=np.float32)
-        for row, w in corners:
-            verts += self.traced.vertices[row, :k] * w[:, :, None]
-            mem += self.traced.membership[row, :k] * w
+        verts = mem = None
+        for row, w in corners:  # in place: a (P, K, 3) temporary less per corner
+            v = self.traced.vertices[row, :k]
+            v *= w[:, :, None]
+            m = self.traced.membership[row, :k]
+            m *= w
+            if verts is None:
+                verts, mem = v, m
+            else:
+                verts += v
+                mem += m
         return self._bundle(ix, iy, verts, mem)
 
     def exit_index(self, ix, iy):
