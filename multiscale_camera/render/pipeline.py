@@ -11,6 +11,7 @@ from ..adapters.meshes import scene_geometry
 from ..adapters.scene import rig_from_scene
 from ..core.fingerprint import field_key
 from ..core.methods import prepare, settings_for
+from ..core.occupancy import Occupancy
 from ..core.sampling import DEFAULT_TOLERANCE_PX, RaySampler, sample_offsets
 from ..core.validate import crossing_messages, empty_mask_messages
 from ..io import cache
@@ -48,6 +49,7 @@ class Frame:
     sampler : core.sampling.RaySampler. bounds : ((3,), (3,)) float64 padded scene box
         or None. samples : int, rays per pixel. filter_width : float, pixels.
     processes : int, worker processes for the tiles (0: one per core).
+    occupancy : core.occupancy.Occupancy of the triangles in ``bounds``, or None.
     casts, shadow_casts, rays : int, counted as the render goes.
     """
 
@@ -70,6 +72,7 @@ class Frame:
     shadow_casts: int = 0
     rays: int = 0
     volumes: FrameVolumes = field(default_factory=FrameVolumes)
+    occupancy: object = None
 
     @property
     def size(self):
@@ -131,7 +134,7 @@ def prepare_frame(depsgraph, should_stop=None):
     t2 = t1
     geometry = scene_geometry(depsgraph)
     notices = list(ray_field.notices) + list(ray_field.warnings)
-    bounds = None
+    bounds = occupancy = None
     if len(geometry):
         tree = BVHTree.FromPolygons(
             geometry.vertices.tolist(), geometry.triangles.tolist(), all_triangles=True
@@ -140,6 +143,7 @@ def prepare_frame(depsgraph, should_stop=None):
         scale = float(np.linalg.norm(hi - lo))
         pad = BOUNDS_PAD * max(scale, 1e-6) + 1e-6
         bounds = (lo - pad, hi + pad)
+        occupancy = Occupancy(geometry.vertices, geometry.triangles, *bounds, pad=pad)
     else:
         tree, scale = None, 1.0
     notices += volume_notices
@@ -181,6 +185,7 @@ def prepare_frame(depsgraph, should_stop=None):
         filter_width=float(getattr(scene.render, "filter_size", 1.5)),
         processes=int(scene.render.threads) if scene.render.threads_mode == "FIXED" else 0,
         volumes=volumes,
+        occupancy=occupancy,
     )
 
 
@@ -198,7 +203,7 @@ def sampler_for(ray_field, tol_px, bounds, should_stop=None):
 
 def _cast_and_shade(frame, seg, should_stop):
     """(hits, shaded) for ``Segments``; counts the casts on ``frame``."""
-    hits = march(frame.tree, seg, should_stop, frame.bounds)
+    hits = march(frame.tree, seg, should_stop, frame.bounds, frame.geometry, frame.occupancy)
     shaded = shade(
         frame.geometry, hits, frame.lights, frame.world, frame.tree, frame.scale, should_stop
     )

@@ -10,8 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..core.errors import Cancelled
-from .raycast import CASTS_PER_CHECK, gc_paused
+from .raycast import cast_all, gc_paused
 
 # Shadow-ray origins are lifted off the surface by this fraction of the scene's size,
 # enough to clear float32 BVH precision, far below anything visible.
@@ -172,16 +171,12 @@ def _occluded(tree, origins, directions, distances, which, should_stop=None):
     blocked = np.zeros(len(origins), dtype=bool)
     sel = np.flatnonzero(which)
     with gc_paused():
-        o = origins[sel].tolist()
-        d = np.ascontiguousarray(directions[sel]).tolist()
-        far = np.minimum(distances[sel], 1e30).tolist()
-    cast = tree.ray_cast
-    hit = []
-    with gc_paused():
-        for a in range(0, len(sel), CASTS_PER_CHECK):
-            if should_stop is not None and should_stop():
-                raise Cancelled()
-            b = a + CASTS_PER_CHECK
-            hit += [cast(p, q, f)[2] is not None for p, q, f in zip(o[a:b], d[a:b], far[a:b])]
-    blocked[sel] = hit
+        tri = cast_all(
+            tree.ray_cast,
+            origins[sel].tolist(),
+            np.ascontiguousarray(directions[sel]).tolist(),
+            np.minimum(distances[sel], 1e30).tolist(),
+            should_stop,
+        )
+    blocked[sel] = ~np.isnan(tri)
     return blocked

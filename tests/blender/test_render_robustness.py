@@ -222,7 +222,7 @@ def test_culled_render_equals_uncut_render(empty_scene):
     frame = pipeline.prepare_frame(bpy.context.evaluated_depsgraph_get())
     culled = pipeline.render_rows(frame, 0, 48)
     casts = frame.casts
-    frame.bounds = None
+    frame.bounds = frame.occupancy = None
     frame.casts = 0
     uncut = pipeline.render_rows(frame, 0, 48)
     for name in ("Combined", "IndexOB", "Normal"):
