@@ -162,7 +162,7 @@ def prepare_frame(depsgraph, should_stop=None):
     t3 = time.perf_counter()
     settings = scene.multiscale
     tol = getattr(settings, "simplify_px", DEFAULT_TOLERANCE_PX)
-    sampler = sampler_for(ray_field, tol, bounds, should_stop)
+    sampler = sampler_for(ray_field, tol, bounds, should_stop, occupancy)
     t4 = time.perf_counter()
     return Frame(
         rig=rig,
@@ -189,15 +189,18 @@ def prepare_frame(depsgraph, should_stop=None):
     )
 
 
-def sampler_for(ray_field, tol_px, bounds, should_stop=None):
-    """The field's RaySampler at ``tol_px`` pixels for geometry inside ``bounds``, built
-    once per field, tolerance and bounds."""
+def sampler_for(ray_field, tol_px, bounds, should_stop=None, occupancy=None):
+    """The field's RaySampler at ``tol_px`` pixels for geometry inside ``bounds`` (and in
+    the occupied cells of ``occupancy``, when given), built once per field, tolerance and
+    geometry layout."""
     cache = ray_field.__dict__.setdefault("_samplers", {})
     box = None if bounds is None else tuple(np.round(np.concatenate(bounds), 9).tolist())
-    key = (round(float(tol_px), 6), box)
+    cells = None if occupancy is None else occupancy.digest()
+    key = (round(float(tol_px), 6), box, cells)
     if key not in cache:
         cache.clear()
-        cache[key] = RaySampler(ray_field, key[0], bounds, should_stop)
+        clearance = None if occupancy is None else occupancy.clearance
+        cache[key] = RaySampler(ray_field, key[0], bounds, should_stop, clearance)
     return cache[key]
 
 

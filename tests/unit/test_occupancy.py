@@ -56,3 +56,17 @@ def test_ground_plane_grid_culls_above_the_ground_only():
 def test_empty_geometry_culls_everything():
     occ = Occupancy(np.zeros((0, 3)), np.zeros((0, 3), int), (0, 0, 0), (1, 1, 1))
     assert not occ.any_between(np.zeros((2, 3)), np.ones((2, 3))).any()
+
+
+def test_clearance_is_a_lower_bound_of_the_distance_to_geometry():
+    rng = np.random.default_rng(5)
+    # point-like triangles: the distance to each is exact
+    points = rng.uniform(-3, 3, (25, 3))
+    vertices = np.repeat(points, 3, axis=0)
+    triangles = np.arange(len(vertices)).reshape(-1, 3)
+    occ = Occupancy(vertices, triangles, (-3, -3, -3), (3, 3, 3), cells=24)
+    query = rng.uniform(-6, 6, (4000, 3))
+    true = np.linalg.norm(query[:, None] - points[None], axis=-1).min(1)
+    bound = occ.clearance(query)
+    assert (bound <= true + 1e-12).all()
+    assert (bound > 0.5 * true).mean() > 0.3  # and a useful bound, not zero everywhere
