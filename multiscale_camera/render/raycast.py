@@ -84,10 +84,10 @@ def clip_to_box(origin, direction, length, lo, hi):
         ta = (lo - origin) * inv
         tb = (hi - origin) * inv
     near = np.minimum(ta, tb)
-    far = np.maximum(ta, tb)
+    far = np.maximum(ta, tb, out=tb)
     # a zero direction component inside the slab gives nan: no constraint on that axis
-    near = np.where(np.isnan(near), -np.inf, near)
-    far = np.where(np.isnan(far), np.inf, far)
+    near[np.isnan(near)] = -np.inf
+    far[np.isnan(far)] = np.inf
     t0 = np.maximum(near.max(axis=1), 0.0)
     t1 = np.minimum(far.min(axis=1), length)
     return t0 <= t1, t0, t1
@@ -134,9 +134,7 @@ def march(tree, seg, should_stop=None, bounds=None, geometry=None, occupancy=Non
             count = np.bincount(seg.ray[sel], minlength=nrays)
             first = np.concatenate([[0], np.cumsum(count)[:-1]])
             pending = np.flatnonzero(count)
-            corners = None
-            if geometry is not None:
-                corners = (geometry.vertices, np.asarray(geometry.triangles))
+            planes = None if geometry is None else triangle_planes(geometry)
             cast = tree.ray_cast
             wave = 0
             # wave j casts the j-th segment (inside the box) of every ray not hit yet, so
@@ -146,7 +144,7 @@ def march(tree, seg, should_stop=None, bounds=None, geometry=None, occupancy=Non
                 start = seg.origin[s] + seg.direction[s] * t0[s, None]
                 direction = seg.direction[s]
                 length = t1[s] - t0[s]
-                if corners is not None:
+                if planes is not None:
                     tri = cast_all(
                         cast, start.tolist(), direction.tolist(), length.tolist(), should_stop
                     )
@@ -166,10 +164,10 @@ def march(tree, seg, should_stop=None, bounds=None, geometry=None, occupancy=Non
                     rows = pending[got]
                     hit_seg[rows] = s[got]
                     hit_tri[rows] = tri[got].astype(np.int64)
-                    if corners is not None:
-                        vertices, triangles = corners
-                        abc = vertices[triangles[hit_tri[rows]]]
-                        dist = plane_distance(abc, start[got], direction[got], length[got])
+                    if planes is not None:
+                        dist = plane_distance(
+                            planes, hit_tri[rows], start[got], direction[got], length[got]
+                        )
                     else:
                         dist = found[got, 1]
                     hit_dist[rows] = dist + t0[s[got]]
@@ -184,12 +182,39 @@ def march(tree, seg, should_stop=None, bounds=None, geometry=None, occupancy=Non
     return Hits(hit, hit_tri, distance, location, seg.direction[s], casts)
 
 
-def plane_distance(corners, origin, direction, length):
+def triangle_planes(geometry):
+    """Per-triangle quantities the march and the shading reuse, computed once for a
+    geometry (and kept on it).
+
+    Parameters
+    ----------
+    geometry : anything with ``vertices`` (V, 3) float and ``triangles`` (T, 3) int.
+
+    Returns
+    -------
+    dict of float64 arrays: ``a`` (T, 3) corner 0, world units; ``e1``, ``e2`` (T, 3)
+    the edges to corners 1 and 2; ``normal`` (T, 3) their cross product (not unit);
+    ``offset`` (T,) ``normal . a``.
+    """
+    cached = geometry.__dict__.get("_triangle_planes")
+    if cached is None:
+        tri = np.asarray(geometry.triangles, dtype=np.int64)
+        v = np.asarray(geometry.vertices, dtype=np.float64)
+        a = v[tri[:, 0]] if len(tri) else np.zeros((0, 3))
+        e1 = v[tri[:, 1]] - a if len(tri) else np.zeros((0, 3))
+        e2 = v[tri[:, 2]] - a if len(tri) else np.zeros((0, 3))
+        normal = np.cross(e1, e2)
+        cached = {"a": a, "e1": e1, "e2": e2, "normal": normal, "offset": (normal * a).sum(-1)}
+        geometry.__dict__["_triangle_planes"] = cached
+    return cached
+
+
+def plane_distance(planes, triangles, origin, direction, length):
     """Distance along each ray to the triangle it is known to hit.
 
     Parameters
     ----------
-    corners : (P, 3, 3) float64, each hit triangle's corners, world units.
+    planes : ``triangle_planes`` of the geometry. triangles : (P,) int, the hit triangles.
     origin, direction : (P, 3) float64 (direction unit). length : (P,) float64, how far
         the cast reached.
 
@@ -198,13 +223,18 @@ def plane_distance(corners, origin, direction, length):
     (P,) float64 in [0, length]: where the ray meets the triangle's plane; for a ray that
     runs along the plane (no single crossing), the nearest corner's distance along it.
     """
-    a, b, c = corners[:, 0], corners[:, 1], corners[:, 2]
-    n = np.cross(b - a, c - a)
+    n = planes["normal"][triangles]
     den = (direction * n).sum(-1)
-    num = ((a - origin) * n).sum(-1)
+    num = planes["offset"][triangles] - (origin * n).sum(-1)
     crossing = np.abs(den) > 1e-9 * np.sqrt((n * n).sum(-1))
-    along = ((corners - origin[:, None]) * direction[:, None]).sum(-1).min(-1)
-    t = np.where(crossing, num / np.where(crossing, den, 1.0), along)
+    t = num / np.where(crossing, den, 1.0)
+    along = ~crossing
+    if along.any():
+        tri = triangles[along]
+        a = planes["a"][tri]
+        corners = np.stack([a, a + planes["e1"][tri], a + planes["e2"][tri]], axis=1)
+        rel = corners - origin[along][:, None]
+        t[along] = (rel * direction[along][:, None]).sum(-1).min(-1)
     return np.clip(t, 0.0, length)
 
 
