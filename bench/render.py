@@ -2,13 +2,17 @@
 
     .venv/bin/python bench/render.py [--width 1920 --height 1080] [--triangles 100000]
 
-Reports, in one run: the raw ``BVHTree.ray_cast`` rate on the scene (camera 1's
-straight rays, cast in a bare loop over prepared tuples); the engine's segment-cast rate
-(segment casts over the wall time of the whole tile loop: ray sampling, culling,
-casting, shading and passes); the time of the render (field build, frame preparation,
-tiles); and the cancel latency (from the first ``should_stop`` that says stop to the
-tile loop ending); and the tile loop in one worker process per core. Writes
-bench/render.json.
+Reports, in one run: the raw ``BVHTree.ray_cast`` rate on the scene, in a bare loop
+over prepared lists on the same tree: over the very segments the engine casts (recorded
+from a render of the middle tiles: same rays, same tree) and over camera 1's straight
+rays; the engine's segment-cast rate (segment casts over the time of the whole tile
+loop: ray sampling, culling, casting, shading with its shadow rays, and passes) and
+over the time of the march alone (culling, conversion, casting, hit bookkeeping); the
+time of the render with the field built cold and with it cached (the engine keeps
+built fields in memory), each as field + frame preparation + tiles; the cancel latency
+(from the first ``should_stop`` that says stop to the tile loop ending); and the tile
+loop in one worker process per core. CPU seconds of this process are reported next to
+wall seconds: the machine may be shared. Writes bench/render.json.
 """
 
 import argparse
@@ -54,8 +58,6 @@ def raw_rate(frame, seconds=3.0):
     straight rays through the pixel centres of the image's middle rows."""
     import numpy as np
 
-    from multiscale_camera.render.raycast import gc_paused
-
     cam = frame.rig.cameras[0]
     w, h = frame.size
     # pixel centres in row order, as the tiles go (coherent rays: the same cache luck)
@@ -64,14 +66,50 @@ def raw_rate(frame, seconds=3.0):
     py = py + (h - rows) // 2
     d = cam.directions(px.ravel(), py.ravel())
     o = cam.near_points(d)
-    origins, dirs = o.tolist(), d.tolist()
-    far = float(cam.clip_end)
-    cast = frame.tree.ray_cast
+    far = [float(cam.clip_end)] * len(d)
+    return bare_rate(frame.tree.ray_cast, o.tolist(), d.tolist(), far, seconds)
+
+
+class RecordingTree:
+    """A BVHTree stand-in that records the arguments of every ``ray_cast``."""
+
+    def __init__(self, tree):
+        self.tree, self.calls = tree, []
+
+    def ray_cast(self, origin, direction, distance):
+        self.calls.append((origin, direction, distance))
+        return self.tree.ray_cast(origin, direction, distance)
+
+
+def engine_casts(frame, tiles=8):
+    """([origin], [direction], [distance]): the segment casts (not the shadow rays) the
+    engine makes for ``tiles`` tiles in the middle of the image, as it passes them."""
+    from multiscale_camera.render import pipeline
+
+    recorder = RecordingTree(frame.tree)
+    all_tiles = pipeline.tiles(frame)
+    middle = len(all_tiles) // 2
+    saved = frame.tree, frame.lights, frame.casts, frame.shadow_casts, frame.rays
+    frame.tree, frame.lights = recorder, []  # no lights: only segment casts are recorded
+    try:
+        for row0, row1 in all_tiles[max(0, middle - tiles // 2) : middle + tiles - tiles // 2]:
+            pipeline.render_rows(frame, row0, row1)
+    finally:
+        frame.tree, frame.lights, frame.casts, frame.shadow_casts, frame.rays = saved
+    origins, dirs, lengths = zip(*recorder.calls, strict=True)
+    return list(origins), list(dirs), list(lengths)
+
+
+def bare_rate(cast, origins, dirs, lengths, seconds=3.0):
+    """(per wall second, per CPU second) of ``cast`` in a bare loop over prepared lists,
+    results dropped, the cyclic collector paused: the best case."""
+    from multiscale_camera.render.raycast import gc_paused
+
     done, start, cpu = 0, time.perf_counter(), time.process_time()
-    with gc_paused():  # the best case: no collections during the loop
+    with gc_paused():
         while time.process_time() - cpu < seconds:
-            for a, b in zip(origins, dirs):
-                cast(a, b, far)
+            for a, b, c in zip(origins, dirs, lengths, strict=True):
+                cast(a, b, c)
             done += len(origins)
     return done / (time.perf_counter() - start), done / (time.process_time() - cpu)
 
@@ -127,33 +165,56 @@ def main():
     bpy.ops.wm.read_homefile(use_empty=True)
     scene = build_scene(args.width, args.height, args.triangles)
     scene.multiscale.samples = args.samples
+    settings = scene.multiscale
     depsgraph = bpy.context.evaluated_depsgraph_get()
+    # a cold render: the field built now (the disk cache too is emptied)
     pipeline.clear_fields()
     t0, c0 = time.perf_counter(), time.process_time()
     frame = pipeline.prepare_frame(depsgraph)
     t1, c1 = time.perf_counter(), time.process_time()
     render_tiles(frame)
     t2, c2 = time.perf_counter(), time.process_time()
-    tile_seconds = t2 - t1
-    raw, raw_cpu = raw_rate(frame)
+    cold_stages = dict(frame.seconds)
+    # the same render again, the field cached in memory as the engine keeps it; the
+    # march is timed on its own
+    march_time = [0.0, 0.0]
+    march = pipeline.march
+
+    def timed_march(*a, **k):
+        wall, cpu = time.perf_counter(), time.process_time()
+        try:
+            return march(*a, **k)
+        finally:
+            march_time[0] += time.perf_counter() - wall
+            march_time[1] += time.process_time() - cpu
+
+    t3, c3 = time.perf_counter(), time.process_time()
+    frame = pipeline.prepare_frame(depsgraph)
+    t4, c4 = time.perf_counter(), time.process_time()
+    pipeline.march = timed_march
+    try:
+        render_tiles(frame)
+    finally:
+        pipeline.march = march
+    t5, c5 = time.perf_counter(), time.process_time()
+    cached_stages = dict(frame.seconds)
+    warm, warm_cpu = t5 - t4, c5 - c4
+    seg_rate, seg_rate_cpu = frame.casts / warm, frame.casts / warm_cpu
+    counts = frame.rays, frame.casts, frame.shadow_casts
+    # raw ray_cast, same tree: the engine's own segment casts, and camera 1's straight rays
+    same = engine_casts(frame)
+    raw, raw_cpu = bare_rate(frame.tree.ray_cast, *same)
+    cam_raw, cam_raw_cpu = raw_rate(frame)
     latencies = []
     for after in (0.5, 1.5, 3.0):
         frame.casts = frame.shadow_casts = frame.rays = 0
         latencies.append(cancel_latency(frame, after))
-    # the tile loop again on a warm field, for its casts
-    frame.casts = frame.shadow_casts = frame.rays = 0
-    t3, c3 = time.perf_counter(), time.process_time()
-    render_tiles(frame)
-    warm, warm_cpu = time.perf_counter() - t3, time.process_time() - c3
-    seg_rate = frame.casts / warm
-    seg_rate_cpu = frame.casts / warm_cpu
-    counts = frame.rays, frame.casts, frame.shadow_casts
     # and in worker processes, one per core (CPU: this process and its reaped children)
-    processes = workers.worker_count()
+    processes = workers.worker_count(os.cpu_count() or 1)
     before = os.times()
-    t4 = time.perf_counter()
+    t6 = time.perf_counter()
     render_tiles(frame, processes=processes)
-    pooled = time.perf_counter() - t4
+    pooled = time.perf_counter() - t6
     after = os.times()
     pooled_cpu = sum(after[:4]) - sum(before[:4])
     pooled_latency = cancel_latency(frame, 1.5, processes)
@@ -162,33 +223,60 @@ def main():
         "size": [args.width, args.height],
         "samples": args.samples,
         "triangles": int(len(frame.geometry)),
+        "field_settings": {
+            "method": settings.method,
+            "quality": settings.quality,
+            "simplify_px": round(settings.simplify_px, 3),
+            "note": "the add-on's defaults (the bench sets none of them)",
+        },
         "cpu_count": os.cpu_count(),
         "raw_ray_cast_per_s": round(raw),
-        "engine_segment_casts_per_s": round(seg_rate),
-        "engine_share_of_raw": round(seg_rate / raw, 3),
-        # the same per CPU second of this process: far less sensitive to other work
         "raw_ray_cast_per_cpu_s": round(raw_cpu),
+        "raw_rays_measured_on": f"the engine's own {len(same[0])} segment casts of 8 middle "
+        "tiles, replayed in a bare loop on the same tree",
+        "raw_camera1_rays_per_s": round(cam_raw),
+        "raw_camera1_rays_per_cpu_s": round(cam_raw_cpu),
+        "engine_segment_casts_per_s": round(seg_rate),
         "engine_segment_casts_per_cpu_s": round(seg_rate_cpu),
+        "engine_share_of_raw": round(seg_rate / raw, 3),
         "engine_share_of_raw_cpu": round(seg_rate_cpu / raw_cpu, 3),
+        "march_segment_casts_per_cpu_s": round(frame.casts / march_time[1]),
+        "march_share_of_raw_cpu": round(frame.casts / march_time[1] / raw_cpu, 3),
+        "engine_rays_per_cpu_s": round(frame.rays / warm_cpu),
         "engine_all_casts_per_s": round((frame.casts + frame.shadow_casts) / warm),
         "rays": frame.rays,
         "segment_casts": frame.casts,
         "shadow_casts": frame.shadow_casts,
         "segment_casts_per_ray": round(frame.casts / max(frame.rays, 1), 3),
         "seconds": {
-            "prepare_frame": round(t1 - t0, 2),
-            "stages": {k: round(v, 2) for k, v in frame.seconds.items()},
-            "tiles_first": round(tile_seconds, 2),
-            "tiles_warm": round(warm, 2),
+            "cold_field": {
+                "prepare_frame": round(t1 - t0, 2),
+                "stages": {k: round(v, 2) for k, v in cold_stages.items()},
+                "tiles": round(t2 - t1, 2),
+                "render_total": round(t2 - t0, 2),
+            },
+            "cached_field": {
+                "prepare_frame": round(t4 - t3, 2),
+                "stages": {k: round(v, 2) for k, v in cached_stages.items()},
+                "tiles": round(warm, 2),
+                "march": round(march_time[0], 2),
+                "render_total": round(t5 - t3, 2),
+            },
             f"tiles_{processes}_processes": round(pooled, 2),
-            "render_total": round(t2 - t0, 2),
         },
         # CPU seconds of this process: less sensitive than wall time to other work
         "cpu_seconds": {
-            "prepare_frame": round(c1 - c0, 2),
-            "tiles_first": round(c2 - c1, 2),
-            "render_total": round(c2 - c0, 2),
-            "tiles_warm": round(warm_cpu, 2),
+            "cold_field": {
+                "prepare_frame": round(c1 - c0, 2),
+                "tiles": round(c2 - c1, 2),
+                "render_total": round(c2 - c0, 2),
+            },
+            "cached_field": {
+                "prepare_frame": round(c4 - c3, 2),
+                "tiles": round(warm_cpu, 2),
+                "march": round(march_time[1], 2),
+                "render_total": round(c5 - c3, 2),
+            },
             f"tiles_{processes}_processes_with_children": round(pooled_cpu, 2),
         },
         "load_average_1min": round(os.getloadavg()[0], 2),
@@ -196,17 +284,19 @@ def main():
         f"cancel_latency_{processes}_processes_s": None
         if pooled_latency is None
         else round(pooled_latency, 3),
-        "note": "2 cores shared with other work while measured: timings are noisy",
+        "note": "2 cores shared with other work while measured: wall times are noisy",
     }
     print(json.dumps(result, indent=1))
     print(
-        f"raw ray_cast {raw_cpu / 1e6:.2f} M/CPU s | engine {seg_rate_cpu / 1e6:.2f} M segment "
-        f"casts/CPU s ({seg_rate_cpu / raw_cpu:.0%} of raw; wall-clock {seg_rate / raw:.0%}) | "
-        f"{args.width}x{args.height} {len(frame.geometry)} tris: "
-        f"field+frame {t1 - t0:.1f} s, tiles {tile_seconds:.1f} s, total {t2 - t0:.1f} s "
-        f"(CPU {c2 - c0:.1f} s); tiles in {processes} processes {pooled:.1f} s | "
-        f"cancel latency max {max(x or 0.0 for x in latencies):.3f} s "
-        f"({pooled_latency or 0.0:.3f} s in {processes} processes)"
+        f"raw ray_cast {raw_cpu / 1e6:.2f} M/CPU s (engine's segments; camera 1's rays "
+        f"{cam_raw_cpu / 1e6:.2f}) | engine {seg_rate_cpu / 1e6:.2f} M segment casts/CPU s "
+        f"({seg_rate_cpu / raw_cpu:.0%} of raw; wall-clock {seg_rate / raw:.0%}), march alone "
+        f"{frame.casts / march_time[1] / raw_cpu:.0%}, {frame.casts / frame.rays:.2f} casts/ray "
+        f"| {args.width}x{args.height} {len(frame.geometry)} tris: cold field {t2 - t0:.1f} s "
+        f"(CPU {c2 - c0:.1f} s), cached field {t5 - t3:.1f} s (CPU {c5 - c3:.1f} s); tiles in "
+        f"{processes} processes {pooled:.1f} s | cancel latency max "
+        f"{max(x or 0.0 for x in latencies):.3f} s ({pooled_latency or 0.0:.3f} s in "
+        f"{processes} processes) | load {os.getloadavg()[0]:.2f}"
     )
     OUT.write_text(json.dumps(result, indent=1) + "\n")
     print(f"wrote {OUT.relative_to(ROOT)}")

@@ -93,7 +93,9 @@ def box_distance(points, bounds):
     return np.sqrt((d * d).sum(-1))
 
 
-def polyline_measures(vertices, eyes, angles, tol_px, bounds=None, should_stop=None):
+def polyline_measures(
+    vertices, eyes, angles, tol_px, bounds=None, should_stop=None, clearance=None
+):
     """Per-vertex quantities the simplification reads.
 
     Parameters
@@ -101,15 +103,19 @@ def polyline_measures(vertices, eyes, angles, tol_px, bounds=None, should_stop=N
     vertices : (R, K, 3) float array, world units. eyes, angles : ``camera_footprints``.
     tol_px : float, pixels. bounds : ((3,), (3,)) box holding all geometry, or None.
     should_stop : callable, consulted once per chunk of rays (raises ``Cancelled``).
+    clearance : callable (..., 3) points -> (...,) float64, a lower bound of their
+        distance to any geometry, world units (``Occupancy.clearance``), or None: the
+        distance to ``bounds`` is used.
 
     Returns
     -------
     seglen : (R, K-1) float32, segment lengths. turn : (R, K-2) float32, the turning
         (radians) at vertices 1..K-2, float noise below ``NOISE`` zeroed.
     tol : (R, K) float32, how far a chord may stray near each vertex, world units:
-        ``tol_px`` pixel footprints (``footprint``), or the distance to the geometry's
-        box where that is larger (a chord that strays less than that cannot reach
-        geometry the polyline misses, nor miss what it hits).
+        ``tol_px`` pixel footprints (``footprint``), or half the distance to the
+        geometry (``clearance``, else to its box) where that is larger (a chord that
+        strays less than that cannot reach geometry the polyline misses, nor miss what
+        it hits).
     """
     r, k = vertices.shape[:2]
     seglen = np.zeros((r, max(k - 1, 0)), np.float32)
@@ -126,9 +132,8 @@ def polyline_measures(vertices, eyes, angles, tol_px, bounds=None, should_stop=N
             t = np.arccos(np.clip((u[:, :-1] * u[:, 1:]).sum(-1), -1.0, 1.0))
             t[t < NOISE] = 0.0
             turn[a : a + CHUNK] = t
-        tol[a : a + CHUNK] = np.maximum(
-            footprint(v, eyes, angles) * tol_px, 0.5 * box_distance(v, bounds)
-        )
+        far = box_distance(v, bounds) if clearance is None else clearance(v)
+        tol[a : a + CHUNK] = np.maximum(footprint(v, eyes, angles) * tol_px, 0.5 * far)
     return seglen, turn, tol
 
 
@@ -180,7 +185,7 @@ def _check(should_stop):
         raise Cancelled()
 
 
-def simplify(vertices, last, eyes, angles, tol_px, bounds=None):
+def simplify(vertices, last, eyes, angles, tol_px, bounds=None, clearance=None):
     """Which vertices of each polyline to keep: chords stray by at most ``tol_px``
     pixels (module docstring).
 
@@ -189,13 +194,16 @@ def simplify(vertices, last, eyes, angles, tol_px, bounds=None):
     vertices : (R, K, 3) float array, world units.
     last : (R,) int, index of each ray's last vertex (kept; later vertices are dropped).
     eyes, angles : from ``camera_footprints``. tol_px : float, pixels.
-    bounds : the geometry's box, or None (``polyline_measures``).
+    bounds : the geometry's box, or None. clearance : callable or None
+        (``polyline_measures``).
 
     Returns
     -------
     keep : (R, K) bool; vertex 0 and ``last`` always kept.
     """
-    seglen, turn, tol = polyline_measures(vertices, eyes, angles, tol_px, bounds)
+    seglen, turn, tol = polyline_measures(
+        vertices, eyes, angles, tol_px, bounds, clearance=clearance
+    )
     return greedy_keep(seglen, turn, tol, last)
 
 
@@ -326,12 +334,17 @@ class RaySampler:
     field : RayField. tol_px : float, simplification tolerance in pixels.
     bounds : ((3,), (3,)) float64 box holding all geometry, or None.
     should_stop : callable, consulted while the lattice is simplified (raises ``Cancelled``).
+    clearance : callable, a lower bound of the distance to any geometry at points
+        (``polyline_measures``), or None.
     """
 
-    def __init__(self, field, tol_px=DEFAULT_TOLERANCE_PX, bounds=None, should_stop=None):
+    def __init__(
+        self, field, tol_px=DEFAULT_TOLERANCE_PX, bounds=None, should_stop=None, clearance=None
+    ):
         self.field = field
         self.tol = float(tol_px)
         self.bounds = bounds
+        self.clearance = clearance
         self.cameras = field.rig.cameras
         self.eyes, self.angles = camera_footprints(self.cameras)
         self.size = field.rig.size
@@ -350,7 +363,13 @@ class RaySampler:
         k = traced.vertices.shape[1]
         last = np.minimum(counts, k - 1)
         seglen, turn, tol = polyline_measures(
-            traced.vertices, self.eyes, self.angles, self.tol, self.bounds, should_stop
+            traced.vertices,
+            self.eyes,
+            self.angles,
+            self.tol,
+            self.bounds,
+            should_stop,
+            self.clearance,
         )
         # one schedule per lattice leaf, safe for all four corners (and so for every ray
         # interpolated between them): their largest turns and lengths, smallest footprint
@@ -364,6 +383,10 @@ class RaySampler:
             np.maximum.reduce([last[c] for c in rows]),
             should_stop,
         )
+        # the same schedule, ragged: leaf n keeps vertices kept_k[kept_at[n]:kept_at[n + 1]]
+        leaf_of_kept, self.kept_k = np.nonzero(self.leaf_keep)
+        self.kept_n = np.bincount(leaf_of_kept, minlength=len(self.leaf_keep))
+        self.kept_at = np.concatenate([[0], np.cumsum(self.kept_n)]).astype(np.int64)
         w, h = self.size
         # the lattice leaf holding each unit square between four pixel centres
         cell_of = np.zeros((h - 1, w - 1), dtype=np.int32)
@@ -404,12 +427,17 @@ class RaySampler:
             (idx[y1, x0], fy * (1 - fx)),
             (idx[y1, x1], fy * fx),
         )
-        keep = self.leaf_keep[leaf]
         exit_ = np.minimum.reduce([traced.counts[row] for row, _w in corners]).astype(np.int64)
-        rid, kid = np.nonzero(keep)
+        # the kept vertices of each ray, its leaf's schedule, ray after ray
+        n = self.kept_n[leaf]
+        rid = np.repeat(np.arange(len(sx)), n)
+        first = np.cumsum(n) - n
+        kid = self.kept_k[self.kept_at[leaf][rid] + np.arange(len(rid)) - first[rid]]
+        k = traced.vertices.shape[1]
+        flat = traced.vertices.reshape(-1, 3)
         pts = np.zeros((len(rid), 3))
         for row, wgt in corners:
-            pts += traced.vertices[row[rid], kid] * wgt[rid, None]
+            pts += flat[row[rid] * k + kid] * wgt[rid, None]
         leave = np.clip(exit_ - 1, 0, traced.membership.shape[1] - 1)
         membership = sum(traced.membership[row, leave] * wgt for row, wgt in corners)
         return segments_from_points(
@@ -451,7 +479,13 @@ class RaySampler:
         else:
             membership = sum(ub.membership[inv[c], leave] * corners[c][2] for c in range(4))
         keep = simplify(
-            verts, np.full(len(sx), k - 1), self.eyes, self.angles, self.tol, self.bounds
+            verts,
+            np.full(len(sx), k - 1),
+            self.eyes,
+            self.angles,
+            self.tol,
+            self.bounds,
+            self.clearance,
         )
         rid, kid = np.nonzero(keep)
         pts = np.asarray(verts[rid, kid], dtype=np.float64)

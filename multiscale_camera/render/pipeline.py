@@ -11,6 +11,7 @@ from ..adapters.meshes import scene_geometry
 from ..adapters.scene import field_settings, processes_of, rig_from_scene
 from ..core.fingerprint import field_key
 from ..core.methods import prepare
+from ..core.occupancy import Occupancy
 from ..core.sampling import DEFAULT_TOLERANCE_PX, RaySampler, sample_offsets
 from ..core.validate import crossing_messages, empty_mask_messages
 from ..io import cache
@@ -48,6 +49,7 @@ class Frame:
     sampler : core.sampling.RaySampler. bounds : ((3,), (3,)) float64 padded scene box
         or None. samples : int, rays per pixel. filter_width : float, pixels.
     processes : int, worker processes for the tiles (0: one per core).
+    occupancy : core.occupancy.Occupancy of the triangles in ``bounds``, or None.
     casts, shadow_casts, rays : int, counted as the render goes.
     """
 
@@ -70,6 +72,7 @@ class Frame:
     shadow_casts: int = 0
     rays: int = 0
     volumes: FrameVolumes = field(default_factory=FrameVolumes)
+    occupancy: object = None
 
     @property
     def size(self):
@@ -131,7 +134,7 @@ def prepare_frame(depsgraph, should_stop=None):
     t2 = t1
     geometry = scene_geometry(depsgraph)
     notices = list(ray_field.notices) + list(ray_field.warnings)
-    bounds = None
+    bounds = occupancy = None
     if len(geometry):
         tree = BVHTree.FromPolygons(
             geometry.vertices.tolist(), geometry.triangles.tolist(), all_triangles=True
@@ -140,6 +143,7 @@ def prepare_frame(depsgraph, should_stop=None):
         scale = float(np.linalg.norm(hi - lo))
         pad = BOUNDS_PAD * max(scale, 1e-6) + 1e-6
         bounds = (lo - pad, hi + pad)
+        occupancy = Occupancy(geometry.vertices, geometry.triangles, *bounds, pad=pad)
     else:
         tree, scale = None, 1.0
     notices += volume_notices
@@ -158,7 +162,7 @@ def prepare_frame(depsgraph, should_stop=None):
     t3 = time.perf_counter()
     settings = scene.multiscale
     tol = getattr(settings, "simplify_px", DEFAULT_TOLERANCE_PX)
-    sampler = sampler_for(ray_field, tol, bounds, should_stop)
+    sampler = sampler_for(ray_field, tol, bounds, should_stop, occupancy)
     t4 = time.perf_counter()
     return Frame(
         rig=rig,
@@ -181,24 +185,28 @@ def prepare_frame(depsgraph, should_stop=None):
         filter_width=float(getattr(scene.render, "filter_size", 1.5)),
         processes=processes_of(scene),
         volumes=volumes,
+        occupancy=occupancy,
     )
 
 
-def sampler_for(ray_field, tol_px, bounds, should_stop=None):
-    """The field's RaySampler at ``tol_px`` pixels for geometry inside ``bounds``, built
-    once per field, tolerance and bounds."""
+def sampler_for(ray_field, tol_px, bounds, should_stop=None, occupancy=None):
+    """The field's RaySampler at ``tol_px`` pixels for geometry inside ``bounds`` (and in
+    the occupied cells of ``occupancy``, when given), built once per field, tolerance and
+    geometry layout."""
     cache = ray_field.__dict__.setdefault("_samplers", {})
     box = None if bounds is None else tuple(np.round(np.concatenate(bounds), 9).tolist())
-    key = (round(float(tol_px), 6), box)
+    cells = None if occupancy is None else occupancy.digest()
+    key = (round(float(tol_px), 6), box, cells)
     if key not in cache:
         cache.clear()
-        cache[key] = RaySampler(ray_field, key[0], bounds, should_stop)
+        clearance = None if occupancy is None else occupancy.clearance
+        cache[key] = RaySampler(ray_field, key[0], bounds, should_stop, clearance)
     return cache[key]
 
 
 def _cast_and_shade(frame, seg, should_stop):
     """(hits, shaded) for ``Segments``; counts the casts on ``frame``."""
-    hits = march(frame.tree, seg, should_stop, frame.bounds)
+    hits = march(frame.tree, seg, should_stop, frame.bounds, frame.geometry, frame.occupancy)
     shaded = shade(
         frame.geometry, hits, frame.lights, frame.world, frame.tree, frame.scale, should_stop
     )

@@ -2,16 +2,19 @@
 are cast in order on one BVH until one hits.
 
 Segments that miss the scene's bounding box are culled before any cast, and the rest
-are clipped to it, so a ray pays only for the stretch that can meet geometry. The loop
-over casts is the only per-ray Python in the renderer: the segments are cast in waves
-(every ray's first segment, then the next segment of the rays still unhit, ...), each a
-list comprehension over prepared lists, checking ``should_stop`` every
-``CASTS_PER_CHECK`` casts.
+are clipped to it, so a ray pays only for the stretch that can meet geometry; with an
+occupancy grid (``core.occupancy``) a stretch that crosses empty cells only is culled
+too. The loop over casts is the only per-ray Python in the renderer: the segments are
+cast in waves (every ray's first segment, then the next segment of the rays still
+unhit, ...), each a ``map`` of ``ray_cast`` over prepared lists that keeps only the hit
+triangle's index (the distance is solved in numpy on that triangle), checking
+``should_stop`` every ``CASTS_PER_CHECK`` casts.
 """
 
 import contextlib
 import gc
 from dataclasses import dataclass
+from operator import itemgetter
 
 import numpy as np
 
@@ -21,6 +24,9 @@ from ..core.sampling import greedy_keep, polyline_measures, segments_from_points
 
 # Segments between two calls of ``should_stop``: a few milliseconds of casting.
 CASTS_PER_CHECK = 4096
+# What a cast keeps of ``ray_cast``'s (location, normal, index, distance).
+HIT_INDEX = itemgetter(2)
+INDEX_AND_DISTANCE = itemgetter(2, 3)
 
 
 @contextlib.contextmanager
@@ -78,16 +84,16 @@ def clip_to_box(origin, direction, length, lo, hi):
         ta = (lo - origin) * inv
         tb = (hi - origin) * inv
     near = np.minimum(ta, tb)
-    far = np.maximum(ta, tb)
+    far = np.maximum(ta, tb, out=tb)
     # a zero direction component inside the slab gives nan: no constraint on that axis
-    near = np.where(np.isnan(near), -np.inf, near)
-    far = np.where(np.isnan(far), np.inf, far)
+    near[np.isnan(near)] = -np.inf
+    far[np.isnan(far)] = np.inf
     t0 = np.maximum(near.max(axis=1), 0.0)
     t1 = np.minimum(far.min(axis=1), length)
     return t0 <= t1, t0, t1
 
 
-def march(tree, seg, should_stop=None, bounds=None):
+def march(tree, seg, should_stop=None, bounds=None, geometry=None, occupancy=None):
     """Cast every ray's segments in order on ``tree`` until one hits.
 
     Parameters
@@ -98,6 +104,12 @@ def march(tree, seg, should_stop=None, bounds=None):
         RayBundle, whose polylines are then cast exactly (``bundle_segments``).
     should_stop : callable returning True to abandon the march (raises ``Cancelled``).
     bounds : ((3,), (3,)) float64 box holding every triangle (padded), or None.
+    geometry : the triangles ``tree`` was built from (``vertices`` (V, 3) float64 and
+        ``triangles`` (T, 3) int, as SceneGeometry has them), or None. With them a cast
+        keeps only the index of the triangle it hits and the distance is solved here
+        (``plane_distance``), which is cheaper than keeping ``ray_cast``'s whole answer.
+    occupancy : core.occupancy.Occupancy of the same triangles, or None: segments whose
+        stretch in the box crosses empty cells only are skipped.
 
     Returns
     -------
@@ -114,30 +126,51 @@ def march(tree, seg, should_stop=None, bounds=None):
         with gc_paused():
             lo, hi = bounds if bounds is not None else (None, None)
             inside, t0, t1 = clip_to_box(seg.origin, seg.direction, seg.length, lo, hi)
+            if occupancy is not None:
+                near = np.flatnonzero(inside)
+                o, d = seg.origin[near], seg.direction[near]
+                inside[near] = occupancy.any_between(o + d * t0[near, None], o + d * t1[near, None])
             sel = np.flatnonzero(inside)  # grouped by ray, in order along each ray
             count = np.bincount(seg.ray[sel], minlength=nrays)
             first = np.concatenate([[0], np.cumsum(count)[:-1]])
             pending = np.flatnonzero(count)
+            planes = None if geometry is None else triangle_planes(geometry)
+            cast = tree.ray_cast
             wave = 0
             # wave j casts the j-th segment (inside the box) of every ray not hit yet, so
             # only segments that are cast get converted to Python numbers
             while len(pending):
                 s = sel[first[pending] + wave]
-                results = _cast_all(
-                    tree.ray_cast,
-                    (seg.origin[s] + seg.direction[s] * t0[s, None]).tolist(),
-                    seg.direction[s].tolist(),
-                    (t1[s] - t0[s]).tolist(),
-                    should_stop,
-                )
+                start = seg.origin[s] + seg.direction[s] * t0[s, None]
+                direction = seg.direction[s]
+                length = t1[s] - t0[s]
+                if planes is not None:
+                    tri = cast_all(
+                        cast, start.tolist(), direction.tolist(), length.tolist(), should_stop
+                    )
+                else:
+                    found = cast_all(
+                        cast,
+                        start.tolist(),
+                        direction.tolist(),
+                        length.tolist(),
+                        should_stop,
+                        INDEX_AND_DISTANCE,
+                    )
+                    tri = found[:, 0] if len(found) else np.zeros(0)
                 casts += len(s)
-                got = np.array([r[2] is not None for r in results], dtype=bool)
+                got = ~np.isnan(tri)
                 if got.any():
                     rows = pending[got]
-                    found = [results[i] for i in np.flatnonzero(got).tolist()]
                     hit_seg[rows] = s[got]
-                    hit_tri[rows] = [r[2] for r in found]
-                    hit_dist[rows] = np.array([r[3] for r in found]) + t0[s[got]]
+                    hit_tri[rows] = tri[got].astype(np.int64)
+                    if planes is not None:
+                        dist = plane_distance(
+                            planes, hit_tri[rows], start[got], direction[got], length[got]
+                        )
+                    else:
+                        dist = found[got, 1]
+                    hit_dist[rows] = dist + t0[s[got]]
                 wave += 1
                 pending = pending[~got & (count[pending] > wave)]
     hit = hit_seg >= 0
@@ -147,6 +180,62 @@ def march(tree, seg, should_stop=None, bounds=None):
     location = seg.origin[s] + seg.direction[s] * t[:, None]
     distance = np.where(hit, seg.before[s] + t, np.inf)
     return Hits(hit, hit_tri, distance, location, seg.direction[s], casts)
+
+
+def triangle_planes(geometry):
+    """Per-triangle quantities the march and the shading reuse, computed once for a
+    geometry (and kept on it).
+
+    Parameters
+    ----------
+    geometry : anything with ``vertices`` (V, 3) float and ``triangles`` (T, 3) int.
+
+    Returns
+    -------
+    dict of float64 arrays: ``a`` (T, 3) corner 0, world units; ``e1``, ``e2`` (T, 3)
+    the edges to corners 1 and 2; ``normal`` (T, 3) their cross product (not unit);
+    ``offset`` (T,) ``normal . a``.
+    """
+    cached = geometry.__dict__.get("_triangle_planes")
+    if cached is None:
+        tri = np.asarray(geometry.triangles, dtype=np.int64)
+        v = np.asarray(geometry.vertices, dtype=np.float64)
+        a = v[tri[:, 0]] if len(tri) else np.zeros((0, 3))
+        e1 = v[tri[:, 1]] - a if len(tri) else np.zeros((0, 3))
+        e2 = v[tri[:, 2]] - a if len(tri) else np.zeros((0, 3))
+        normal = np.cross(e1, e2)
+        cached = {"a": a, "e1": e1, "e2": e2, "normal": normal, "offset": (normal * a).sum(-1)}
+        geometry.__dict__["_triangle_planes"] = cached
+    return cached
+
+
+def plane_distance(planes, triangles, origin, direction, length):
+    """Distance along each ray to the triangle it is known to hit.
+
+    Parameters
+    ----------
+    planes : ``triangle_planes`` of the geometry. triangles : (P,) int, the hit triangles.
+    origin, direction : (P, 3) float64 (direction unit). length : (P,) float64, how far
+        the cast reached.
+
+    Returns
+    -------
+    (P,) float64 in [0, length]: where the ray meets the triangle's plane; for a ray that
+    runs along the plane (no single crossing), the nearest corner's distance along it.
+    """
+    n = planes["normal"][triangles]
+    den = (direction * n).sum(-1)
+    num = planes["offset"][triangles] - (origin * n).sum(-1)
+    crossing = np.abs(den) > 1e-9 * np.sqrt((n * n).sum(-1))
+    t = num / np.where(crossing, den, 1.0)
+    along = ~crossing
+    if along.any():
+        tri = triangles[along]
+        a = planes["a"][tri]
+        corners = np.stack([a, a + planes["e1"][tri], a + planes["e2"][tri]], axis=1)
+        rel = corners - origin[along][:, None]
+        t[along] = (rel * direction[along][:, None]).sum(-1).min(-1)
+    return np.clip(t, 0.0, length)
 
 
 def bundle_segments(bundle):
@@ -167,16 +256,23 @@ def bundle_segments(bundle):
     )
 
 
-def _cast_all(cast, origins, directions, lengths, should_stop):
-    """``cast`` over prepared lists, consulting ``should_stop`` every CASTS_PER_CHECK."""
-    if len(origins) <= CASTS_PER_CHECK:
-        if should_stop is not None and should_stop():
-            raise Cancelled()
-        return [cast(o, d, n) for o, d, n in zip(origins, directions, lengths)]
+def cast_all(cast, origins, directions, lengths, should_stop, pick=None):
+    """``cast`` over prepared lists, consulting ``should_stop`` every CASTS_PER_CHECK.
+
+    The casts run in ``map`` (no Python frame per cast) and keep only what ``pick`` takes
+    of each answer (``HIT_INDEX``, the triangle index, by default), so the rest of
+    ``ray_cast``'s answer is freed at once and its memory reused by the next cast.
+
+    Returns
+    -------
+    (n,) float64 triangle indices, NaN for a miss (``HIT_INDEX``); or (n, k) float64
+    for a ``pick`` that takes k items.
+    """
+    pick = HIT_INDEX if pick is None else pick
     out = []
-    for a in range(0, len(origins), CASTS_PER_CHECK):
+    for a in range(0, max(len(origins), 1), CASTS_PER_CHECK):
         if should_stop is not None and should_stop():
             raise Cancelled()
         b = a + CASTS_PER_CHECK
-        out += [cast(o, d, n) for o, d, n in zip(origins[a:b], directions[a:b], lengths[a:b])]
-    return out
+        out += map(pick, map(cast, origins[a:b], directions[a:b], lengths[a:b]))
+    return np.array(out, dtype=np.float64)

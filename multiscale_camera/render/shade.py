@@ -10,8 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..core.errors import Cancelled
-from .raycast import CASTS_PER_CHECK, gc_paused
+from .raycast import cast_all, gc_paused, triangle_planes
 
 # Shadow-ray origins are lifted off the surface by this fraction of the scene's size,
 # enough to clear float32 BVH precision, far below anything visible.
@@ -20,9 +19,7 @@ SHADOW_OFFSET = 1e-5
 
 def face_normals(geometry, triangles):
     """(T, 3) float64 unit geometric normals of the given triangle indices."""
-    tri = geometry.triangles[triangles]
-    a, b, c = (geometry.vertices[tri[:, i]] for i in range(3))
-    n = np.cross(b - a, c - a)
+    n = triangle_planes(geometry)["normal"][triangles]
     return n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-30)
 
 
@@ -66,9 +63,9 @@ def irradiance(light, points, normals):
 
 def barycentric(geometry, triangles, points):
     """(P, 3) float64 barycentric weights of ``points`` (P, 3) on the given triangles."""
-    tri = geometry.triangles[triangles]
-    a, b, c = (geometry.vertices[tri[:, i]] for i in range(3))
-    v0, v1, v2 = b - a, c - a, points - a
+    planes = triangle_planes(geometry)
+    v0, v1 = planes["e1"][triangles], planes["e2"][triangles]
+    v2 = points - planes["a"][triangles]
     d00, d01, d11 = (v0 * v0).sum(-1), (v0 * v1).sum(-1), (v1 * v1).sum(-1)
     d20, d21 = (v2 * v0).sum(-1), (v2 * v1).sum(-1)
     den = d00 * d11 - d01 * d01
@@ -172,16 +169,12 @@ def _occluded(tree, origins, directions, distances, which, should_stop=None):
     blocked = np.zeros(len(origins), dtype=bool)
     sel = np.flatnonzero(which)
     with gc_paused():
-        o = origins[sel].tolist()
-        d = np.ascontiguousarray(directions[sel]).tolist()
-        far = np.minimum(distances[sel], 1e30).tolist()
-    cast = tree.ray_cast
-    hit = []
-    with gc_paused():
-        for a in range(0, len(sel), CASTS_PER_CHECK):
-            if should_stop is not None and should_stop():
-                raise Cancelled()
-            b = a + CASTS_PER_CHECK
-            hit += [cast(p, q, f)[2] is not None for p, q, f in zip(o[a:b], d[a:b], far[a:b])]
-    blocked[sel] = hit
+        tri = cast_all(
+            tree.ray_cast,
+            origins[sel].tolist(),
+            np.ascontiguousarray(directions[sel]).tolist(),
+            np.minimum(distances[sel], 1e30).tolist(),
+            should_stop,
+        )
+    blocked[sel] = ~np.isnan(tri)
     return blocked

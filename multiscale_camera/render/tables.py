@@ -5,14 +5,16 @@ that segment's line: a straight renderer (Cycles through a custom camera, anothe
 renderer, a compositor) that starts a ray at the segment's start and follows its
 direction meets the same surface first, because the march found nothing earlier on the
 polyline. A ray that hits nothing is handed on as its last segment, whose direction is
-the ray's last tangent. The tables come from the same march the renderer uses
-(``raycast.march`` on the simplified polylines), one tile of rows at a time.
+the ray's last tangent. The tables come from the renderer's own rays and march: each
+pixel centre's simplified polyline (``RaySampler.segments``), cast by ``raycast.march``
+with the scene's box and occupancy culling, one tile of rows at a time.
 """
 
 from dataclasses import dataclass
 
 import numpy as np
 
+from ..core.bundle import RayBundle
 from .raycast import bundle_segments, march
 
 # A handed-on ray starts at least this fraction of the scene's size before its hit: far
@@ -68,12 +70,13 @@ class Polylines:
     pixels: np.ndarray
 
 
-def first_hit_segments(bundle, hits, margin=0.0):
+def first_hit_segments(rays, hits, margin=0.0):
     """Origin of the segment holding each ray's first hit (last segment for a miss).
 
     Parameters
     ----------
-    bundle : RayBundle of R rays. hits : Hits of the same rays (``raycast.march``).
+    rays : core.sampling.Segments of R rays, or a RayBundle (its exact polylines,
+        ``bundle_segments``). hits : Hits of the same rays (``raycast.march``).
     margin : float, world units: an origin closer than this to its hit is moved back
         along the segment's line to this distance.
 
@@ -82,8 +85,8 @@ def first_hit_segments(bundle, hits, margin=0.0):
     origin : (R, 3) float64, world units. direction : (R, 3) float64 unit.
     distance : (R,) float64, world units, origin to hit (inf for a miss).
     """
-    seg = bundle_segments(bundle)
-    r = len(bundle)
+    seg = bundle_segments(rays) if isinstance(rays, RayBundle) else rays
+    r = len(seg)
     counts = np.diff(seg.offsets)
     # the segment holding arc length d of ray r is the last one starting before d (a hit
     # at a vertex belongs to the segment that ends there)
@@ -103,17 +106,6 @@ def first_hit_segments(bundle, hits, margin=0.0):
     origin[short] -= direction[short] * (margin - distance[short])[:, None]
     distance[short] = margin
     return origin, direction, distance
-
-
-def _membership(ray_field, bundle, ix, iy):
-    """(R,) float32 membership where each ray leaves the bending stretch (as the
-    renderer's Membership pass)."""
-    leave = ray_field.exit_index(ix, iy)
-    k = bundle.vertices.shape[1]
-    if leave is None:
-        leave = np.full(len(bundle), k - 1)
-    leave = np.clip(leave, 0, k - 1)
-    return bundle.membership[np.arange(len(bundle)), leave].astype(np.float32)
 
 
 def ray_tables(frame, should_stop=None, progress=None, keep_polylines=False):
@@ -146,24 +138,24 @@ def ray_tables(frame, should_stop=None, progress=None, keep_polylines=False):
     for row0 in range(0, height, step):
         row1 = min(row0 + step, height)
         iy, ix = (a.ravel() for a in np.mgrid[row0:row1, 0:width])
-        bundle = frame.field.rays(ix, iy)
-        hits = march(frame.tree, bundle, should_stop)
+        seg = frame.sampler.segments(ix + 0.5, iy + 0.5, ix, iy)
+        hits = march(frame.tree, seg, should_stop, frame.bounds, frame.geometry, frame.occupancy)
         casts += hits.casts
-        o, d, t = first_hit_segments(bundle, hits, START_MARGIN * frame.scale)
+        o, d, t = first_hit_segments(seg, hits, START_MARGIN * frame.scale)
         rows = slice(row0, row1)
         origin[rows] = o.reshape(row1 - row0, width, 3)
         direction[rows] = d.reshape(row1 - row0, width, 3)
         distance[rows] = t.reshape(row1 - row0, width)
-        depth[rows] = np.where(hits.hit, bundle.start_depth + hits.distance, np.inf).reshape(
+        depth[rows] = np.where(hits.hit, seg.start_depth + hits.distance, np.inf).reshape(
             row1 - row0, width
         )
         hit[rows] = hits.hit.reshape(row1 - row0, width)
-        membership[rows] = _membership(frame.field, bundle, ix, iy).reshape(row1 - row0, width)
-        tile_index = np.zeros(len(bundle), dtype=np.float32)
+        membership[rows] = seg.membership.reshape(row1 - row0, width)
+        tile_index = np.zeros(len(seg), dtype=np.float32)
         tile_index[hits.hit] = frame.geometry.pass_index[hits.triangle[hits.hit]]
         index[rows] = tile_index.reshape(row1 - row0, width)
         if keep_polylines:
-            lines.append(_polylines(bundle))
+            lines.append(_polylines(frame.field.rays(ix, iy), seg, frame.sampler.reach))
         if progress is not None:
             progress(row1 / height)
     frame.casts += casts
@@ -173,12 +165,13 @@ def ray_tables(frame, should_stop=None, progress=None, keep_polylines=False):
     return tables, _concatenate(lines)
 
 
-def _polylines(bundle):
-    """The simplified polylines of one bundle as ``Polylines``."""
-    seg = bundle_segments(bundle)
+def _polylines(bundle, seg, reach):
+    """The polylines ``seg`` (Segments of the rays of ``bundle``, whose last segments run
+    ``reach`` world units past the last vertex) as ``Polylines``, with the bundle's
+    membership at each kept vertex."""
     counts = np.diff(seg.offsets)
     last = seg.offsets[1:] - 1
-    end = seg.origin[last] + seg.direction[last] * (seg.length[last] - bundle.reach)[:, None]
+    end = seg.origin[last] + seg.direction[last] * (seg.length[last] - reach)[:, None]
     # each ray: its segment starts, then the end of its last segment
     order = np.concatenate([np.arange(len(seg.ray)), len(seg.ray) + np.arange(len(bundle))])
     owner = np.concatenate([seg.ray, np.arange(len(bundle))])
@@ -192,7 +185,7 @@ def _polylines(bundle):
         [np.zeros((r, 1)), np.cumsum(np.linalg.norm(np.diff(verts, axis=1), axis=-1), axis=1)],
         axis=1,
     )
-    total = seg.before[last] + seg.length[last] - bundle.reach
+    total = seg.before[last] + seg.length[last] - reach
     point_arc = np.concatenate([seg.before, total])[key]
     ray_of_point = owner[key]
     span = float(arc[:, -1].max()) + 1.0
