@@ -9,13 +9,11 @@ available (Windows, or a Python that forbids it) the tiles render in-process. Wo
 never call bpy: ``render_rows`` works on the frame's numpy arrays and the tree.
 """
 
-import multiprocessing
-import signal
-import sys
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 
 from ..core.errors import Cancelled
+from ..core.parallel import fork_context, stop, worker_init
 from . import pipeline
 
 # A frame with fewer rays than this renders in-process: starting workers costs more.
@@ -23,16 +21,6 @@ MIN_RAYS = 200_000
 
 # The frame the forked workers render (set in the parent just before forking).
 _FRAME = None
-
-
-def fork_context():
-    """The ``fork`` multiprocessing context, or None where it is unavailable."""
-    if sys.platform == "win32":
-        return None
-    try:
-        return multiprocessing.get_context("fork")
-    except ValueError:
-        return None
 
 
 def worker_count(requested=0):
@@ -46,13 +34,6 @@ def worker_count(requested=0):
     if requested and requested > 0:
         return int(requested)
     return 1
-
-
-def _worker_init():
-    """A worker ends when the pool terminates it, whatever handlers the host installed,
-    and leaves Ctrl+C to the parent."""
-    signal.signal(signal.SIGTERM, signal.SIG_DFL)
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def _render_tile(rows):
@@ -83,7 +64,7 @@ def render_tiles(frame, tiles, processes, should_stop=None):
     if processes > 1 and ctx is not None and width * height * frame.samples >= MIN_RAYS:
         _FRAME = frame
         try:
-            pool = ProcessPoolExecutor(processes, mp_context=ctx, initializer=_worker_init)
+            pool = ProcessPoolExecutor(processes, mp_context=ctx, initializer=worker_init)
         except OSError:  # no processes to be had (limits, sandbox): render here
             _FRAME = None
     done = 0
@@ -102,7 +83,7 @@ def render_tiles(frame, tiles, processes, should_stop=None):
             # run): the tiles it left render here, rather than waiting on it forever
             frame.notices.append(WORKER_DIED)
         finally:
-            _stop(pool)
+            stop(pool)
             _FRAME = None
     for row0, row1 in tiles[done:]:
         if should_stop is not None and should_stop():
@@ -111,14 +92,3 @@ def render_tiles(frame, tiles, processes, should_stop=None):
 
 
 WORKER_DIED = "A render worker process died; the remaining tiles rendered in Blender's process"
-
-
-def _stop(pool):
-    """Shut the pool down without waiting for tiles still queued; end its workers."""
-    processes = list(getattr(pool, "_processes", {}).values())
-    pool.shutdown(wait=False, cancel_futures=True)
-    for proc in processes:
-        if proc.is_alive():
-            proc.terminate()
-    for proc in processes:
-        proc.join(timeout=5)

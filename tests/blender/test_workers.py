@@ -4,6 +4,7 @@ import bpy
 import numpy as np
 import pytest
 
+from multiscale_camera.core import parallel
 from multiscale_camera.core.errors import Cancelled
 from multiscale_camera.render import pipeline, workers
 
@@ -61,7 +62,7 @@ def test_without_fork_tiles_render_in_process(empty_scene, monkeypatch):
     monkeypatch.setattr(workers, "MIN_RAYS", 0)
     monkeypatch.setattr(workers, "fork_context", lambda: None)
     monkeypatch.setattr(
-        workers.multiprocessing, "get_context", lambda *a: pytest.fail("no pool without fork")
+        parallel.multiprocessing, "get_context", lambda *a: pytest.fail("no pool without fork")
     )
     frame = frame_of(empty_scene)
     out = collect(frame, 4)
