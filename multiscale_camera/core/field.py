@@ -131,7 +131,7 @@ def _dilate(a):
     return out
 
 
-def splat_camera(grid, family, mask, chunk=200_000):
+def splat_camera(grid, family, mask, chunk=200_000, should_stop=None):
     """Voxels near camera i's preserved rays (eq. 4's support for one camera).
 
     The family R_i is sampled over the mask at a pixel spacing and a tau spacing small
@@ -142,10 +142,15 @@ def splat_camera(grid, family, mask, chunk=200_000):
     Parameters
     ----------
     grid : Grid. family : Family of camera i. mask : (H, W) bool, camera i's mask.
+    should_stop : callable () -> bool or None, asked between chunks of samples.
 
     Returns
     -------
     core, halo : (nx, ny, nz) bool, disjoint.
+
+    Raises
+    ------
+    Cancelled when ``should_stop`` says so.
     """
     claimed = np.zeros(grid.shape, dtype=bool)
     if not mask.any():
@@ -183,6 +188,8 @@ def splat_camera(grid, family, mask, chunk=200_000):
         lu, lv = lu[inside], lv[inside]
         per_chunk = max(1, chunk // n_tau)
         for s in range(0, len(lu), per_chunk):
+            if should_stop is not None and should_stop():
+                raise Cancelled()
             cu = np.repeat(lu[s : s + per_chunk], n_tau)
             cv = np.repeat(lv[s : s + per_chunk], n_tau)
             ct = np.tile(taus, len(lu[s : s + per_chunk]))
@@ -340,8 +347,11 @@ class Fill:
         return out
 
 
-def fill_membership(rig, grid, families):
+def fill_membership(rig, grid, families, should_stop=None):
     """Eq. 4: M = i along the preserved rays of camera i; shared voxels stay free.
+
+    ``should_stop``: callable () -> bool or None, asked as each camera's rays are
+    splatted (raises Cancelled).
 
     Each camera claims the voxels its preserved rays pass through (core) and a
     one-voxel halo around them. A core claim outranks another camera's halo, so where
@@ -353,7 +363,7 @@ def fill_membership(rig, grid, families):
     halo_of = np.zeros(grid.shape, dtype=np.float32)
     per = []
     for i, fam in enumerate(families):
-        core, halo = splat_camera(grid, fam, rig.masks[i])
+        core, halo = splat_camera(grid, fam, rig.masks[i], should_stop=should_stop)
         cores += core
         halos += halo
         core_of[core] = i + 1

@@ -507,11 +507,11 @@ def prepare_scalar_field(rig, settings=None, should_stop=None):
     t0 = time.perf_counter()
     fld.grid = field_grid(fld, settings)
     families = [Family(rig.cameras, i, rig.beta) for i in range(len(rig.cameras))]
-    fill = fill_membership(rig, fld.grid, families)
+    fill = fill_membership(rig, fld.grid, families, should_stop=should_stop)
     t1 = time.perf_counter()
     if should_stop is not None and should_stop():
         raise Cancelled()
-    solve = solve_membership(fill.values, fill.constrained)
+    solve = solve_membership(fill.values, fill.constrained, should_stop=should_stop)
     t2 = time.perf_counter()
     if not solve.converged:
         raise SolverDidNotConverge(

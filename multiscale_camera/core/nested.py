@@ -370,8 +370,9 @@ def solve_levels(rig, grids, families, fill_membership, should_stop=None):
     Parameters
     ----------
     rig : Rig. grids : sequence of Grid, coarsest first. families : list of Family.
-    fill_membership : callable (rig, grid, families) -> Fill (``field.fill_membership``).
-    should_stop : optional callable, asked between levels.
+    fill_membership : callable (rig, grid, families, should_stop=) -> Fill
+        (``field.fill_membership``).
+    should_stop : optional callable, asked during each level's fill and solve.
 
     Returns
     -------
@@ -383,7 +384,9 @@ def solve_levels(rig, grids, families, fill_membership, should_stop=None):
     for lev, grid in enumerate(grids):
         if should_stop is not None and should_stop():
             raise Cancelled()
-        fill = fill_membership(rig, grid, families)
+        fill = fill_membership(rig, grid, families, should_stop=should_stop)
+        if should_stop is not None and should_stop():
+            raise Cancelled()
         values, constrained, x0 = fill.values, fill.constrained, None
         if lev:
             parent = FieldSampler(grids[lev - 1], fields[-1])
@@ -392,7 +395,7 @@ def solve_levels(rig, grids, families, fill_membership, should_stop=None):
             shell[1:-1, 1:-1, 1:-1] = False
             values = np.where(shell, x0, values).astype(np.float32)
             constrained = constrained | shell
-        solve = solve_membership(values, constrained, x0=x0)
+        solve = solve_membership(values, constrained, x0=x0, should_stop=should_stop)
         fields.append(solve.x)
         fills.append(fill)
         its = max(its, solve.iterations)

@@ -23,6 +23,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .errors import Cancelled
+
 # Stop at this relative residual ||b - A x|| / ||b||: N then errs by ~1e-5 (values
 # 1..N), far below what bends a ray visibly.
 TOLERANCE = 1e-6
@@ -100,7 +102,13 @@ def isolated_voxels(constrained):
 
 
 def solve_membership(
-    values, constrained, tol=TOLERANCE, max_iterations=MAX_ITERATIONS, x0=None, dtype=np.float32
+    values,
+    constrained,
+    tol=TOLERANCE,
+    max_iterations=MAX_ITERATIONS,
+    x0=None,
+    dtype=np.float32,
+    should_stop=None,
 ):
     """Smooth the constraint field M into the membership field N (eq. 5, hard constraints).
 
@@ -120,6 +128,8 @@ def solve_membership(
     x0 : (nx, ny, nz) float array or None, initial guess on the free voxels (default 0,
         eq. 4's value off the rays).
     dtype : numpy float dtype of the returned field and of the working arrays.
+    should_stop : callable () -> bool or None, asked before every iteration (one takes
+        up to half a second on a large grid).
 
     Returns
     -------
@@ -131,7 +141,7 @@ def solve_membership(
     Raises
     ------
     ValueError if the shapes differ, the grid is not 3D, or a constrained value is not
-    finite.
+    finite. Cancelled when ``should_stop`` says so.
     """
     values, constrained, dtype = _check(values, constrained, dtype)
     x = np.where(constrained, values, 0.0)
@@ -151,6 +161,8 @@ def solve_membership(
         return SolveResult(x.astype(dtype), True, 0, ())
 
     hierarchy = _Hierarchy(free, dtype)
+    if should_stop is not None and should_stop():
+        raise Cancelled()
     fine = hierarchy.levels[0]
     work = np.empty(x.shape)  # float64 scratch for the outer products A p
     r = b if x0 is None else fine.apply(-x, work=work)  # b - A_FF x_F = -(A x)_F
@@ -163,6 +175,8 @@ def solve_membership(
     ap = np.empty_like(p)
     rz = _dot(r, z)
     for it in range(1, max_iterations + 1):
+        if should_stop is not None and should_stop():
+            raise Cancelled()
         fine.apply(p, out=ap, work=work)
         pap = _dot(p, ap)
         if not pap > 0.0:

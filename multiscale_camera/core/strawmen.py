@@ -276,7 +276,7 @@ def prepare_vector_field(rig, settings=None, should_stop=None):
     for values in (fill.values, tangents[..., 0], tangents[..., 1], tangents[..., 2]):
         if should_stop is not None and should_stop():
             raise Cancelled()
-        solves.append(solve_membership(values, fill.constrained))
+        solves.append(solve_membership(values, fill.constrained, should_stop=should_stop))
     del tangents
     t3 = time.perf_counter()
     for s in solves:

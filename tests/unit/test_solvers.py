@@ -233,3 +233,22 @@ def test_preconditioner_is_positive_definite_and_never_overshoots(deep_hierarchy
     chol = np.linalg.cholesky(a)
     w = np.linalg.eigvalsh(chol.T @ b @ chol)
     assert w.min() > 0.1 and w.max() < 1 + 1e-9
+
+
+def test_a_stop_request_ends_a_solve_between_iterations():
+    """Esc during a large level's solve waited for the whole solve (up to 4 s at HIGH):
+    the solve asks before every iteration."""
+    from multiscale_camera.core.errors import Cancelled
+
+    values, constrained = cones(32)
+    asked = []
+
+    def stop_on_third():
+        asked.append(1)
+        return len(asked) >= 3
+
+    with pytest.raises(Cancelled):
+        solve_membership(values, constrained, should_stop=stop_on_third)
+    assert len(asked) == 3
+    full = solve_membership(values, constrained, should_stop=lambda: False)
+    assert full.converged and full.iterations > 3
