@@ -33,15 +33,25 @@ from .trace import StopReason, rk4_streamlines
 # bundle is narrowest there, and its transitions need a few cells to be smooth.
 CELLS_ACROSS_NEAR_PER_PX = 8.0
 MIN_CELLS_ACROSS_NEAR = 8
-# RK4 step, in cells, at an accuracy target of 0.5 px; it scales with the cube root of
-# the target (the trace's error falls about as the step cubed: measured 0.22, 0.023 and
-# 0.002 px at 2, 1 and 0.5 cells on a 4x rig at 1920x1080).
+# RK4 step, in cells, at an accuracy target of 0.5 px on an image STEP_WIDTH pixels
+# wide. The trace's error in world units falls about as the step cubed (measured 0.22,
+# 0.023 and 0.002 px at 2, 1 and 0.5 cells on a 4x rig at 1920x1080); cells do not
+# depend on the image size, so in pixels it grows with the width. The step scales with
+# the cube root of the target over the width, but a smaller image lengthens it by at
+# most STEP_WIDTH_GAIN: a transition two cells wide is the narrowest the cells hold,
+# and a longer step lets neighbouring rays sample it differently (on the 1000x rig at
+# 480x270: no folds at 2 and 2.25 cells, 3 folded quads at 2.4).
 STEP_CELLS = 1.5
+STEP_WIDTH = 1920
+STEP_WIDTH_GAIN = 4.0 / 3.0
 
 
-def step_cells(accuracy_px):
-    """RK4 step in cells for an accuracy target in pixels."""
-    return float(np.clip(STEP_CELLS * (accuracy_px / 0.5) ** (1.0 / 3.0), 0.5, 3.0))
+def step_cells(accuracy_px, width=STEP_WIDTH):
+    """RK4 step in cells (float, 0.5 to 3) for an accuracy target in pixels on an image
+    ``width`` pixels wide."""
+    gain = min((STEP_WIDTH / max(width, 1)) ** (1.0 / 3.0), STEP_WIDTH_GAIN)
+    ratio = accuracy_px / 0.5
+    return float(np.clip(STEP_CELLS * gain * ratio ** (1.0 / 3.0), 0.5, 3.0))
 
 
 # A ray stalls where the blended tangents cancel to less than this length.
@@ -749,6 +759,36 @@ class FieldTracer:
             None if callable(step) else step,
         )
 
+    def _workers(self, rays):
+        """Worker processes for ``rays`` rays: 1 (in-process) when too few to share."""
+        workers = self.processes if self.processes > 0 else parallel.cores()
+        return min(workers, rays // MIN_RAYS_PER_PROCESS)
+
+    def _shared(self, task, rays, should_stop):
+        """``task(rows)`` -> Traced over every n-th of ``rays`` rays in forked workers,
+        merged; None when the work is not shared (too few rays, or no fork)."""
+        workers = self._workers(rays)
+        if workers < 2:
+            return None
+        # every n-th ray to each share: neighbours on the lattice run alike, so the
+        # shares take about as long
+        n = max(workers, -(-rays // MAX_RAYS_PER_SHARE))
+        shares = [np.arange(k, rays, n) for k in range(n)]
+        parts = parallel.forked_map(
+            lambda rows: self._part(task, rows), shares, workers, should_stop
+        )
+        if parts is None:
+            return None
+        self.missed += sum(p[1] for p in parts)
+        self.tangent_seconds += float(np.mean([p[2] for p in parts]))
+        return merge([p[0] for p in parts], shares, rays)
+
+    def _part(self, task, rows):
+        """In a worker: (Traced, Newton's missed points, tangent seconds) of ``rows``."""
+        missed, seconds = self.missed, self.tangent_seconds
+        traced = task(rows)
+        return traced, self.missed - missed, self.tangent_seconds - seconds
+
     def trace(self, u0, v0, step, max_steps, should_stop=None):
         """RK4 streamlines from the near-plane points of pixels (u0, v0) of camera 1.
 
@@ -765,30 +805,51 @@ class FieldTracer:
         ------
         Cancelled when ``should_stop`` says so.
         """
-        workers = self.processes if self.processes > 0 else parallel.cores()
-        workers = min(workers, len(u0) // MIN_RAYS_PER_PROCESS)
-        if workers > 1:
-            # every n-th ray to each share: neighbours on the lattice run alike, so the
-            # shares take about as long
-            n = max(workers, -(-len(u0) // MAX_RAYS_PER_SHARE))
-            shares = [np.arange(k, len(u0), n) for k in range(n)]
-            parts = parallel.forked_map(
-                lambda rows: self._traced_part(u0[rows], v0[rows], step, max_steps),
-                shares,
-                workers,
-                should_stop,
-            )
-            if parts is not None:
-                self.missed += sum(p[1] for p in parts)
-                self.tangent_seconds += float(np.mean([p[2] for p in parts]))
-                return merge([p[0] for p in parts], shares, len(u0))
+        traced = self._shared(
+            lambda rows: self._trace_here(u0[rows], v0[rows], step, max_steps),
+            len(u0),
+            should_stop,
+        )
+        if traced is not None:
+            return traced
         return self._trace_here(u0, v0, step, max_steps, should_stop)
 
-    def _traced_part(self, u0, v0, step, max_steps):
-        """In a worker: (Traced, Newton's missed points, tangent seconds) of some rays."""
-        missed, seconds = self.missed, self.tangent_seconds
-        traced = self._trace_here(u0, v0, step, max_steps)
-        return traced, self.missed - missed, self.tangent_seconds - seconds
+    def trace_pixels(self, ix, iy, step, max_steps, should_stop=None):
+        """Rays of pixels (ix, iy) ((R,) int arrays): R_i laid out analytically where a
+        preserved pixel's ray stays in camera i's constraint (``preserved_rays``), RK4
+        streamlines for the rest (the transitions). Both run in the workers.
+
+        Returns
+        -------
+        Traced of the R rays, in the order of the pixels.
+        """
+        traced = self._shared(
+            lambda rows: self._pixels_here(ix[rows], iy[rows], step, max_steps),
+            len(ix),
+            should_stop,
+        )
+        if traced is not None:
+            return traced
+        return self._pixels_here(ix, iy, step, max_steps, should_stop)
+
+    def _pixels_here(self, ix, iy, step, max_steps, should_stop=None):
+        """``trace_pixels`` in this process."""
+        u, v = ix + 0.5, iy + 0.5
+        todo = np.ones(len(ix), dtype=bool)
+        parts, order = [], []
+        for i in range(len(self.rig.cameras)):
+            sel = np.flatnonzero(self.rig.masks[i][iy, ix])
+            if len(sel) == 0:
+                continue
+            ok, exact = self.preserved_rays(i, u[sel], v[sel], step, max_steps + 1)
+            parts.append(exact)
+            order.append(sel[ok])
+            todo[sel[ok]] = False
+        rest = np.flatnonzero(todo)
+        if len(rest):
+            parts.append(self._trace_here(u[rest], v[rest], step, max_steps, should_stop))
+            order.append(rest)
+        return merge(parts, order, len(ix))
 
     def _trace_here(self, u0, v0, step, max_steps, should_stop=None):
         """``trace`` in this process."""

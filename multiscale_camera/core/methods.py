@@ -37,6 +37,7 @@ from .field import (
 from .guides import DEFAULT_SEGMENTS, build_guides, curved_rays
 from .harmonic import mask_weights
 from .nested import NestedDomain, ScaleField, choose_levels, solve_levels
+from .parallel import cores
 from .solvers import solve_membership
 from .trace import StopReason
 from .validate import check_rig, conflict_messages, guard_messages
@@ -297,9 +298,7 @@ class _AdaptiveLattice:
         if self.should_stop is not None and self.should_stop():
             raise Cancelled()
         self.parts.append(
-            _trace_pixels(
-                self.tracer, self.rig, px, py, self.step, self.max_steps, self.should_stop
-            )
+            self.tracer.trace_pixels(px, py, self.step, self.max_steps, self.should_stop)
         )
         self.order.append(np.arange(self.count, self.count + len(px)))
         self.index[py, px] = np.arange(self.count, self.count + len(px))
@@ -467,7 +466,7 @@ def trace_field(fld, tracer, fill, settings, should_stop, levels=None):
     rig, grid = fld.rig, fld.grid
     grids = levels or (grid,)
     stride = lattice_stride(rig, grids[-1])
-    cells = step_cells(settings.accuracy_px)
+    cells = step_cells(settings.accuracy_px, rig.size[0])
     max_steps = int(sum(np.ceil(np.linalg.norm(np.array(g.shape)) / cells * 2) for g in grids)) + 8
     if levels:
         domain = tracer.domain
@@ -548,7 +547,8 @@ def _prepare_nested(rig, settings, should_stop):
     if levels.capped:
         fld.warnings.append(capped_message(settings, levels.wanted_cell, levels.grids[-1].cell))
     families = [Family(rig.cameras, i, rig.beta) for i in range(len(rig.cameras))]
-    solved = solve_levels(rig, levels.grids, families, fill_membership, should_stop)
+    workers = settings.processes if settings.processes > 0 else cores()
+    solved = solve_levels(rig, levels.grids, families, fill_membership, should_stop, workers)
     t1 = time.perf_counter()
     if not solved.converged:
         raise SolverDidNotConverge(
@@ -592,28 +592,6 @@ def _composite_fill(grids, fills):
         o = fill.overlaps_in(own)
         overlaps = o if overlaps is None else overlaps + o
     return SimpleNamespace(conflicts=conflicts, overlaps=overlaps)
-
-
-def _trace_pixels(tracer, rig, ix, iy, step, max_steps, should_stop):
-    """Rays of pixels (ix, iy): analytic R_i where a preserved pixel's ray stays in
-    camera i's constraint, RK4 streamlines for the rest (the transitions)."""
-    u, v = ix + 0.5, iy + 0.5
-    todo = np.ones(len(ix), dtype=bool)
-    parts, order = [], []
-    vertices = max_steps + 1
-    for i in range(len(rig.cameras)):
-        sel = np.flatnonzero(rig.masks[i][iy, ix])
-        if len(sel) == 0:
-            continue
-        ok, exact = tracer.preserved_rays(i, u[sel], v[sel], step, vertices)
-        parts.append(exact)
-        order.append(sel[ok])
-        todo[sel[ok]] = False
-    rest = np.flatnonzero(todo)
-    if len(rest):
-        parts.append(tracer.trace(u[rest], v[rest], step, max_steps, should_stop))
-        order.append(rest)
-    return merge(parts, order, len(ix))
 
 
 # --- serialisation (the field cache on disk) -------------------------------------------

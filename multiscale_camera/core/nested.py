@@ -363,9 +363,12 @@ class LevelSolve:
     converged: bool
 
 
-def solve_levels(rig, grids, families, fill_membership, should_stop=None):
+def solve_levels(rig, grids, families, fill_membership, should_stop=None, processes=1):
     """Fill and solve every level, coarsest first; a finer level's boundary voxels hold
     its parent's membership (Dirichlet), its own constraints hold inside.
+
+    The fills do not depend on one another: with ``processes`` > 1 they are shared
+    among forked workers (``parallel.forked_map``) before the solves run in order.
 
     Parameters
     ----------
@@ -373,18 +376,28 @@ def solve_levels(rig, grids, families, fill_membership, should_stop=None):
     fill_membership : callable (rig, grid, families, should_stop=) -> Fill
         (``field.fill_membership``).
     should_stop : optional callable, asked during each level's fill and solve.
+    processes : int, worker processes for the fills (1: in-process).
 
     Returns
     -------
     LevelSolve
     """
+    from . import parallel
     from .errors import Cancelled
 
+    shared = None
+    if processes > 1:
+        shared = parallel.forked_map(
+            lambda grid: fill_membership(rig, grid, families), grids, processes, should_stop
+        )
     fields, fills, its, res, ok = [], [], 0, 0.0, True
     for lev, grid in enumerate(grids):
         if should_stop is not None and should_stop():
             raise Cancelled()
-        fill = fill_membership(rig, grid, families, should_stop=should_stop)
+        if shared is not None:
+            fill, shared[lev] = shared[lev], None
+        else:
+            fill = fill_membership(rig, grid, families, should_stop=should_stop)
         if should_stop is not None and should_stop():
             raise Cancelled()
         values, constrained, x0 = fill.values, fill.constrained, None

@@ -267,3 +267,19 @@ def test_stale_warm_start_gives_no_nan_tangent():
     expected = tangent / np.linalg.norm(tangent, axis=-1, keepdims=True)
     solved = np.abs(got - expected).max(axis=1) < 1e-6
     assert solved.all() and tracer.missed == 0
+
+
+def test_the_trace_step_follows_the_accuracy_target_and_the_image_width():
+    from multiscale_camera.core.field import STEP_CELLS, STEP_WIDTH_GAIN, step_cells
+
+    # calibrated at 1920 wide and 0.5 px
+    assert step_cells(0.5, 1920) == pytest.approx(STEP_CELLS)
+    # the trace's error in pixels grows as step**3 * width: the same error at 3840 wide
+    assert step_cells(0.5, 3840) == pytest.approx(STEP_CELLS / 2 ** (1 / 3))
+    assert step_cells(0.5, 960) == pytest.approx(STEP_CELLS * 2 ** (1 / 3))
+    # smaller images lengthen it by at most STEP_WIDTH_GAIN (folds beyond 2 cells)
+    assert step_cells(0.5, 480) == pytest.approx(STEP_CELLS * STEP_WIDTH_GAIN)
+    assert step_cells(0.5, 64) == step_cells(0.5, 480)
+    # and a looser target lengthens it as its cube root, within 0.5 .. 3 cells
+    assert step_cells(0.25, 1920) == pytest.approx(STEP_CELLS / 2 ** (1 / 3))
+    assert step_cells(4.0, 1920) == 3.0 and step_cells(0.01, 3840) == 0.5

@@ -87,3 +87,33 @@ def test_a_stop_request_ends_the_workers():
 def test_without_fork_the_work_stays_in_process(monkeypatch):
     monkeypatch.setattr(parallel, "fork_context", lambda: None)
     assert parallel.forked_map(lambda x: x, [1, 2], 2) is None
+
+
+@needs_fork
+def test_nested_levels_filled_and_rays_laid_out_in_workers_equal_those_done_in_process(
+    monkeypatch,
+):
+    monkeypatch.setattr(field_module, "MIN_RAYS_PER_PROCESS", 16)
+    calls = []
+    real = parallel.forked_map
+
+    def counting(task, items, processes, should_stop=None):
+        out = real(task, items, processes, should_stop)
+        calls.append((len(items), out is not None))
+        return out
+
+    monkeypatch.setattr(parallel, "forked_map", counting)
+    cams, masks = three_camera_rig(96, 54)
+    rig = Rig(cams, masks)
+    base = replace(settings_for("PREVIEW"), nested=True)
+    one = prepare(rig, "SCALAR_FIELD", replace(base, processes=1))
+    assert calls == []
+    two = prepare(rig, "SCALAR_FIELD", replace(base, processes=2))
+    levels = len(two.domain.grids)
+    # the levels' fills went to the workers, and so did every lattice round's pixels
+    assert levels >= 2 and calls[0] == (levels, True) and all(ok for _n, ok in calls)
+    np.testing.assert_array_equal(one.domain.values, two.domain.values)
+    assert one.stats["conflicts"] == two.stats["conflicts"]
+    np.testing.assert_allclose(one.traced.vertices, two.traced.vertices, rtol=0, atol=1e-5)
+    np.testing.assert_array_equal(one.traced.counts, two.traced.counts)
+    np.testing.assert_array_equal(one.index, two.index)
