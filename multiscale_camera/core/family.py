@@ -181,7 +181,17 @@ class Family:
         u[rest], v[rest] = projections[0][0][rest, 0], projections[0][0][rest, 1]
         return u, v, tau
 
-    def invert(self, points, u, v, tau, iterations=8, scale=None, with_jacobian=False):
+    def invert(
+        self,
+        points,
+        u,
+        v,
+        tau,
+        iterations=8,
+        scale=None,
+        with_jacobian=False,
+        tolerance=NEWTON_TOLERANCE,
+    ):
         """Newton's method for (u, v, tau) with R_i(u, v, tau) = point.
 
         Parameters
@@ -193,6 +203,7 @@ class Family:
         scale : (P,) float64 world lengths or None (camera i's near distance), the
             local scale the tolerance is a fraction of (see ``solve``).
         with_jacobian : bool, also return the last dR/du and dR/dv computed.
+        tolerance : float, Newton stops below this fraction of ``scale``.
 
         Returns
         -------
@@ -208,7 +219,7 @@ class Family:
         error = np.full(n, np.inf)
         tangent = np.zeros((n, 3))
         jac_u, jac_v = np.zeros((n, 3)), np.zeros((n, 3))
-        tol = NEWTON_TOLERANCE * (self.scale if scale is None else scale)
+        tol = tolerance * (self.scale if scale is None else scale)
         tol = np.broadcast_to(tol, (n,))
         its = np.broadcast_to(np.asarray(iterations), (n,))
         most = int(its.max(initial=0))
@@ -238,7 +249,17 @@ class Family:
             return u, v, tau, error, tangent, jac_u, jac_v
         return u, v, tau, error, tangent
 
-    def solve(self, points, u, v, tau, iterations=8, scale=None, with_jacobian=False):
+    def solve(
+        self,
+        points,
+        u,
+        v,
+        tau,
+        iterations=8,
+        scale=None,
+        with_jacobian=False,
+        tolerance=NEWTON_TOLERANCE,
+    ):
         """``invert``, retried from camera 1's pixel where it misses.
 
         Newton can miss from a poor start (a stale warm start, or ``start``'s guess off to
@@ -252,7 +273,7 @@ class Family:
         camera, a fraction of its own near distance would ask for far more than the
         cells there resolve); default camera i's near distance.
 
-        ``iterations``: int or (P,) ints, as ``invert``.
+        ``iterations``: int or (P,) ints, and ``tolerance``, as ``invert``.
 
         Returns
         -------
@@ -265,7 +286,7 @@ class Family:
         points = np.asarray(points, dtype=np.float64)
         scale = self.scale if scale is None else scale
         u, v, tau, err, tangent, jac_u, jac_v = self.invert(
-            points, u, v, tau, iterations, scale, with_jacobian=True
+            points, u, v, tau, iterations, scale, with_jacobian=True, tolerance=tolerance
         )
         raw = tangent.copy() if with_jacobian else None
         miss = np.flatnonzero(~(err <= RETRY_TOLERANCE * scale))

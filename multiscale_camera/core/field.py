@@ -62,6 +62,11 @@ WARM_ITERATIONS = 2
 # converged (``FieldTracer._tangent``): its error is already about the square of the
 # distance moved, and one step squares it again.
 PREDICTED_ITERATIONS = 1
+# Newton's tolerance in the trace, a fraction of the local scale: a point that far off
+# turns the tangent by about as many radians, far below what a step's error does (on
+# the 1000x rig at 240x135, 1e-6 and 1e-9 trace the same rays to the report's
+# precision, with 9% fewer family evaluations).
+TRACE_NEWTON_TOLERANCE = 1e-6
 # Lattice stride bounds in pixels: one traced ray per stride x stride block, the others
 # interpolated (rays bend on the scale of a cell, many pixels wide).
 MAX_STRIDE = 16
@@ -668,7 +673,7 @@ class FieldTracer:
                 tau[ready] = np.maximum(tau[ready] + step[:, 2], 0.0)
                 iterations[ready] = PREDICTED_ITERATIONS
             u, v, tau, out[bend], missed, (ju, jv, jt, ok) = self.families[i].solve(
-                xb, u, v, tau, iterations, scale, with_jacobian=True
+                xb, u, v, tau, iterations, scale, True, TRACE_NEWTON_TOLERANCE
             )
             params[i, r, 0], params[i, r, 1], params[i, r, 2] = u, v, tau
             self.jacobian[i, r, 0], self.jacobian[i, r, 1], self.jacobian[i, r, 2] = ju, jv, jt
