@@ -214,12 +214,12 @@ def segments_from_points(points, ray, nrays, reach, start_depth, membership):
     ray : (P,) int, sorted, the ray of each point (every ray has at least two points).
     reach : (R,) float, how far each ray's last segment runs on past its last vertex.
     """
-    same = ray[1:] == ray[:-1]
-    origin = points[:-1][same]
-    vec = points[1:][same] - origin
-    length = np.sqrt((vec * vec).sum(-1))
+    j = np.flatnonzero(ray[1:] == ray[:-1])
+    origin = points[j]
+    vec = points[j + 1] - origin
+    length = np.sqrt(np.einsum("ij,ij->i", vec, vec))
     direction = vec / np.where(length > 0, length, 1.0)[:, None]
-    sray = ray[:-1][same]
+    sray = ray[j]
     counts = np.bincount(sray, minlength=nrays)
     offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
     cum = np.cumsum(length)
@@ -304,9 +304,11 @@ def sample_offsets(ix, iy, samples, filter_width=1.5, seed=0):
 
 
 def _start_depth(cameras, sx, sy):
+    """(P,) float64: distance from camera 1's eye to its near plane through (sx, sy)."""
     c1 = cameras[0]
-    p1 = c1.near_points(c1.directions(sx, sy))
-    return np.linalg.norm(p1 - c1.eye, axis=-1)
+    d = c1.directions(sx, sy)
+    f = c1.forward
+    return c1.clip_start / (d[:, 0] * f[0] + d[:, 1] * f[1] + d[:, 2] * f[2])
 
 
 def _bilinear_corners(sx, sy, width, height):
