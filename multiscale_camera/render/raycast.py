@@ -110,7 +110,8 @@ def march(tree, seg, should_stop=None, bounds=None, geometry=None, occupancy=Non
         keeps only the index of the triangle it hits and the distance is solved here
         (``plane_distance``), which is cheaper than keeping ``ray_cast``'s whole answer.
     occupancy : core.occupancy.Occupancy of the same triangles, or None: segments whose
-        stretch in the box crosses empty cells only are skipped.
+        stretch in the box crosses empty cells only are skipped. Segments that ``seg``
+        marks not castable (``Segments.castable``) are skipped before any test.
 
     Returns
     -------
@@ -126,14 +127,22 @@ def march(tree, seg, should_stop=None, bounds=None, geometry=None, occupancy=Non
     if tree is not None and nrays:
         with gc_paused():
             lo, hi = bounds if bounds is not None else (None, None)
-            inside, t0, t1 = clip_to_box(seg.origin, seg.direction, seg.length, lo, hi)
             # the segments that can meet geometry, grouped by ray, in order along each
             # ray, each as the stretch start + direction * [0, length] inside the box
-            sel = np.flatnonzero(inside)
+            if getattr(seg, "castable", None) is not None:
+                cand = np.flatnonzero(seg.castable)
+                inside, t0, t1 = clip_to_box(
+                    seg.origin[cand], seg.direction[cand], seg.length[cand], lo, hi
+                )
+                sel = cand[inside]
+                t0, t1 = t0[inside], t1[inside]
+            else:
+                inside, t0, t1 = clip_to_box(seg.origin, seg.direction, seg.length, lo, hi)
+                sel = np.flatnonzero(inside)
+                t0, t1 = t0[sel], t1[sel]
             direction = seg.direction[sel]
-            t0 = t0[sel]
             start = seg.origin[sel] + direction * t0[:, None]
-            length = t1[sel] - t0
+            length = t1 - t0
             if occupancy is not None:
                 keep = occupancy.any_between(start, start + direction * length[:, None])
                 if not keep.all():
