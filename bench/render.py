@@ -244,6 +244,11 @@ def main():
         "march_share_of_raw_cpu": round(frame.casts / march_time[1] / raw_cpu, 3),
         "engine_rays_per_cpu_s": round(frame.rays / warm_cpu),
         "engine_all_casts_per_s": round((frame.casts + frame.shadow_casts) / warm),
+        # another view, not the target's: segment and shadow casts together per CPU second
+        "engine_all_casts_per_cpu_s": round((frame.casts + frame.shadow_casts) / warm_cpu),
+        "engine_all_casts_share_of_raw_cpu": round(
+            (frame.casts + frame.shadow_casts) / warm_cpu / raw_cpu, 3
+        ),
         "rays": frame.rays,
         "segment_casts": frame.casts,
         "shadow_casts": frame.shadow_casts,
@@ -291,7 +296,9 @@ def main():
         f"raw ray_cast {raw_cpu / 1e6:.2f} M/CPU s (engine's segments; camera 1's rays "
         f"{cam_raw_cpu / 1e6:.2f}) | engine {seg_rate_cpu / 1e6:.2f} M segment casts/CPU s "
         f"({seg_rate_cpu / raw_cpu:.0%} of raw; wall-clock {seg_rate / raw:.0%}), march alone "
-        f"{frame.casts / march_time[1] / raw_cpu:.0%}, {frame.casts / frame.rays:.2f} casts/ray "
+        f"{frame.casts / march_time[1] / raw_cpu:.0%}, segment and shadow casts together "
+        f"{(frame.casts + frame.shadow_casts) / warm_cpu / raw_cpu:.0%}, "
+        f"{frame.casts / frame.rays:.2f} casts/ray "
         f"| {args.width}x{args.height} {len(frame.geometry)} tris: cold field {t2 - t0:.1f} s "
         f"(CPU {c2 - c0:.1f} s), cached field {t5 - t3:.1f} s (CPU {c5 - c3:.1f} s); tiles in "
         f"{processes} processes {pooled:.1f} s | cancel latency max "

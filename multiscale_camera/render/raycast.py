@@ -235,9 +235,9 @@ def plane_distance(planes, triangles, origin, direction, length):
     runs along the plane (no single crossing), the nearest corner's distance along it.
     """
     n = planes["normal"][triangles]
-    den = (direction * n).sum(-1)
-    num = planes["offset"][triangles] - (origin * n).sum(-1)
-    crossing = np.abs(den) > 1e-9 * np.sqrt((n * n).sum(-1))
+    den = np.einsum("ij,ij->i", direction, n)
+    num = planes["offset"][triangles] - np.einsum("ij,ij->i", origin, n)
+    crossing = np.abs(den) > 1e-9 * np.sqrt(np.einsum("ij,ij->i", n, n))
     t = num / np.where(crossing, den, 1.0)
     along = ~crossing
     if along.any():
