@@ -4,8 +4,9 @@
 
 Reports, in one run: the raw ``BVHTree.ray_cast`` rate on the scene, in a bare loop
 over prepared lists on the same tree: over the very segments the engine casts (recorded
-from a render of the middle tiles: same rays, same tree) and over camera 1's straight
-rays; the engine's segment-cast rate (segment casts over the time of the whole tile
+from a render of the middle tiles: same rays, same tree), also in slices between the
+tiles of the timed render (so that both rates see the same machine), and over camera
+1's straight rays; the engine's segment-cast rate (segment casts over the time of the whole tile
 loop: ray sampling, culling, casting, shading with its shadow rays, and passes) and
 over the time of the march alone (culling, conversion, casting, hit bookkeeping); the
 time of the render with the field built cold and with it cached (the engine keeps
@@ -26,6 +27,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 OUT = Path(__file__).with_suffix(".json")
+# Segment casts replayed in a bare loop after every tile of the timed render.
+INTERLEAVED_CASTS = 4000
 
 
 def build_scene(width, height, triangles):
@@ -101,17 +104,19 @@ def engine_casts(frame, tiles=8):
 
 
 def bare_rate(cast, origins, dirs, lengths, seconds=3.0):
-    """(per wall second, per CPU second) of ``cast`` in a bare loop over prepared lists,
+    """(per wall second, per CPU second, CPU seconds) of ``cast`` in a bare loop over
+    prepared lists (at least once through, then again until ``seconds`` of CPU time),
     results dropped, the cyclic collector paused: the best case."""
     from multiscale_camera.render.raycast import gc_paused
 
     done, start, cpu = 0, time.perf_counter(), time.process_time()
     with gc_paused():
-        while time.process_time() - cpu < seconds:
+        while not done or time.process_time() - cpu < seconds:
             for a, b, c in zip(origins, dirs, lengths, strict=True):
                 cast(a, b, c)
             done += len(origins)
-    return done / (time.perf_counter() - start), done / (time.process_time() - cpu)
+    spent = time.process_time() - cpu
+    return done / (time.perf_counter() - start), done / spent, spent
 
 
 def render_tiles(frame, should_stop=None, processes=1):
@@ -191,20 +196,38 @@ def main():
     t3, c3 = time.perf_counter(), time.process_time()
     frame = pipeline.prepare_frame(depsgraph)
     t4, c4 = time.perf_counter(), time.process_time()
+    cached_stages = dict(frame.seconds)
+    # the raw rate is also sampled between the tiles (a slice of the engine's own segment
+    # casts after every tile, timed apart from it), so that both see the same machine:
+    # on a shared machine the speed of a core drifts by up to 2x within a minute
+    same = engine_casts(frame)
+    frame.casts = frame.shadow_casts = frame.rays = 0
     pipeline.march = timed_march
+    tile_time = [0.0, 0.0]
+    interleaved = [0, 0.0]
     try:
-        render_tiles(frame)
+        loop = workers.render_tiles(frame, pipeline.tiles(frame), 1, None)
+        while True:
+            wall, cpu = time.perf_counter(), time.process_time()
+            done = next(loop, None)
+            tile_time[0] += time.perf_counter() - wall
+            tile_time[1] += time.process_time() - cpu
+            if done is None:
+                break
+            a = interleaved[0] % len(same[0])
+            piece = [x[a : a + INTERLEAVED_CASTS] for x in same]
+            interleaved[1] += bare_rate(frame.tree.ray_cast, *piece, seconds=0.0)[2]
+            interleaved[0] += len(piece[0])
     finally:
         pipeline.march = march
     t5, c5 = time.perf_counter(), time.process_time()
-    cached_stages = dict(frame.seconds)
-    warm, warm_cpu = t5 - t4, c5 - c4
+    warm, warm_cpu = tile_time
+    raw_between = interleaved[0] / interleaved[1]
     seg_rate, seg_rate_cpu = frame.casts / warm, frame.casts / warm_cpu
     counts = frame.rays, frame.casts, frame.shadow_casts
     # raw ray_cast, same tree: the engine's own segment casts, and camera 1's straight rays
-    same = engine_casts(frame)
-    raw, raw_cpu = bare_rate(frame.tree.ray_cast, *same)
-    cam_raw, cam_raw_cpu = raw_rate(frame)
+    raw, raw_cpu = bare_rate(frame.tree.ray_cast, *same)[:2]
+    cam_raw, cam_raw_cpu = raw_rate(frame)[:2]
     latencies = []
     for after in (0.5, 1.5, 3.0):
         frame.casts = frame.shadow_casts = frame.rays = 0
@@ -240,10 +263,17 @@ def main():
         "engine_segment_casts_per_cpu_s": round(seg_rate_cpu),
         "engine_share_of_raw": round(seg_rate / raw, 3),
         "engine_share_of_raw_cpu": round(seg_rate_cpu / raw_cpu, 3),
+        "raw_ray_cast_per_cpu_s_between_tiles": round(raw_between),
+        "engine_share_of_raw_cpu_between_tiles": round(seg_rate_cpu / raw_between, 3),
         "march_segment_casts_per_cpu_s": round(frame.casts / march_time[1]),
         "march_share_of_raw_cpu": round(frame.casts / march_time[1] / raw_cpu, 3),
         "engine_rays_per_cpu_s": round(frame.rays / warm_cpu),
         "engine_all_casts_per_s": round((frame.casts + frame.shadow_casts) / warm),
+        # another view, not the target's: segment and shadow casts together per CPU second
+        "engine_all_casts_per_cpu_s": round((frame.casts + frame.shadow_casts) / warm_cpu),
+        "engine_all_casts_share_of_raw_cpu": round(
+            (frame.casts + frame.shadow_casts) / warm_cpu / raw_cpu, 3
+        ),
         "rays": frame.rays,
         "segment_casts": frame.casts,
         "shadow_casts": frame.shadow_casts,
@@ -290,8 +320,11 @@ def main():
     print(
         f"raw ray_cast {raw_cpu / 1e6:.2f} M/CPU s (engine's segments; camera 1's rays "
         f"{cam_raw_cpu / 1e6:.2f}) | engine {seg_rate_cpu / 1e6:.2f} M segment casts/CPU s "
-        f"({seg_rate_cpu / raw_cpu:.0%} of raw; wall-clock {seg_rate / raw:.0%}), march alone "
-        f"{frame.casts / march_time[1] / raw_cpu:.0%}, {frame.casts / frame.rays:.2f} casts/ray "
+        f"({seg_rate_cpu / raw_cpu:.0%} of raw; {seg_rate_cpu / raw_between:.0%} of the raw "
+        f"rate sampled between the tiles; wall-clock {seg_rate / raw:.0%}), march alone "
+        f"{frame.casts / march_time[1] / raw_cpu:.0%}, segment and shadow casts together "
+        f"{(frame.casts + frame.shadow_casts) / warm_cpu / raw_cpu:.0%}, "
+        f"{frame.casts / frame.rays:.2f} casts/ray "
         f"| {args.width}x{args.height} {len(frame.geometry)} tris: cold field {t2 - t0:.1f} s "
         f"(CPU {c2 - c0:.1f} s), cached field {t5 - t3:.1f} s (CPU {c5 - c3:.1f} s); tiles in "
         f"{processes} processes {pooled:.1f} s | cancel latency max "

@@ -61,32 +61,32 @@ class Occupancy:
         table = np.zeros(tuple(n + 1), dtype=np.int64)
         table[1:, 1:, 1:] = self.occupied.cumsum(0).cumsum(1).cumsum(2)
         self._table = table
+        self._flat = table.ravel()
+        self._strides = np.array(table.strides, dtype=np.int64) // table.itemsize
 
     def cell_of(self, points):
         """(..., 3) int64 cell of each point (..., 3), clamped to the grid."""
-        c = np.floor((np.asarray(points, dtype=np.float64) - self.lo) / self.size)
-        return np.clip(c, 0, self.shape - 1).astype(np.int64)
+        c = (np.asarray(points, dtype=np.float64) - self.lo) / self.size
+        # clamped first, truncation is the floor
+        return np.clip(c, 0, self.shape - 1, out=c).astype(np.int64)
 
     def any_between(self, p0, p1):
         """(S,) bool: whether any occupied cell lies in the block of cells spanned by
         ``p0`` and ``p1`` ((S, 3) float, world units): False means the straight segment
         between them crosses empty cells only."""
         c0, c1 = self.cell_of(p0), self.cell_of(p1)
-        a = np.minimum(c0, c1)
-        b = np.maximum(c0, c1) + 1
-        t = self._table
-        ax, ay, az = a.T
-        bx, by, bz = b.T
-        total = (
-            t[bx, by, bz]
-            - t[ax, by, bz]
-            - t[bx, ay, bz]
-            - t[bx, by, az]
-            + t[ax, ay, bz]
-            + t[ax, by, az]
-            + t[bx, ay, az]
-            - t[ax, ay, az]
-        )
+        # the block's corners as flat offsets into the summed-area table, axis by axis
+        stride = self._strides
+        a = np.minimum(c0, c1) * stride
+        b = np.maximum(c0, c1, out=c1)
+        b += 1
+        b *= stride
+        ax, ay, az = a[:, 0], a[:, 1], a[:, 2]
+        bx, by, bz = b[:, 0], b[:, 1], b[:, 2]
+        t = self._flat
+        byz, ayz, bay, aby = by + bz, ay + az, ay + bz, by + az
+        total = t[bx + byz] - t[ax + byz] - t[bx + bay] - t[bx + aby]
+        total += t[ax + bay] + t[ax + aby] + t[bx + ayz] - t[ax + ayz]
         return total > 0
 
     def clearance(self, points):

@@ -45,6 +45,8 @@ class Segments:
     before : (S,) float64: arc length (along the chords) of the ray before the segment.
     start_depth : (R,) float64, distance from camera 1's eye to each ray's vertex 0.
     membership : (R,) float32, membership where the ray leaves the bending stretch.
+    castable : (S,) bool or None: False marks a segment known to meet no geometry (the
+        renderer need not cast it); None: nothing is known.
     """
 
     origin: np.ndarray
@@ -55,6 +57,7 @@ class Segments:
     before: np.ndarray
     start_depth: np.ndarray
     membership: np.ndarray
+    castable: np.ndarray = None
 
     def __len__(self):
         return len(self.offsets) - 1
@@ -207,19 +210,21 @@ def simplify(vertices, last, eyes, angles, tol_px, bounds=None, clearance=None):
     return greedy_keep(seglen, turn, tol, last)
 
 
-def segments_from_points(points, ray, nrays, reach, start_depth, membership):
+def segments_from_points(points, ray, nrays, reach, start_depth, membership, castable=None):
     """Build ``Segments`` from kept vertices.
 
     points : (P, 3) float64, the kept vertices of all rays, each ray's in order.
     ray : (P,) int, sorted, the ray of each point (every ray has at least two points).
     reach : (R,) float, how far each ray's last segment runs on past its last vertex.
+    castable : (P,) bool or None, per point: whether the segment starting there may meet
+        geometry (see ``Segments.castable``).
     """
-    same = ray[1:] == ray[:-1]
-    origin = points[:-1][same]
-    vec = points[1:][same] - origin
-    length = np.sqrt((vec * vec).sum(-1))
+    j = np.flatnonzero(ray[1:] == ray[:-1])
+    origin = points[j]
+    vec = points[j + 1] - origin
+    length = np.sqrt(np.einsum("ij,ij->i", vec, vec))
     direction = vec / np.where(length > 0, length, 1.0)[:, None]
-    sray = ray[:-1][same]
+    sray = ray[j]
     counts = np.bincount(sray, minlength=nrays)
     offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
     cum = np.cumsum(length)
@@ -237,6 +242,7 @@ def segments_from_points(points, ray, nrays, reach, start_depth, membership):
         before,
         np.asarray(start_depth, dtype=np.float64),
         np.asarray(membership, dtype=np.float32),
+        None if castable is None else castable[j],
     )
 
 
@@ -304,9 +310,11 @@ def sample_offsets(ix, iy, samples, filter_width=1.5, seed=0):
 
 
 def _start_depth(cameras, sx, sy):
+    """(P,) float64: distance from camera 1's eye to its near plane through (sx, sy)."""
     c1 = cameras[0]
-    p1 = c1.near_points(c1.directions(sx, sy))
-    return np.linalg.norm(p1 - c1.eye, axis=-1)
+    d = c1.directions(sx, sy)
+    f = c1.forward
+    return c1.clip_start / (d[:, 0] * f[0] + d[:, 1] * f[1] + d[:, 2] * f[2])
 
 
 def _bilinear_corners(sx, sy, width, height):
@@ -336,15 +344,26 @@ class RaySampler:
     should_stop : callable, consulted while the lattice is simplified (raises ``Cancelled``).
     clearance : callable, a lower bound of the distance to any geometry at points
         (``polyline_measures``), or None.
+    occupied : callable (lo, hi) -> (S,) bool, False where the boxes between corners
+        ``lo`` and ``hi`` ((S, 3) float64) hold no geometry (``Occupancy.any_between``),
+        or None. With it (and ``bounds``), a traced field's segments that lie in empty
+        space for a whole lattice leaf come out with ``Segments.castable`` False.
     """
 
     def __init__(
-        self, field, tol_px=DEFAULT_TOLERANCE_PX, bounds=None, should_stop=None, clearance=None
+        self,
+        field,
+        tol_px=DEFAULT_TOLERANCE_PX,
+        bounds=None,
+        should_stop=None,
+        clearance=None,
+        occupied=None,
     ):
         self.field = field
         self.tol = float(tol_px)
         self.bounds = bounds
         self.clearance = clearance
+        self.occupied = occupied
         self.cameras = field.rig.cameras
         self.eyes, self.angles = camera_footprints(self.cameras)
         self.size = field.rig.size
@@ -387,12 +406,50 @@ class RaySampler:
         leaf_of_kept, self.kept_k = np.nonzero(self.leaf_keep)
         self.kept_n = np.bincount(leaf_of_kept, minlength=len(self.leaf_keep))
         self.kept_at = np.concatenate([[0], np.cumsum(self.kept_n)]).astype(np.int64)
+        # every kept vertex of every leaf in bilinear form: a ray at (fx, fy) in leaf n
+        # has vertex a + fx b + fy (c + fx d) at each of the leaf's kept slots
+        k = traced.vertices.shape[1]
+        flat = traced.vertices.reshape(-1, 3)
+        v00, v01, v10, v11 = (
+            flat[c[leaf_of_kept] * k + self.kept_k].astype(np.float64) for c in rows
+        )
+        self.slot_a, self.slot_b, self.slot_c = v00, v01 - v00, v10 - v00
+        self.slot_d = v11 - v10 - v01 + v00
+        self.slot_castable = self._slot_castable((v00, v01, v10, v11))
         w, h = self.size
         # the lattice leaf holding each unit square between four pixel centres
         cell_of = np.zeros((h - 1, w - 1), dtype=np.int32)
         for n, (a, b, c, d) in enumerate(fld.leaves.tolist()):
             cell_of[b : max(d, b + 1), a : max(c, a + 1)] = n
         self.cell_of = cell_of
+
+    def _slot_castable(self, corners):
+        """(slots,) bool, whether the segment from each kept slot to the next may meet
+        geometry for a ray anywhere in its leaf (None when nothing is known).
+
+        A ray inside a leaf blends the four corner rays with weights in [0, 1], so its
+        segment lies in the convex hull of the corners' segments, and so in their box:
+        where that box misses ``bounds`` or holds no occupied cell, no ray of the leaf
+        can hit on that segment. A leaf's last segment (extended by the reach) is always
+        castable."""
+        if self.occupied is None or self.bounds is None:
+            return None
+        nslot = len(self.kept_k)
+        castable = np.ones(nslot, dtype=bool)
+        last = self.kept_at[1:] - 1
+        seg = np.ones(nslot, dtype=bool)
+        seg[last] = False  # a slot that starts no segment, or the extended last one
+        seg[np.maximum(last - 1, 0)] = False
+        q = np.flatnonzero(seg)
+        if len(q):
+            ends = np.concatenate([[c[q] for c in corners], [c[q + 1] for c in corners]])
+            lo, hi = ends.min(axis=0), ends.max(axis=0)
+            blo, bhi = self.bounds
+            meets = (lo <= bhi).all(axis=1) & (hi >= blo).all(axis=1)
+            near = np.flatnonzero(meets)
+            meets[near] = self.occupied(lo[near], hi[near])
+            castable[q] = meets
+        return castable
 
     def segments(self, sx, sy, ix=None, iy=None):
         """``Segments`` of the rays through continuous positions (sx, sy) ((P,) float,
@@ -430,14 +487,25 @@ class RaySampler:
         exit_ = np.minimum.reduce([traced.counts[row] for row, _w in corners]).astype(np.int64)
         # the kept vertices of each ray, its leaf's schedule, ray after ray
         n = self.kept_n[leaf]
-        rid = np.repeat(np.arange(len(sx)), n)
         first = np.cumsum(n) - n
-        kid = self.kept_k[self.kept_at[leaf][rid] + np.arange(len(rid)) - first[rid]]
-        k = traced.vertices.shape[1]
-        flat = traced.vertices.reshape(-1, 3)
-        pts = np.zeros((len(rid), 3))
-        for row, wgt in corners:
-            pts += flat[row[rid] * k + kid] * wgt[rid, None]
+        rid = np.repeat(np.arange(len(sx)), n)
+        slot = np.repeat(self.kept_at[leaf] - first, n)
+        slot += np.arange(len(rid))
+        fxr, fyr = fx[rid, None], fy[rid, None]
+        pts = self.slot_d[slot]
+        pts *= fxr
+        pts += self.slot_c[slot]
+        pts *= fyr
+        pts += self.slot_b[slot] * fxr
+        pts += self.slot_a[slot]
+        castable = None
+        if self.slot_castable is not None:
+            castable = self.slot_castable[slot]
+            # a blend outside its leaf (half a pixel beyond the image's border centres)
+            # leaves the corners' hull: all its segments are cast
+            outside = (fx < 0) | (fx > 1) | (fy < 0) | (fy > 1)
+            if outside.any():
+                castable |= outside[rid]
         leave = np.clip(exit_ - 1, 0, traced.membership.shape[1] - 1)
         membership = sum(traced.membership[row, leave] * wgt for row, wgt in corners)
         return segments_from_points(
@@ -447,6 +515,7 @@ class RaySampler:
             np.full(len(sx), self.reach),
             _start_depth(self.cameras, sx, sy),
             membership,
+            castable,
         )
 
     def _generic_segments(self, sx, sy, ix=None, iy=None):

@@ -200,7 +200,8 @@ def sampler_for(ray_field, tol_px, bounds, should_stop=None, occupancy=None):
     if key not in cache:
         cache.clear()
         clearance = None if occupancy is None else occupancy.clearance
-        cache[key] = RaySampler(ray_field, key[0], bounds, should_stop, clearance)
+        occupied = None if occupancy is None else occupancy.any_between
+        cache[key] = RaySampler(ray_field, key[0], bounds, should_stop, clearance, occupied)
     return cache[key]
 
 

@@ -14,6 +14,7 @@ triangle's index (the distance is solved in numpy on that triangle), checking
 import contextlib
 import gc
 from dataclasses import dataclass
+from itertools import islice
 from operator import itemgetter
 
 import numpy as np
@@ -79,17 +80,17 @@ def clip_to_box(origin, direction, length, lo, hi):
     n = len(origin)
     if lo is None:
         return np.ones(n, bool), np.zeros(n), np.asarray(length, dtype=np.float64)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv = 1.0 / direction
+    # a zero direction component counts as a tiny positive one: no NaN from 0 * inf, and
+    # the slab then constrains nothing unless the origin lies outside it
+    inv = 1.0 / np.where(direction == 0.0, 1e-300, direction)
+    with np.errstate(over="ignore"):
         ta = (lo - origin) * inv
         tb = (hi - origin) * inv
     near = np.minimum(ta, tb)
     far = np.maximum(ta, tb, out=tb)
-    # a zero direction component inside the slab gives nan: no constraint on that axis
-    near[np.isnan(near)] = -np.inf
-    far[np.isnan(far)] = np.inf
-    t0 = np.maximum(near.max(axis=1), 0.0)
-    t1 = np.minimum(far.min(axis=1), length)
+    # column by column: a reduction over an axis of 3 costs several times more
+    t0 = np.maximum(np.maximum(near[:, 0], near[:, 1]), np.maximum(near[:, 2], 0.0))
+    t1 = np.minimum(np.minimum(far[:, 0], far[:, 1]), np.minimum(far[:, 2], length))
     return t0 <= t1, t0, t1
 
 
@@ -109,7 +110,8 @@ def march(tree, seg, should_stop=None, bounds=None, geometry=None, occupancy=Non
         keeps only the index of the triangle it hits and the distance is solved here
         (``plane_distance``), which is cheaper than keeping ``ray_cast``'s whole answer.
     occupancy : core.occupancy.Occupancy of the same triangles, or None: segments whose
-        stretch in the box crosses empty cells only are skipped.
+        stretch in the box crosses empty cells only are skipped. Segments that ``seg``
+        marks not castable (``Segments.castable``) are skipped before any test.
 
     Returns
     -------
@@ -125,14 +127,30 @@ def march(tree, seg, should_stop=None, bounds=None, geometry=None, occupancy=Non
     if tree is not None and nrays:
         with gc_paused():
             lo, hi = bounds if bounds is not None else (None, None)
-            inside, t0, t1 = clip_to_box(seg.origin, seg.direction, seg.length, lo, hi)
+            # the segments that can meet geometry, grouped by ray, in order along each
+            # ray, each as the stretch start + direction * [0, length] inside the box
+            if getattr(seg, "castable", None) is not None:
+                cand = np.flatnonzero(seg.castable)
+                inside, t0, t1 = clip_to_box(
+                    seg.origin[cand], seg.direction[cand], seg.length[cand], lo, hi
+                )
+                sel = cand[inside]
+                t0, t1 = t0[inside], t1[inside]
+            else:
+                inside, t0, t1 = clip_to_box(seg.origin, seg.direction, seg.length, lo, hi)
+                sel = np.flatnonzero(inside)
+                t0, t1 = t0[sel], t1[sel]
+            direction = seg.direction[sel]
+            start = seg.origin[sel] + direction * t0[:, None]
+            length = t1 - t0
             if occupancy is not None:
-                near = np.flatnonzero(inside)
-                o, d = seg.origin[near], seg.direction[near]
-                inside[near] = occupancy.any_between(o + d * t0[near, None], o + d * t1[near, None])
-            sel = np.flatnonzero(inside)  # grouped by ray, in order along each ray
+                keep = occupancy.any_between(start, start + direction * length[:, None])
+                if not keep.all():
+                    sel, direction, t0, start, length = (
+                        x[keep] for x in (sel, direction, t0, start, length)
+                    )
             count = np.bincount(seg.ray[sel], minlength=nrays)
-            first = np.concatenate([[0], np.cumsum(count)[:-1]])
+            first = np.cumsum(count) - count
             pending = np.flatnonzero(count)
             planes = None if geometry is None else triangle_planes(geometry)
             cast = tree.ray_cast
@@ -140,37 +158,30 @@ def march(tree, seg, should_stop=None, bounds=None, geometry=None, occupancy=Non
             # wave j casts the j-th segment (inside the box) of every ray not hit yet, so
             # only segments that are cast get converted to Python numbers
             while len(pending):
-                s = sel[first[pending] + wave]
-                start = seg.origin[s] + seg.direction[s] * t0[s, None]
-                direction = seg.direction[s]
-                length = t1[s] - t0[s]
+                k = first[pending] + wave if wave or len(pending) < len(sel) else None
+                w_start = start if k is None else start[k]
+                w_dir = direction if k is None else direction[k]
+                w_len = length if k is None else length[k]
+                args = flat_triples(w_start), flat_triples(w_dir), w_len.tolist()
                 if planes is not None:
-                    tri = cast_all(
-                        cast, start.tolist(), direction.tolist(), length.tolist(), should_stop
-                    )
+                    tri = cast_all(cast, *args, should_stop)
                 else:
-                    found = cast_all(
-                        cast,
-                        start.tolist(),
-                        direction.tolist(),
-                        length.tolist(),
-                        should_stop,
-                        INDEX_AND_DISTANCE,
-                    )
+                    found = cast_all(cast, *args, should_stop, INDEX_AND_DISTANCE)
                     tri = found[:, 0] if len(found) else np.zeros(0)
-                casts += len(s)
-                got = ~np.isnan(tri)
+                casts += len(pending)
+                got = tri == tri  # not NaN: a hit
                 if got.any():
                     rows = pending[got]
-                    hit_seg[rows] = s[got]
+                    gk = np.flatnonzero(got) if k is None else k[got]
+                    hit_seg[rows] = sel[gk]
                     hit_tri[rows] = tri[got].astype(np.int64)
                     if planes is not None:
                         dist = plane_distance(
-                            planes, hit_tri[rows], start[got], direction[got], length[got]
+                            planes, hit_tri[rows], start[gk], direction[gk], length[gk]
                         )
                     else:
                         dist = found[got, 1]
-                    hit_dist[rows] = dist + t0[s[got]]
+                    hit_dist[rows] = dist + t0[gk]
                 wave += 1
                 pending = pending[~got & (count[pending] > wave)]
     hit = hit_seg >= 0
@@ -224,9 +235,9 @@ def plane_distance(planes, triangles, origin, direction, length):
     runs along the plane (no single crossing), the nearest corner's distance along it.
     """
     n = planes["normal"][triangles]
-    den = (direction * n).sum(-1)
-    num = planes["offset"][triangles] - (origin * n).sum(-1)
-    crossing = np.abs(den) > 1e-9 * np.sqrt((n * n).sum(-1))
+    den = np.einsum("ij,ij->i", direction, n)
+    num = planes["offset"][triangles] - np.einsum("ij,ij->i", origin, n)
+    crossing = np.abs(den) > 1e-9 * np.sqrt(np.einsum("ij,ij->i", n, n))
     t = num / np.where(crossing, den, 1.0)
     along = ~crossing
     if along.any():
@@ -263,16 +274,37 @@ def cast_all(cast, origins, directions, lengths, should_stop, pick=None):
     of each answer (``HIT_INDEX``, the triangle index, by default), so the rest of
     ``ray_cast``'s answer is freed at once and its memory reused by the next cast.
 
+    Parameters
+    ----------
+    cast : callable (origin, direction, distance) -> ``ray_cast``'s answer.
+    origins, directions : iterables of n 3-sequences of floats, world units (directions
+        unit); lengths : iterable of n floats. ``flat_triples`` makes the 3-sequences
+        from an (n, 3) array for the cost of one flat ``tolist``.
+    should_stop : callable or None.
+
     Returns
     -------
     (n,) float64 triangle indices, NaN for a miss (``HIT_INDEX``); or (n, k) float64
     for a ``pick`` that takes k items.
     """
     pick = HIT_INDEX if pick is None else pick
+    answers = map(pick, map(cast, origins, directions, lengths))
     out = []
-    for a in range(0, max(len(origins), 1), CASTS_PER_CHECK):
+    while True:
         if should_stop is not None and should_stop():
             raise Cancelled()
-        b = a + CASTS_PER_CHECK
-        out += map(pick, map(cast, origins[a:b], directions[a:b], lengths[a:b]))
+        done = len(out)
+        out += islice(answers, CASTS_PER_CHECK)
+        if len(out) - done < CASTS_PER_CHECK:
+            break
     return np.array(out, dtype=np.float64)
+
+
+def flat_triples(points):
+    """An iterator of 3-tuples of floats over the rows of ``points`` ((n, 3) array).
+
+    One flat ``tolist`` makes the floats; ``zip`` over one iterator groups them in threes
+    and reuses its tuple when the consumer has let go of the previous one (as ``ray_cast``
+    does), so no per-row list is built: about half the cost of ``points.tolist()``."""
+    it = iter(np.ravel(points).tolist())
+    return zip(it, it, it)

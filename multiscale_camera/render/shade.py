@@ -7,10 +7,11 @@ P / (4 pi) W/sr, an area light P / pi cos(theta) W/sr, a sun gives E = strength.
 
 import math
 from dataclasses import dataclass
+from itertools import repeat
 
 import numpy as np
 
-from .raycast import cast_all, gc_paused, triangle_planes
+from .raycast import cast_all, flat_triples, gc_paused, triangle_planes
 
 # Shadow-ray origins are lifted off the surface by this fraction of the scene's size,
 # enough to clear float32 BVH precision, far below anything visible.
@@ -19,8 +20,18 @@ SHADOW_OFFSET = 1e-5
 
 def face_normals(geometry, triangles):
     """(T, 3) float64 unit geometric normals of the given triangle indices."""
-    n = triangle_planes(geometry)["normal"][triangles]
-    return n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-30)
+    planes = triangle_planes(geometry)
+    unit = planes.get("unit_normal")
+    if unit is None:
+        n = planes["normal"]
+        unit = n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-30)
+        planes["unit_normal"] = unit
+    return unit[triangles]
+
+
+def _dot(a, b):
+    """(P,) row-wise dot product of (P, 3) arrays (einsum: no (P, 3) temporary)."""
+    return np.einsum("ij,ij->i", a, b)
 
 
 def _spot_factor(light, to_light):
@@ -43,22 +54,28 @@ def irradiance(light, points, normals):
     to_light : (P, 3) float64, unit direction to the light.
     distance : (P,) float64, distance to the light (inf for a sun).
     """
+    factor, to_light, distance = _irradiance_factor(light, points, normals)
+    return factor[:, None] * light.colour, to_light, distance
+
+
+def _irradiance_factor(light, points, normals):
+    """``irradiance`` as (factor (P,), to_light, distance): e = factor * light.colour."""
     if light.kind == "SUN":
         to_light = np.broadcast_to(-light.direction, points.shape)
         distance = np.full(len(points), np.inf)
-        falloff = np.ones(len(points))
+        cos = normals @ -light.direction
+        return np.maximum(cos, 0.0, out=cos), to_light, distance
+    vec = light.position - points
+    distance = np.sqrt(_dot(vec, vec))
+    to_light = vec / np.maximum(distance, 1e-12)[:, None]
+    if light.kind == "AREA":
+        falloff = np.maximum(-(to_light @ light.direction), 0.0) / (math.pi * distance**2)
     else:
-        vec = light.position - points
-        distance = np.linalg.norm(vec, axis=-1)
-        to_light = vec / np.maximum(distance, 1e-12)[:, None]
-        if light.kind == "AREA":
-            falloff = np.maximum(-(to_light @ light.direction), 0.0) / (math.pi * distance**2)
-        else:
-            falloff = 1.0 / (4 * math.pi * distance**2)
-            if light.kind == "SPOT":
-                falloff = falloff * _spot_factor(light, to_light)
-    cos = np.maximum((normals * to_light).sum(-1), 0.0)
-    return (cos * falloff)[:, None] * light.colour, to_light, distance
+        falloff = 1.0 / (4 * math.pi * distance**2)
+        if light.kind == "SPOT":
+            falloff = falloff * _spot_factor(light, to_light)
+    cos = np.maximum(_dot(normals, to_light), 0.0)
+    return cos * falloff, to_light, distance
 
 
 def barycentric(geometry, triangles, points):
@@ -66,13 +83,15 @@ def barycentric(geometry, triangles, points):
     planes = triangle_planes(geometry)
     v0, v1 = planes["e1"][triangles], planes["e2"][triangles]
     v2 = points - planes["a"][triangles]
-    d00, d01, d11 = (v0 * v0).sum(-1), (v0 * v1).sum(-1), (v1 * v1).sum(-1)
-    d20, d21 = (v2 * v0).sum(-1), (v2 * v1).sum(-1)
+    d00, d01, d11 = _dot(v0, v0), _dot(v0, v1), _dot(v1, v1)
+    d20, d21 = _dot(v2, v0), _dot(v2, v1)
     den = d00 * d11 - d01 * d01
     den = np.where(np.abs(den) > 1e-300, den, 1.0)
-    v = (d11 * d20 - d01 * d21) / den
-    w = (d00 * d21 - d01 * d20) / den
-    return np.stack([1.0 - v - w, v, w], axis=1)
+    out = np.empty((len(triangles), 3))
+    out[:, 1] = (d11 * d20 - d01 * d21) / den
+    out[:, 2] = (d00 * d21 - d01 * d20) / den
+    out[:, 0] = 1.0 - out[:, 1] - out[:, 2]
+    return out
 
 
 def albedo_and_emission(geometry, triangles, weights):
@@ -99,8 +118,8 @@ def shading_normals(geometry, triangles, weights, geometric):
     (equal to the face normal on flat faces); ``geometric`` where none are stored."""
     if geometry.normals is None or len(geometry.normals) == 0:
         return geometric
-    n = (geometry.normals[triangles].astype(np.float64) * weights[:, :, None]).sum(1)
-    length = np.linalg.norm(n, axis=-1, keepdims=True)
+    n = np.einsum("pcj,pc->pj", geometry.normals[triangles], weights)
+    length = np.sqrt(_dot(n, n))[:, None]
     return np.where(length > 1e-12, n / np.maximum(length, 1e-30), geometric)
 
 
@@ -143,38 +162,49 @@ def shade(geometry, hits, lights, world, tree, scale, should_stop=None):
     weights = barycentric(geometry, tri, points)
     smooth = shading_normals(geometry, tri, weights, n)
     normal[idx] = smooth
-    back = ((n * hits.direction[idx]).sum(-1) > 0)[:, None]
-    facing = np.where(back, -n, n)
-    facing_smooth = np.where(back, -smooth, smooth)
+    back = _dot(n, hits.direction[idx]) > 0
+    sign = np.where(back, -1.0, 1.0)[:, None]
+    facing = n * sign
+    facing_smooth = smooth * sign
     albedo, emission = albedo_and_emission(geometry, tri, weights)
     light_sum = np.zeros((len(idx), 3))
-    lifted = points + facing * (SHADOW_OFFSET * scale)
+    lifted = None
     casts = 0
     for light in lights:
-        e, to_light, distance = irradiance(light, points, facing_smooth)
+        if not np.max(light.colour) > 0:
+            continue  # no light from it, nothing to cast
+        factor, to_light, distance = _irradiance_factor(light, points, facing_smooth)
         # light from behind the surface itself never reaches it
-        lit = (e.max(axis=-1) > 0) & ((facing * to_light).sum(-1) > 0)
+        lit = factor > 0
+        if light.kind == "SUN":
+            lit &= facing @ -light.direction > 0
+        else:
+            lit &= _dot(facing, to_light) > 0
         if light.shadow and tree is not None:
-            blocked = _occluded(tree, lifted, to_light, distance, lit, should_stop)
+            if lifted is None:
+                lifted = points + facing * (SHADOW_OFFSET * scale)
+            sun = -light.direction if light.kind == "SUN" else None
+            blocked = _occluded(tree, lifted, to_light, distance, lit, should_stop, sun)
             casts += int(lit.sum())
             lit &= ~blocked
-        light_sum += e * lit[:, None]
+        light_sum += np.outer(factor * lit, light.colour)
     colour[idx] = albedo * (world.ambient() + light_sum / math.pi) + emission
     return Shaded(colour, normal, casts)
 
 
-def _occluded(tree, origins, directions, distances, which, should_stop=None):
+def _occluded(tree, origins, directions, distances, which, should_stop=None, parallel=None):
     """(P,) bool: whether a straight shadow ray from each origin hits anything before
-    ``distances`` (only rays where ``which`` is True are cast)."""
+    ``distances`` (only rays where ``which`` is True are cast). ``parallel`` : (3,) the
+    one direction of every ray (a sun's), or None to take ``directions`` row by row."""
     blocked = np.zeros(len(origins), dtype=bool)
     sel = np.flatnonzero(which)
+    n = len(sel)
     with gc_paused():
-        tri = cast_all(
-            tree.ray_cast,
-            origins[sel].tolist(),
-            np.ascontiguousarray(directions[sel]).tolist(),
-            np.minimum(distances[sel], 1e30).tolist(),
-            should_stop,
-        )
-    blocked[sel] = ~np.isnan(tri)
+        if parallel is not None:
+            dirs = repeat(tuple(np.asarray(parallel, dtype=np.float64).tolist()), n)
+        else:
+            dirs = flat_triples(directions[sel])
+        far = np.minimum(distances[sel], 1e30)
+        tri = cast_all(tree.ray_cast, flat_triples(origins[sel]), dirs, far.tolist(), should_stop)
+    blocked[sel] = tri == tri  # not NaN: a hit
     return blocked

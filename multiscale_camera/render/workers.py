@@ -27,8 +27,8 @@ def worker_count(requested=0):
     """Processes to use: ``requested`` if positive, else 1 (in-process).
 
     Workers are opt-in (Render > Performance > Threads: Fixed, more than 1): on 2 cores
-    they gained little at 1920x1080 (7.6 s against 8.0 s in-process, within the noise of
-    a shared machine, bench/render.json),
+    they gained nothing at 1920x1080 (9.3 s against 9.2 s in-process at load average
+    4.5 on a shared machine, bench/render.json),
     and forking a process that runs other threads (Blender's own, a build's worker) is
     where a forked child can die or hang."""
     if requested and requested > 0:

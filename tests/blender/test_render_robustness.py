@@ -1,6 +1,8 @@
 """Scenes that are odd but legitimate render (or explain), never crash; Esc is heard often;
 culling against the scene's box drops only what cannot hit."""
 
+import dataclasses
+
 import bpy
 import numpy as np
 
@@ -265,3 +267,31 @@ def test_solved_distances_and_grid_culling_agree_with_ray_cast(empty_scene):
     np.testing.assert_array_equal(fast.triangle, plain.triangle)
     np.testing.assert_allclose(fast.distance[fast.hit], plain.distance[plain.hit], atol=1e-5)
     assert fast.casts < plain.casts
+
+
+def test_leaf_culling_finds_the_same_hits(empty_scene):
+    """Segments the sampler marks not castable (empty space for a whole lattice leaf)
+    hold no hit: marching without the marks finds the same hits (with as many casts or
+    more: the per-segment tests would skip most of them too); for
+    pixel centres and for jittered samples, those beyond the border centres included."""
+    scene = empty_scene
+    two_camera_scene(scene, 64, 48)
+    add_mesh("cube", (3, 3, 0.5), 5, (0.9, 0.9, 0.1))
+    frame = pipeline.prepare_frame(bpy.context.evaluated_depsgraph_get())
+    iy, ix = np.mgrid[0:48, 0:64]
+    ix, iy = ix.ravel(), iy.ravel()
+    rng = np.random.default_rng(3)
+    sx, sy = ix + rng.uniform(0, 1, ix.size), iy + rng.uniform(0, 1, iy.size)
+    for seg in (
+        frame.sampler.segments(ix + 0.5, iy + 0.5, ix, iy),
+        frame.sampler.segments(sx, sy),
+    ):
+        assert seg.castable is not None and 0 < seg.castable.mean() < 0.9
+        args = (None, frame.bounds, frame.geometry, frame.occupancy)
+        marked = raycast.march(frame.tree, seg, *args)
+        unmarked = raycast.march(frame.tree, dataclasses.replace(seg, castable=None), *args)
+        assert marked.hit.mean() > 0.5
+        np.testing.assert_array_equal(marked.hit, unmarked.hit)
+        np.testing.assert_array_equal(marked.triangle, unmarked.triangle)
+        np.testing.assert_array_equal(marked.distance, unmarked.distance)
+        assert marked.casts <= unmarked.casts
