@@ -227,7 +227,7 @@ def plane_rays(origin, direction, min_forward=MIN_FORWARD):
 
 
 def write_tables(folder, tables, matrix_world, frame, should_stop=None):
-    """Write the hand-off's tables (camera space, padded) as float EXRs.
+    """Write the hand-off's tables (camera space, padded) as uncompressed float EXRs.
 
     The two-plane table (RGBA: ``plane_rays``) holds every ray that heads forward and
     whose line meets no surface between the plane and the ray's origin (cast on
@@ -255,13 +255,13 @@ def write_tables(folder, tables, matrix_world, frame, should_stop=None):
         params["back"] = float(back[held].max())
     padded = pad_edges(table, PAD)
     path = os.path.join(folder, "rays.exr")
-    write_channels(path, {c: padded[..., i] for i, c in enumerate("RGBA")})
+    write_channels(path, {c: padded[..., i] for i, c in enumerate("RGBA")}, compress=False)
     params["ray_table"] = path
     if not held.all():
         for name, values in (("origin", origin), ("direction", direction)):
             padded = pad_edges(values, PAD)
             path = os.path.join(folder, f"{name}.exr")
-            write_channels(path, {c: padded[..., i] for i, c in enumerate("RGB")})
+            write_channels(path, {c: padded[..., i] for i, c in enumerate("RGB")}, compress=False)
             params[f"{name}_table"] = path
     return params
 
