@@ -44,6 +44,9 @@ UNUSABLE_LIMIT = 1e15
 # The two-plane table holds rays whose unit direction has at least this forward (z)
 # component in the render camera's space (slopes up to 100).
 MIN_FORWARD = 1e-2
+# A ray moved back to the plane by less than this fraction of the scene's size (float32
+# rounding of origins already on it) is not cast for what lies in between.
+MOVED = 1e-6
 
 OSL_SOURCE = """\
 // Multiscale Camera: per-pixel rays from tables, in camera space (+Z forward).
@@ -242,7 +245,7 @@ def write_tables(folder, tables, matrix_world, frame, should_stop=None):
     """
     origin, direction = camera_space(tables.origin, tables.direction, matrix_world)
     depth, table, back = plane_rays(origin, direction)
-    moved = back > 0.0
+    moved = back > MOVED * frame.scale
     blocked = blocked_before(
         frame, tables.origin[moved], tables.direction[moved], back[moved], should_stop
     )
