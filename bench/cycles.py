@@ -8,7 +8,9 @@ seconds over all threads, less sensitive to other load on the machine): a plain 
 camera 1, and the Multiscale engine with shading = 'CYCLES' (our march, the tables, the
 shader compile and Cycles through the custom camera), the ray field already built (it is
 cached across renders while the rig is unchanged), the two alternating; the first
-hand-off render, which also builds the field, is reported on its own. Writes bench/cycles.json.
+hand-off render, which also builds the field, is reported on its own. The load average
+(1 minute) at the start and the end says how busy the machine was. Writes
+bench/cycles.json.
 """
 
 import argparse
@@ -76,6 +78,7 @@ def main():
             o.data.calc_loop_triangles()
     triangles = sum(len(o.data.loop_triangles) for o in scene.objects if o.type == "MESH")
 
+    load_start = os.getloadavg()[0]
     timed_render("CYCLES")  # warm-up: kernels, caches
     scene.multiscale.shading = "CYCLES"
     pipeline.clear_fields()
@@ -117,6 +120,7 @@ def main():
         "cpu_ratio": round(min(handoff_cpu) / min(plain_cpu), 3),
         "ratio_first_render": round(first / min(plain), 3),
         "target_ratio": TARGET_RATIO,
+        "load_average": [round(load_start, 2), round(os.getloadavg()[0], 2)],
     }
     args.out.write_text(json.dumps(result, indent=2) + "\n")
     print(json.dumps(result, indent=2))

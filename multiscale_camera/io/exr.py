@@ -19,8 +19,8 @@ def _openexr():
     return OpenEXR
 
 
-def write_channels(path, channels, attributes=None):
-    """Write one single-part scanline EXR with 32-bit float channels (ZIP compression).
+def write_channels(path, channels, attributes=None, compress=True):
+    """Write one single-part scanline EXR with 32-bit float channels.
 
     Parameters
     ----------
@@ -28,6 +28,8 @@ def write_channels(path, channels, attributes=None):
     channels : dict str -> (H, W) array, any float or int dtype (stored as float32).
         Every array must have the same shape; row 0 is the top row of the image.
     attributes : dict str -> str, int or float, optional extra header attributes.
+    compress : bool, ZIP compression (True) or none (a file read once, soon after, is
+        written and read faster uncompressed).
 
     Raises
     ------
@@ -37,7 +39,8 @@ def write_channels(path, channels, attributes=None):
     shapes = {np.shape(a) for a in channels.values()}
     if len(shapes) != 1 or len(next(iter(shapes))) != 2:
         raise ExrError(f"EXR channels must share one (H, W) shape, got {sorted(shapes)}")
-    header = {"compression": openexr.ZIP_COMPRESSION, "type": openexr.scanlineimage}
+    compression = openexr.ZIP_COMPRESSION if compress else openexr.NO_COMPRESSION
+    header = {"compression": compression, "type": openexr.scanlineimage}
     header.update(attributes or {})
     data = {
         name: np.ascontiguousarray(np.asarray(a, dtype=np.float32)) for name, a in channels.items()

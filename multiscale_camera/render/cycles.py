@@ -2,11 +2,14 @@
 materials, lights, world and sample count.
 
 Our march finds, for every pixel, the straight segment that holds the first hit
-(``tables.ray_tables``). Its origin and direction, in the render camera's space, go to
-two float EXR tables in a temporary folder; an OSL custom camera reads them with
-bilinear texture lookups at the raster position Cycles asks for, so Cycles' own
-sub-pixel jitter gives interpolated rays (anti-aliasing) and Cycles renders into this
-engine's Render Result.
+(``tables.ray_tables``). Those rays, in the render camera's space, go to a float EXR
+table in a temporary folder in two-plane form (``plane_rays``: where each ray crosses
+one plane in front of the camera, and its slopes), so that an OSL custom camera gets a
+ray from one bilinear four-channel texture lookup at the raster position Cycles asks
+for; Cycles' own sub-pixel jitter then gives interpolated rays (anti-aliasing) and
+Cycles renders into this engine's Render Result. A ray the two-plane table cannot hold
+(one that does not head forward, or whose line meets a surface between the plane and
+its origin) is marked there, and the shader reads it from origin and direction tables.
 
 Nothing the user made is touched: the custom camera is set on the render depsgraph's
 evaluated copy of the scene camera (and Cycles' device and denoiser on the evaluated
@@ -24,7 +27,7 @@ import numpy as np
 
 from ..core.errors import Cancelled
 from ..io.exr import ExrError, write_channels
-from .tables import ray_tables
+from .tables import blocked_before, ray_tables
 
 # The custom camera (camera.type = 'CUSTOM') came with Blender 4.5.
 MIN_VERSION = (4, 5, 0)
@@ -33,12 +36,28 @@ MIN_VERSION = (4, 5, 0)
 PAD = 2
 # Depth written where a ray hits nothing, as in the other passes (pipeline.MISS_DEPTH).
 MISS_DEPTH = 1e10
+# A texel of the two-plane table whose ray it cannot hold carries UNUSABLE in all four
+# channels; the shader takes any interpolated channel beyond UNUSABLE_LIMIT as that mark
+# (a bilinear weight is 0 or, in float32 texel coordinates, far above 1e-20).
+UNUSABLE = 1e35
+UNUSABLE_LIMIT = 1e15
+# The two-plane table holds rays whose unit direction has at least this forward (z)
+# component in the render camera's space (slopes up to 100).
+MIN_FORWARD = 1e-2
+# A ray moved back to the plane by less than this fraction of the scene's size (float32
+# rounding of origins already on it) is not cast for what lies in between.
+MOVED = 1e-6
 
 OSL_SOURCE = """\
-// Multiscale Camera: per-pixel rays from tables (origin and direction, camera space).
+// Multiscale Camera: per-pixel rays from tables, in camera space (+Z forward).
+// ray_table: where each ray crosses the plane z = plane (R, G) and its slopes dx/dz,
+// dy/dz (B, A). Texels marked with huge values hold no ray: there the origin and
+// direction tables give it.
 shader multiscale_camera(
+    string ray_table = "",
     string origin_table = "",
     string direction_table = "",
+    float plane = 0.0,
     int width = 1,
     int height = 1,
     int pad = 0,
@@ -49,6 +68,14 @@ shader multiscale_camera(
     point raster = camera_shader_raster_position();  // (0, 0) is the bottom left
     float s = (raster[0] * width + pad) / (width + 2 * pad);
     float t = 1.0 - (raster[1] * height + pad) / (height + 2 * pad);  // t = 0 is the top row
+    float slope_y = 0.0;
+    color r = texture(ray_table, s, t, "interp", "linear", "wrap", "clamp", "width", 0.0,
+                      "alpha", slope_y);
+    if (max(max(abs(r[0]), abs(r[1])), max(abs(r[2]), abs(slope_y))) < UNUSABLE_LIMIT) {
+        position = point(r[0], r[1], plane);
+        direction = normalize(vector(r[2], slope_y, 1.0));
+        return;
+    }
     color o = texture(origin_table, s, t, "interp", "linear", "wrap", "clamp", "width", 0.0);
     color d = texture(direction_table, s, t, "interp", "linear", "wrap", "clamp", "width", 0.0);
     vector dir = vector(d[0], d[1], d[2]);
@@ -59,7 +86,7 @@ shader multiscale_camera(
     position = point(o[0], o[1], o[2]);
     direction = normalize(dir);
 }
-"""
+""".replace("UNUSABLE_LIMIT", repr(UNUSABLE_LIMIT))
 
 
 # Stage timings of the last hand-off (seconds): "march", "tables", "cycles", "passes".
@@ -167,21 +194,79 @@ def pad_edges(a, pad):
     return out
 
 
-def write_tables(folder, tables, matrix_world):
-    """Write the origin and direction tables (camera space, padded) as RGB EXRs.
+def plane_rays(origin, direction, min_forward=MIN_FORWARD):
+    """Rays in two-plane form: where each crosses the plane z = depth, and its slopes.
+
+    A ray is then four numbers that interpolate bilinearly between pixels, and exactly
+    so across a pinhole camera's pixels (both are affine in the pixel position there).
+
+    Parameters
+    ----------
+    origin, direction : (..., 3) float64, camera space (+Z forward), world units;
+        direction unit (zero for a pixel without a ray).
+    min_forward : float, the least z component of a direction the table holds.
 
     Returns
     -------
-    (origin_path, direction_path) : str.
+    depth : float, world units: the plane's z, the nearest origin of the rays it holds.
+    table : (..., 4) float64: x and y (world units) where the ray crosses z = depth, and
+        its slopes dx/dz, dy/dz; ``UNUSABLE`` in all four for a ray heading less than
+        ``min_forward`` forward.
+    back : (...) float64 >= 0, world units: how far before its origin each ray crosses
+        the plane, along the ray (0 where the table does not hold it).
+    """
+    origin = np.asarray(origin, dtype=np.float64)
+    direction = np.asarray(direction, dtype=np.float64)
+    dz = direction[..., 2]
+    held = dz >= min_forward
+    depth = float(origin[..., 2][held].min()) if held.any() else 0.0
+    dz = np.where(held, dz, 1.0)
+    back = np.where(held, (origin[..., 2] - depth) / dz, 0.0)
+    table = np.empty((*origin.shape[:-1], 4))
+    table[..., :2] = origin[..., :2] - back[..., None] * direction[..., :2]
+    table[..., 2:] = direction[..., :2] / dz[..., None]
+    table[~held] = UNUSABLE
+    return depth, table, back
+
+
+def write_tables(folder, tables, matrix_world, frame, should_stop=None):
+    """Write the hand-off's tables (camera space, padded) as uncompressed float EXRs.
+
+    The two-plane table (RGBA: ``plane_rays``) holds every ray that heads forward and
+    whose line meets no surface between the plane and the ray's origin (cast on
+    ``frame``'s tree); the others are marked there, and only then are the origin and
+    direction tables (RGB) written too.
+
+    Returns
+    -------
+    dict of the shader's parameters: "ray_table", "origin_table", "direction_table"
+    (str paths, "" when not written), "plane" (float, world units); and "back" (float,
+    world units), the longest stretch a ray was moved back to the plane.
     """
     origin, direction = camera_space(tables.origin, tables.direction, matrix_world)
-    paths = []
-    for name, table in (("origin", origin), ("direction", direction)):
-        padded = pad_edges(table, PAD)
-        path = os.path.join(folder, f"{name}.exr")
-        write_channels(path, {c: padded[..., i] for i, c in enumerate("RGB")})
-        paths.append(path)
-    return tuple(paths)
+    depth, table, back = plane_rays(origin, direction)
+    moved = back > MOVED * frame.scale
+    blocked = blocked_before(
+        frame, tables.origin[moved], tables.direction[moved], back[moved], should_stop
+    )
+    held = np.ones(back.shape, dtype=bool)
+    held[moved] = ~blocked
+    held &= table[..., 0] != UNUSABLE
+    table[~held] = UNUSABLE
+    params = {"plane": depth, "origin_table": "", "direction_table": "", "back": 0.0}
+    if held.any():
+        params["back"] = float(back[held].max())
+    padded = pad_edges(table, PAD)
+    path = os.path.join(folder, "rays.exr")
+    write_channels(path, {c: padded[..., i] for i, c in enumerate("RGBA")}, compress=False)
+    params["ray_table"] = path
+    if not held.all():
+        for name, values in (("origin", origin), ("direction", direction)):
+            padded = pad_edges(values, PAD)
+            path = os.path.join(folder, f"{name}.exr")
+            write_channels(path, {c: padded[..., i] for i, c in enumerate("RGB")}, compress=False)
+            params[f"{name}_table"] = path
+    return params
 
 
 def index_pass_name(version=None):
@@ -244,22 +329,19 @@ def render(engine, depsgraph, frame):
         lap("march")
         if engine.test_break():
             return True
-        origin_path, direction_path = write_tables(folder, tables, camera.matrix_world)
+        try:
+            params = write_tables(folder, tables, camera.matrix_world, frame, engine.test_break)
+        except Cancelled:
+            return True
         bytecode = compile_shader(folder)
         finite = np.where(tables.hit, tables.distance, 0.0)
-        reach = float(finite.max(initial=0.0)) + float(frame.field.rig.cameras[-1].clip_end)
-        _set_custom_camera(
-            camera.data,
-            bytecode,
-            {
-                "origin_table": origin_path,
-                "direction_table": direction_path,
-                "width": width,
-                "height": height,
-                "pad": PAD,
-            },
-            max(reach, frame.scale) * 4.0,
+        reach = (
+            float(finite.max(initial=0.0))
+            + params.pop("back")
+            + float(frame.field.rig.cameras[-1].clip_end)
         )
+        params.update(width=width, height=height, pad=PAD)
+        _set_custom_camera(camera.data, bytecode, params, max(reach, frame.scale) * 4.0)
         settings = depsgraph.scene_eval.cycles
         settings.device = "CPU"  # OSL custom cameras run on the CPU (and OptiX) only
         settings.use_denoising = False

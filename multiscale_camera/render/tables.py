@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..core.bundle import RayBundle
+from ..core.sampling import Segments
 from .raycast import bundle_segments, march
 
 # A handed-on ray starts at least this fraction of the scene's size before its hit: far
@@ -106,6 +107,41 @@ def first_hit_segments(rays, hits, margin=0.0):
     origin[short] -= direction[short] * (margin - distance[short])[:, None]
     distance[short] = margin
     return origin, direction, distance
+
+
+def blocked_before(frame, origin, direction, length, should_stop=None):
+    """Whether a surface lies on the stretch of each ray's line just before its origin.
+
+    Parameters
+    ----------
+    frame : pipeline.Frame (its tree, bounds, triangles and occupancy grid).
+    origin, direction : (N, 3) float64, world units; direction unit.
+    length : (N,) float64 >= 0, world units: the stretch runs from ``origin - length *
+        direction`` to ``origin``.
+    should_stop : callable -> bool (raises ``Cancelled``).
+
+    Returns
+    -------
+    (N,) bool, True where the stretch meets a triangle.
+    """
+    n = len(length)
+    if n == 0:
+        return np.zeros(0, dtype=bool)
+    length = np.asarray(length, dtype=np.float64)
+    start = origin - direction * length[:, None]
+    rays = Segments(
+        origin=start,
+        direction=direction,
+        length=length,
+        ray=np.arange(n, dtype=np.int64),
+        offsets=np.arange(n + 1, dtype=np.int64),
+        before=np.zeros(n),
+        start_depth=np.zeros(n),
+        membership=np.zeros(n, dtype=np.float32),
+    )
+    hits = march(frame.tree, rays, should_stop, frame.bounds, frame.geometry, frame.occupancy)
+    frame.casts += hits.casts
+    return hits.hit
 
 
 def ray_tables(frame, should_stop=None, progress=None, keep_polylines=False):

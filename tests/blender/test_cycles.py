@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from scipy.ndimage import binary_erosion
 
+from multiscale_camera.io.exr import read_channels
 from multiscale_camera.render import cycles
 from tests.exr import read_passes
 
@@ -151,6 +152,48 @@ def test_three_cameras_object_index_agrees_in_preserved_regions(empty_scene, tmp
         assert gap <= 1.1 * noise, f"{cam.name}: {gap} > 1.1 x {noise}"
     assert set(np.unique(index)) >= {0.0, 1.0, 2.0, 3.0, 4.0, 5.0}
     assert handoff["Depth"].min() > 0 and handoff["Membership"].max() > 2.5
+
+
+def test_rays_blocked_before_the_plane_come_from_the_origin_and_direction_tables(
+    empty_scene, tmp_path, monkeypatch
+):
+    """A small box around camera 2's eye, well inside its clip distance (camera 2 never
+    sees it), lies on every camera 2 ray's line between the two-plane table's plane and
+    the ray's origin: those rays are marked in the two-plane table and read from the
+    origin and direction tables. Camera 2's region shows what our march found there,
+    which is what a plain render of camera 2 shows wherever the bent rays do not
+    themselves pass through the box."""
+    scene = empty_scene
+    width, height = 160, 90
+    cams, masks = three_camera_scene(scene, width, height)
+    add_mesh("cube", tuple(cams[1].location), 9, (1.0, 1.0, 1.0), size=0.4)
+    scene.multiscale.shading = "CYCLES"
+    cycles_settings(scene, samples=16)
+    written = []
+    write_tables = cycles.write_tables
+
+    def recording(folder, tables, *args, **kw):
+        params = write_tables(folder, tables, *args, **kw)
+        channels, _ = read_channels(params["ray_table"])
+        inner = (slice(cycles.PAD, -cycles.PAD),) * 2
+        marked = np.abs(np.stack([channels[c][inner] for c in "RGBA"])) > cycles.UNUSABLE_LIMIT
+        written.append((dict(params), marked.all(axis=0), tables.object_index))
+        return params
+
+    monkeypatch.setattr(cycles, "write_tables", recording)
+    handoff = render(scene, tmp_path / "handoff.exr", "MULTISCALE", camera=cams[0])
+    params, marked, marched = written[0]
+    assert params["origin_table"] and params["direction_table"]
+    eroded = binary_erosion(masks[1], iterations=2)
+    print(f"marked: {marked.mean():.3f} of all pixels, {marked[eroded].mean():.3f} of C2's")
+    assert marked[eroded].mean() > 0.9 and marked[masks[0]].mean() < 0.1
+    index = handoff["IndexOB"][..., 0]
+    assert (index == marched)[eroded].mean() >= 0.99
+    plain = render(scene, tmp_path / "plain.exr", "CYCLES", camera=cams[1])
+    clear = eroded & (marched != 9)
+    agree = (index == plain["IndexOB"][..., 0])[clear]
+    print(f"C2: IndexOB agreement {agree.mean():.4f} of {clear.sum()} px")
+    assert clear.sum() > 0.9 * eroded.sum() and agree.mean() >= 0.99
 
 
 def snapshot(scene):

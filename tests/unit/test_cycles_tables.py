@@ -1,8 +1,17 @@
-"""The hand-off's table helpers in plain numpy: camera space and edge padding."""
+"""The hand-off's table helpers in plain numpy: camera space, the two-plane table and edge
+padding."""
 
 import numpy as np
 
-from multiscale_camera.render.cycles import OSL_SOURCE, PAD, camera_space, pad_edges
+from multiscale_camera.render.cycles import (
+    OSL_SOURCE,
+    PAD,
+    UNUSABLE,
+    UNUSABLE_LIMIT,
+    camera_space,
+    pad_edges,
+    plane_rays,
+)
 
 from .rigs import look_at
 
@@ -48,3 +57,56 @@ def test_shader_maps_pixel_centres_to_texel_centres():
     t = 1.0 - (raster_y * h + PAD) / (h + 2 * PAD)
     np.testing.assert_allclose(s * (w + 2 * PAD) - 0.5, x + PAD)
     np.testing.assert_allclose(t * (h + 2 * PAD) - 0.5, y_top + PAD)
+
+
+def test_plane_rays_hold_each_ray_on_its_line():
+    """Each held ray crosses z = depth at the stored point, heads along the stored slopes,
+    and reaches its origin ``back`` further on; depth is the nearest held origin."""
+    rng = np.random.default_rng(3)
+    direction = rng.normal(size=(6, 5, 3))
+    direction[..., 2] = np.abs(direction[..., 2]) + 0.2
+    direction /= np.linalg.norm(direction, axis=-1, keepdims=True)
+    origin = rng.uniform(-2.0, 2.0, size=(6, 5, 3)) + [0.0, 0.0, 5.0]
+    depth, table, back = plane_rays(origin, direction)
+    assert depth == origin[..., 2].min()
+    assert (back >= 0).all() and back.min() == 0.0
+    start = np.concatenate([table[..., :2], np.full((6, 5, 1), depth)], axis=-1)
+    np.testing.assert_allclose(start + back[..., None] * direction, origin, atol=1e-12)
+    slopes = np.concatenate([table[..., 2:], np.ones((6, 5, 1))], axis=-1)
+    unit = slopes / np.linalg.norm(slopes, axis=-1, keepdims=True)
+    np.testing.assert_allclose(unit, direction, atol=1e-12)
+
+
+def test_plane_rays_of_a_pinhole_are_affine_in_the_pixel():
+    """A pinhole's rays from its near plane: both the crossing point and the slopes are
+    affine in the pixel position, so bilinear lookups between texels give the pinhole's
+    own ray at any sub-pixel position."""
+    yy, xx = np.mgrid[0:7, 0:9].astype(np.float64)
+    lx, ly = 0.1 * xx - 0.4, 0.3 - 0.08 * yy
+    ray = np.stack([lx, ly, np.ones_like(lx)], axis=-1)
+    direction = ray / np.linalg.norm(ray, axis=-1, keepdims=True)
+    origin = ray * 2.5  # on the near plane z = 2.5
+    depth, table, back = plane_rays(origin, direction)
+    assert depth == 2.5
+    np.testing.assert_allclose(back, 0.0, atol=1e-12)
+    expected = np.stack([2.5 * lx, 2.5 * ly, lx, ly], axis=-1)
+    np.testing.assert_allclose(table, expected, atol=1e-12)
+
+
+def test_plane_rays_mark_rays_that_do_not_head_forward():
+    origin = np.array([[0.0, 0.0, 1.0], [0.5, 0.0, 3.0], [0.0, 0.0, 0.5], [0.0, 0.0, 0.2]])
+    direction = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 0.0, 0.0]])
+    depth, table, back = plane_rays(origin, direction)
+    assert depth == 1.0  # the rays it does not hold do not move the plane
+    np.testing.assert_array_equal(table[0], [0.0, 0.0, 0.0, 0.0])
+    assert (table[1:] == UNUSABLE).all() and (back[1:] == 0).all()
+    # padding extrapolated from a marked texel is marked too (the shader reads the
+    # origin and direction tables there), never an ordinary-looking ray
+    padded = pad_edges(table[None, :2], PAD)  # one row: a held texel, a marked one
+    marked = (np.abs(padded) > UNUSABLE_LIMIT).all(axis=-1)
+    expected = np.ones(padded.shape[:2], dtype=bool)
+    expected[:, PAD] = False  # the held texel's column (one row is repeated up and down)
+    np.testing.assert_array_equal(marked, expected)
+    np.testing.assert_array_equal(padded[:, PAD], np.zeros((1 + 2 * PAD, 4)))
+    assert np.isfinite(padded).all()
+    assert f"< {UNUSABLE_LIMIT!r})" in OSL_SOURCE and UNUSABLE < 1e38  # float32 holds it
