@@ -74,7 +74,7 @@ class Family:
         for col, scale in ((r[:, 0], ax), (r[:, 1], ay)):
             da = col * scale  # d a / d u (or d v)
             dp = cam.clip_start * (da - a * (da @ f))  # d_j d/du of a / (a . f)
-            dd = (da - d * (d @ da)[:, None]) * inv_norm  # d/du of a / |a|
+            dd = (da - d * dot3(d, da)[:, None]) * inv_norm  # d/du of a / |a|
             out += [dp, dd]
         return p, d, out
 

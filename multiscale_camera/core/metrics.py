@@ -15,6 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .family import dot3
+
 # Erosion of the masks, pixels, before measuring preserved rays (DESIGN.md).
 ERODE_PX = 2
 # At most this many pixels per camera are measured; a larger mask is subsampled evenly.
@@ -75,7 +77,7 @@ def plane_crossing(vertices, cam):
     direction : (R, 3) float64, unit.
     """
     v = vertices.astype(np.float64)
-    s = (v - cam.eye) @ cam.forward - cam.clip_start
+    s = dot3(v - cam.eye, cam.forward) - cam.clip_start
     ahead = s >= 0
     k = np.argmax(ahead, axis=1)
     crosses = ahead.any(axis=1) & (k > 0)
@@ -86,9 +88,9 @@ def plane_crossing(vertices, cam):
     b = np.where((k1 > k)[:, None], v[r, k1], v[r, k])
     d = b - a
     d /= np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-30)
-    sa = (a - cam.eye) @ cam.forward - cam.clip_start
+    sa = dot3(a - cam.eye, cam.forward) - cam.clip_start
     with np.errstate(invalid="ignore", divide="ignore"):
-        point = a - d * (sa / (d @ cam.forward))[:, None]
+        point = a - d * (sa / dot3(d, cam.forward))[:, None]
     point[~crosses] = np.nan
     return point, d
 
@@ -231,7 +233,7 @@ def quad_folds(vertices, active):
 def bending_active(vertices, last_cam, counts=None):
     """(…, K) bool: vertices before the last camera's near plane (and, with ``counts``,
     among the traced ones): the stretch where folds are counted."""
-    s = (vertices.astype(np.float64) - last_cam.eye) @ last_cam.forward - last_cam.clip_start
+    s = dot3(vertices.astype(np.float64) - last_cam.eye, last_cam.forward) - last_cam.clip_start
     before = np.logical_and.accumulate(s < 0, axis=-1)
     if counts is not None:
         before &= np.arange(vertices.shape[-2]) < counts[..., None]

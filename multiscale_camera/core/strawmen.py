@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import Cancelled, SolverDidNotConverge
-from .family import Family
+from .family import Family, dot3
 from .field import FieldTracer, Traced, fill_membership
 from .grid import FieldSampler
 from .guides import DEFAULT_SEGMENTS, build_guides, curved_rays
@@ -187,11 +187,11 @@ def unit_tangents(family, points):
     (P, 3) float64, unit.
     """
     first, cam = family.cameras[0], family.cameras[-1]
-    straight = (points - cam.eye) @ cam.forward >= cam.clip_start
+    straight = dot3(points - cam.eye, cam.forward) >= cam.clip_start
     eye = np.where(straight[:, None], cam.eye, first.eye)
     out = points - eye
     out /= np.linalg.norm(out, axis=-1, keepdims=True)
-    bend = np.flatnonzero(~straight & ((points - first.eye) @ first.forward >= first.clip_start))
+    bend = np.flatnonzero(~straight & (dot3(points - first.eye, first.forward) >= first.clip_start))
     if len(bend):
         pts = points[bend]
         u, v, tau = family.start(pts)

@@ -11,6 +11,7 @@ from itertools import repeat
 
 import numpy as np
 
+from ..core.family import dot3
 from .raycast import cast_all, flat_triples, gc_paused, triangle_planes
 
 # Shadow-ray origins are lifted off the surface by this fraction of the scene's size,
@@ -35,7 +36,7 @@ def _dot(a, b):
 
 
 def _spot_factor(light, to_light):
-    cos = -(to_light @ light.direction)
+    cos = -dot3(to_light, light.direction)
     inner = light.spot_cos + (1.0 - light.spot_cos) * light.spot_blend
     t = np.clip((cos - light.spot_cos) / max(inner - light.spot_cos, 1e-9), 0.0, 1.0)
     return t * t * (3 - 2 * t)
@@ -63,13 +64,13 @@ def _irradiance_factor(light, points, normals):
     if light.kind == "SUN":
         to_light = np.broadcast_to(-light.direction, points.shape)
         distance = np.full(len(points), np.inf)
-        cos = normals @ -light.direction
+        cos = -dot3(normals, light.direction)
         return np.maximum(cos, 0.0, out=cos), to_light, distance
     vec = light.position - points
     distance = np.sqrt(_dot(vec, vec))
     to_light = vec / np.maximum(distance, 1e-12)[:, None]
     if light.kind == "AREA":
-        falloff = np.maximum(-(to_light @ light.direction), 0.0) / (math.pi * distance**2)
+        falloff = np.maximum(-dot3(to_light, light.direction), 0.0) / (math.pi * distance**2)
     else:
         falloff = 1.0 / (4 * math.pi * distance**2)
         if light.kind == "SPOT":
@@ -177,7 +178,7 @@ def shade(geometry, hits, lights, world, tree, scale, should_stop=None):
         # light from behind the surface itself never reaches it
         lit = factor > 0
         if light.kind == "SUN":
-            lit &= facing @ -light.direction > 0
+            lit &= dot3(facing, light.direction) < 0
         else:
             lit &= _dot(facing, to_light) > 0
         if light.shadow and tree is not None:
