@@ -1,0 +1,121 @@
+"""The hot loops keep to the core they run on: no BLAS call whose threads spin on the
+other cores after it (numpy's OpenBLAS threads took the second core from the render's
+tile loop: a cached 1920x1080 render took 10.6 s and 19.9 CPU seconds, 6.1 s and 6.3
+without them)."""
+
+import os
+import threading
+import time
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from multiscale_camera.core.family import Family
+from multiscale_camera.core.metrics import bending_active
+from multiscale_camera.core.solvers import _dot
+from multiscale_camera.render.shade import _irradiance_factor
+
+from .rigs import three_camera_rig
+
+pytestmark = pytest.mark.skipif(
+    not os.path.isdir("/proc/self/task") or (os.cpu_count() or 1) < 2,
+    reason="per-thread CPU times need Linux's /proc, and spinning threads a second core",
+)
+
+
+def _other_threads_seconds():
+    """CPU seconds used so far by each thread of this process but the calling one."""
+    me = threading.get_native_id()
+    tick = os.sysconf("SC_CLK_TCK")
+    out = {}
+    for tid in os.listdir("/proc/self/task"):
+        if int(tid) == me:
+            continue
+        try:
+            with open(f"/proc/self/task/{tid}/stat") as f:
+                fields = f.read().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        out[tid] = (int(fields[11]) + int(fields[12])) / tick
+    return out
+
+
+def _settle(limit=3.0):
+    """Wait until the other threads are idle (BLAS threads spin a while after a call)."""
+    end = time.perf_counter() + limit
+    last = _other_threads_seconds()
+    while time.perf_counter() < end:
+        time.sleep(0.2)
+        now = _other_threads_seconds()
+        if now == last:
+            return
+        last = now
+
+
+def _others_busy(fn, seconds=0.6):
+    """CPU seconds the process's other threads used while ``fn`` ran in a loop."""
+    _settle()
+    before = _other_threads_seconds()
+    start = time.perf_counter()
+    while time.perf_counter() - start < seconds:
+        fn()
+    after = _other_threads_seconds()
+    return sum(t - before.get(tid, 0.0) for tid, t in after.items())
+
+
+@pytest.fixture(scope="module")
+def detectable():
+    """Skip unless a (P, 3) @ (3,) product here does set other threads spinning (a BLAS
+    built single-threaded, or limited by OPENBLAS_NUM_THREADS, has nothing to show)."""
+    a, v = np.random.default_rng(0).normal(size=(200_000, 3)), np.ones(3)
+    busy = _others_busy(lambda: a @ v)
+    if busy < 0.1:
+        pytest.skip(f"BLAS products use no other thread here ({busy:.2f} CPU s)")
+    return busy
+
+
+def test_shading_lights_keeps_to_one_core(detectable):
+    rng = np.random.default_rng(1)
+    points = rng.normal(size=(50_000, 3))
+    normals = rng.normal(size=(50_000, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    down = np.array([0.0, 0.0, -1.0])
+    lights = [
+        SimpleNamespace(kind="SUN", direction=down, position=np.zeros(3)),
+        SimpleNamespace(kind="AREA", direction=down, position=np.array([0.0, 0.0, 5.0])),
+        SimpleNamespace(
+            kind="SPOT",
+            direction=down,
+            position=np.array([0, 0, 5.0]),
+            spot_cos=0.5,
+            spot_blend=0.2,
+        ),
+    ]
+
+    def shade_all():
+        for light in lights:
+            _irradiance_factor(light, points, normals)
+
+    assert _others_busy(shade_all) < 0.1 * detectable
+
+
+def test_family_evaluation_keeps_to_one_core(detectable):
+    cams, _masks = three_camera_rig(96, 54)
+    fam = Family(cams, 2)
+    rng = np.random.default_rng(2)
+    u, v, tau = rng.uniform(0, 96, 50_000), rng.uniform(0, 54, 50_000), rng.uniform(0, 2.5, 50_000)
+    assert _others_busy(lambda: fam.evaluate(u, v, tau, jacobian=True)) < 0.1 * detectable
+
+
+def test_fold_stretch_and_solver_products_keep_to_one_core(detectable):
+    cams, _masks = three_camera_rig(96, 54)
+    rng = np.random.default_rng(3)
+    vertices = rng.normal(size=(200, 300, 3))
+    a, b = rng.normal(size=1_000_000), rng.normal(size=1_000_000)
+
+    def both():
+        bending_active(vertices, cams[-1])
+        _dot(a, b)
+
+    assert _others_busy(both) < 0.1 * detectable
