@@ -54,9 +54,9 @@ class Settings:
         cameras (``nested``); False: one uniform grid, as the paper; None (default):
         nested only where one uniform grid within the budget cannot have the cells the
         accuracy target asks for (scale ratios beyond about 10x).
-    processes : int, worker processes that share the trace (0: one per core; 1: in
-        Blender's process). Not part of the field's identity: every count traces the
-        same rays (to about float32 rounding).
+    processes : int, worker processes that share the trace and the nested levels'
+        fills (0: one per core; 1: in Blender's process). Not part of the field's
+        identity: every count traces the same rays (to about float32 rounding).
     """
 
     accuracy_px: float = 0.5

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import parallel
 from .grid import FieldSampler, Grid
 from .guides import DEFAULT_SEGMENTS, build_guides, curved_rays
 from .solvers import solve_membership
@@ -382,7 +383,6 @@ def solve_levels(rig, grids, families, fill_membership, should_stop=None, proces
     -------
     LevelSolve
     """
-    from . import parallel
     from .errors import Cancelled
 
     shared = None
