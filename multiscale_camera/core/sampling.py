@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import Cancelled
+from .family import dot3
 
 # Turning below this (radians) is float32 noise of the stored vertices, not a bend.
 NOISE = 1e-4
@@ -222,7 +223,7 @@ def segments_from_points(points, ray, nrays, reach, start_depth, membership, cas
     j = np.flatnonzero(ray[1:] == ray[:-1])
     origin = points[j]
     vec = points[j + 1] - origin
-    length = np.sqrt(np.einsum("ij,ij->i", vec, vec))
+    length = np.sqrt(dot3(vec, vec))
     direction = vec / np.where(length > 0, length, 1.0)[:, None]
     sray = ray[j]
     counts = np.bincount(sray, minlength=nrays)
@@ -312,9 +313,7 @@ def sample_offsets(ix, iy, samples, filter_width=1.5, seed=0):
 def _start_depth(cameras, sx, sy):
     """(P,) float64: distance from camera 1's eye to its near plane through (sx, sy)."""
     c1 = cameras[0]
-    d = c1.directions(sx, sy)
-    f = c1.forward
-    return c1.clip_start / (d[:, 0] * f[0] + d[:, 1] * f[1] + d[:, 2] * f[2])
+    return c1.clip_start / dot3(c1.directions(sx, sy), c1.forward)
 
 
 def _bilinear_corners(sx, sy, width, height):

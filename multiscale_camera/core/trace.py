@@ -16,6 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .family import dot3
+
 # Rays traced together: bounds the memory of the state, the stages and the vertex
 # buffer (about 65536 * K * 12 bytes for K recorded vertices).
 CHUNK_RAYS = 65536
@@ -258,7 +260,7 @@ class _Tracer:
         """Field at x: unit directions (P, 3) float64 and speeds (P,) float64."""
         v = self.velocity(x, rays) if self.with_rays else self.velocity(x)
         v = np.asarray(v, dtype=np.float64)
-        speed = np.sqrt(np.einsum("ij,ij->i", v, v))
+        speed = np.sqrt(dot3(v, v))
         inv = np.divide(1.0, speed, out=np.zeros_like(speed), where=speed > 0)
         return v * inv[:, None], speed
 

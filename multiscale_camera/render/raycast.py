@@ -21,6 +21,7 @@ import numpy as np
 
 from ..core.bundle import RayBundle
 from ..core.errors import Cancelled
+from ..core.family import dot3
 from ..core.sampling import greedy_keep, polyline_measures, segments_from_points
 
 # Segments between two calls of ``should_stop``: a few milliseconds of casting.
@@ -235,9 +236,9 @@ def plane_distance(planes, triangles, origin, direction, length):
     runs along the plane (no single crossing), the nearest corner's distance along it.
     """
     n = planes["normal"][triangles]
-    den = np.einsum("ij,ij->i", direction, n)
-    num = planes["offset"][triangles] - np.einsum("ij,ij->i", origin, n)
-    crossing = np.abs(den) > 1e-9 * np.sqrt(np.einsum("ij,ij->i", n, n))
+    den = dot3(direction, n)
+    num = planes["offset"][triangles] - dot3(origin, n)
+    crossing = np.abs(den) > 1e-9 * np.sqrt(dot3(n, n))
     t = num / np.where(crossing, den, 1.0)
     along = ~crossing
     if along.any():

@@ -30,11 +30,6 @@ def face_normals(geometry, triangles):
     return unit[triangles]
 
 
-def _dot(a, b):
-    """(P,) row-wise dot product of (P, 3) arrays (einsum: no (P, 3) temporary)."""
-    return np.einsum("ij,ij->i", a, b)
-
-
 def _spot_factor(light, to_light):
     cos = -dot3(to_light, light.direction)
     inner = light.spot_cos + (1.0 - light.spot_cos) * light.spot_blend
@@ -67,7 +62,7 @@ def _irradiance_factor(light, points, normals):
         cos = -dot3(normals, light.direction)
         return np.maximum(cos, 0.0, out=cos), to_light, distance
     vec = light.position - points
-    distance = np.sqrt(_dot(vec, vec))
+    distance = np.sqrt(dot3(vec, vec))
     to_light = vec / np.maximum(distance, 1e-12)[:, None]
     if light.kind == "AREA":
         falloff = np.maximum(-dot3(to_light, light.direction), 0.0) / (math.pi * distance**2)
@@ -75,7 +70,7 @@ def _irradiance_factor(light, points, normals):
         falloff = 1.0 / (4 * math.pi * distance**2)
         if light.kind == "SPOT":
             falloff = falloff * _spot_factor(light, to_light)
-    cos = np.maximum(_dot(normals, to_light), 0.0)
+    cos = np.maximum(dot3(normals, to_light), 0.0)
     return cos * falloff, to_light, distance
 
 
@@ -84,8 +79,8 @@ def barycentric(geometry, triangles, points):
     planes = triangle_planes(geometry)
     v0, v1 = planes["e1"][triangles], planes["e2"][triangles]
     v2 = points - planes["a"][triangles]
-    d00, d01, d11 = _dot(v0, v0), _dot(v0, v1), _dot(v1, v1)
-    d20, d21 = _dot(v2, v0), _dot(v2, v1)
+    d00, d01, d11 = dot3(v0, v0), dot3(v0, v1), dot3(v1, v1)
+    d20, d21 = dot3(v2, v0), dot3(v2, v1)
     den = d00 * d11 - d01 * d01
     den = np.where(np.abs(den) > 1e-300, den, 1.0)
     out = np.empty((len(triangles), 3))
@@ -120,7 +115,7 @@ def shading_normals(geometry, triangles, weights, geometric):
     if geometry.normals is None or len(geometry.normals) == 0:
         return geometric
     n = np.einsum("pcj,pc->pj", geometry.normals[triangles], weights)
-    length = np.sqrt(_dot(n, n))[:, None]
+    length = np.sqrt(dot3(n, n))[:, None]
     return np.where(length > 1e-12, n / np.maximum(length, 1e-30), geometric)
 
 
@@ -163,7 +158,7 @@ def shade(geometry, hits, lights, world, tree, scale, should_stop=None):
     weights = barycentric(geometry, tri, points)
     smooth = shading_normals(geometry, tri, weights, n)
     normal[idx] = smooth
-    back = _dot(n, hits.direction[idx]) > 0
+    back = dot3(n, hits.direction[idx]) > 0
     sign = np.where(back, -1.0, 1.0)[:, None]
     facing = n * sign
     facing_smooth = smooth * sign
@@ -180,7 +175,7 @@ def shade(geometry, hits, lights, world, tree, scale, should_stop=None):
         if light.kind == "SUN":
             lit &= dot3(facing, light.direction) < 0
         else:
-            lit &= _dot(facing, to_light) > 0
+            lit &= dot3(facing, to_light) > 0
         if light.shadow and tree is not None:
             if lifted is None:
                 lifted = points + facing * (SHADOW_OFFSET * scale)
