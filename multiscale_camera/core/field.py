@@ -673,7 +673,14 @@ class FieldTracer:
                 tau[ready] = np.maximum(tau[ready] + step[:, 2], 0.0)
                 iterations[ready] = PREDICTED_ITERATIONS
             u, v, tau, out[bend], missed, (ju, jv, jt, ok) = self.families[i].solve(
-                xb, u, v, tau, iterations, scale, True, TRACE_NEWTON_TOLERANCE
+                xb,
+                u,
+                v,
+                tau,
+                iterations,
+                scale,
+                with_jacobian=True,
+                tolerance=TRACE_NEWTON_TOLERANCE,
             )
             params[i, r, 0], params[i, r, 1], params[i, r, 2] = u, v, tau
             self.jacobian[i, r, 0], self.jacobian[i, r, 1], self.jacobian[i, r, 2] = ju, jv, jt
