@@ -496,31 +496,22 @@ def _cell(shape, p):
     return base, (0, ox, oy, ox + oy, oz, ox + oz, oy + oz, ox + oy + oz), f
 
 
+def _mix(a, b, t, out=None):
+    """a + (b - a) t, into ``out`` (which may be ``b``) or a new array."""
+    out = np.subtract(b, a, out=out)
+    out *= t
+    out += a
+    return out
+
+
 def _lerp8(c, f):
-    """Trilinear blend of eight corner arrays ``c`` (x fastest) by fractions ``f``."""
+    """Trilinear blend of eight corner arrays ``c`` (x fastest) by fractions ``f``; the
+    corners are left as they are, four new arrays are made."""
     fx, fy, fz = f
-    c00 = c[1] - c[0]
-    c00 *= fx
-    c00 += c[0]
-    c10 = c[3] - c[2]
-    c10 *= fx
-    c10 += c[2]
-    c01 = c[5] - c[4]
-    c01 *= fx
-    c01 += c[4]
-    c11 = c[7] - c[6]
-    c11 *= fx
-    c11 += c[6]
-    c10 -= c00
-    c10 *= fy
-    c00 += c10
-    c11 -= c01
-    c11 *= fy
-    c01 += c11
-    c01 -= c00
-    c01 *= fz
-    c00 += c01
-    return c00
+    x0, x1 = _mix(c[0], c[1], fx), _mix(c[2], c[3], fx)
+    x2, x3 = _mix(c[4], c[5], fx), _mix(c[6], c[7], fx)
+    y0, y1 = _mix(x0, x1, fy, out=x1), _mix(x2, x3, fy, out=x3)
+    return _mix(y0, y1, fz, out=y1)
 
 
 def _corners(flat, cell):
