@@ -26,11 +26,10 @@ _FRAME = None
 def worker_count(requested=0):
     """Processes to use: ``requested`` if positive, else 1 (in-process).
 
-    Workers are opt-in (Render > Performance > Threads: Fixed, more than 1): on 2 cores
-    they gained nothing at 1920x1080 (9.3 s against 9.2 s in-process at load average
-    4.5 on a shared machine, bench/render.json),
-    and forking a process that runs other threads (Blender's own, a build's worker) is
-    where a forked child can die or hang."""
+    Workers are opt-in (Render > Performance > Threads: Fixed, more than 1): forking a
+    process that runs other threads (Blender's own, a build's worker) is where a forked
+    child can die or hang, and on 2 cores they gain about a quarter at 1920x1080 (the
+    tiles in 3.4 s against 4.8 s in-process, bench/render.json)."""
     if requested and requested > 0:
         return int(requested)
     return 1
