@@ -13,7 +13,7 @@ from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 
 from ..core.errors import Cancelled
-from ..core.parallel import fork_context, stop, worker_init
+from ..core.parallel import POLL_SECONDS, cores, fork_context, stop, worker_init
 from . import pipeline
 
 # A frame with fewer rays than this renders in-process: starting workers costs more.
@@ -24,15 +24,13 @@ _FRAME = None
 
 
 def worker_count(requested=0):
-    """Processes to use: ``requested`` if positive, else 1 (in-process).
-
-    Workers are opt-in (Render > Performance > Threads: Fixed, more than 1): forking a
-    process that runs other threads (Blender's own, a build's worker) is where a forked
-    child can die or hang, and on 2 cores they gain about a quarter at 1920x1080 (the
-    tiles in 3.4 s against 4.8 s in-process, bench/render.json)."""
+    """Processes to use: ``requested`` if positive, else one per core (as the field's
+    trace; Render > Performance > Threads: Fixed at 1 keeps the tiles in Blender's
+    process). On 2 cores the tiles of a 1920x1080 frame take about 70% of their
+    in-process time (bench/render.json)."""
     if requested and requested > 0:
         return int(requested)
-    return 1
+    return cores()
 
 
 def _render_tile(rows):
@@ -69,12 +67,21 @@ def render_tiles(frame, tiles, processes, should_stop=None):
     done = 0
     if pool is not None:
         try:
-            for rows, passes, counts in pool.map(_render_tile, tiles):
+            futures = [pool.submit(_render_tile, rows) for rows in tiles]
+            for future in futures:
+                # asked while waiting too, so that Esc ends a tile loop whose workers are
+                # slow (or stuck: a forked copy of a threaded host can hang on a lock)
+                while True:
+                    if should_stop is not None and should_stop():
+                        raise Cancelled()
+                    try:
+                        rows, passes, counts = future.result(timeout=POLL_SECONDS)
+                        break
+                    except TimeoutError:
+                        continue
                 frame.casts += counts[0]
                 frame.shadow_casts += counts[1]
                 frame.rays += counts[2]
-                if should_stop is not None and should_stop():
-                    raise Cancelled()
                 done += 1
                 yield rows, passes
         except BrokenProcessPool:

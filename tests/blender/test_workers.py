@@ -1,5 +1,7 @@
 """Tiles in forked worker processes give the same image as in-process, and Esc stops them."""
 
+import time
+
 import bpy
 import numpy as np
 import pytest
@@ -46,15 +48,32 @@ def test_stop_request_ends_the_workers(empty_scene, monkeypatch):
     monkeypatch.setattr(workers, "MIN_RAYS", 0)
     monkeypatch.setattr(pipeline, "rows_per_tile", lambda width, rays=0, samples=1: 4)
     frame = frame_of(empty_scene)
-    calls = []
+    got = []
 
     def stop_after_two_tiles():
-        calls.append(1)
-        return len(calls) > 2
+        return len(got) >= 2
 
     with pytest.raises(Cancelled):
-        collect(frame, 2, stop_after_two_tiles)
-    assert len(calls) == 3
+        for rows, _passes in workers.render_tiles(
+            frame, pipeline.tiles(frame), 2, stop_after_two_tiles
+        ):
+            got.append(rows)
+    assert len(got) == 2 and workers._FRAME is None
+
+
+@pytest.mark.skipif(workers.fork_context() is None, reason="no fork on this platform")
+def test_stuck_workers_do_not_stop_esc(empty_scene, monkeypatch):
+    """The tile loop used to wait on its workers without asking whether to stop: a
+    worker stuck on a lock (a forked copy of a threaded host can be) froze the render,
+    Esc or not. The loop now asks while it waits."""
+    two_camera_scene(empty_scene, 64, 48)
+    monkeypatch.setattr(workers, "MIN_RAYS", 0)
+    monkeypatch.setattr(workers, "_render_tile", _hang)
+    frame = frame_of(empty_scene)
+    start = time.perf_counter()
+    with pytest.raises(Cancelled):
+        collect(frame, 2, lambda: time.perf_counter() - start > 0.5)
+    assert time.perf_counter() - start < 3.0
 
 
 def test_without_fork_tiles_render_in_process(empty_scene, monkeypatch):
@@ -102,8 +121,8 @@ def test_a_dead_worker_does_not_hang_the_render(empty_scene, monkeypatch):
     assert workers.WORKER_DIED in frame.notices
 
 
-def test_workers_are_opt_in():
-    assert workers.worker_count(0) == 1 and workers.worker_count(3) == 3
+def test_tiles_take_one_worker_per_core_unless_the_threads_are_fixed():
+    assert workers.worker_count(0) == parallel.cores() and workers.worker_count(3) == 3
 
 
 def _die(rows):
@@ -111,3 +130,8 @@ def _die(rows):
     import os
 
     os._exit(3)
+
+
+def _hang(rows):
+    """A worker's tile that does not end for half a minute (stopped by the pool's end)."""
+    time.sleep(30)
