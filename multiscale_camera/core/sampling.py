@@ -406,14 +406,15 @@ class RaySampler:
         self.kept_n = np.bincount(leaf_of_kept, minlength=len(self.leaf_keep))
         self.kept_at = np.concatenate([[0], np.cumsum(self.kept_n)]).astype(np.int64)
         # every kept vertex of every leaf in bilinear form: a ray at (fx, fy) in leaf n
-        # has vertex a + fx b + fy (c + fx d) at each of the leaf's kept slots
+        # has vertex a + fx b + fy c + fx fy d at each of the leaf's kept slots; the four
+        # terms of a slot lie together, (slots, 4, 3) float64, so that a ray's vertex is
+        # one row gathered and one weighted sum
         k = traced.vertices.shape[1]
         flat = traced.vertices.reshape(-1, 3)
         v00, v01, v10, v11 = (
             flat[c[leaf_of_kept] * k + self.kept_k].astype(np.float64) for c in rows
         )
-        self.slot_a, self.slot_b, self.slot_c = v00, v01 - v00, v10 - v00
-        self.slot_d = v11 - v10 - v01 + v00
+        self.slot_terms = np.stack([v00, v01 - v00, v10 - v00, v11 - v10 - v01 + v00], axis=1)
         self.slot_castable = self._slot_castable((v00, v01, v10, v11))
         w, h = self.size
         # the lattice leaf holding each unit square between four pixel centres
@@ -490,13 +491,12 @@ class RaySampler:
         rid = np.repeat(np.arange(len(sx)), n)
         slot = np.repeat(self.kept_at[leaf] - first, n)
         slot += np.arange(len(rid))
-        fxr, fyr = fx[rid, None], fy[rid, None]
-        pts = self.slot_d[slot]
-        pts *= fxr
-        pts += self.slot_c[slot]
-        pts *= fyr
-        pts += self.slot_b[slot] * fxr
-        pts += self.slot_a[slot]
+        weights = np.empty((len(rid), 4))
+        weights[:, 0] = 1.0
+        weights[:, 1] = fx[rid]
+        weights[:, 2] = fy[rid]
+        np.multiply(weights[:, 1], weights[:, 2], out=weights[:, 3])
+        pts = np.einsum("nkj,nk->nj", self.slot_terms.take(slot, axis=0), weights)
         castable = None
         if self.slot_castable is not None:
             castable = self.slot_castable[slot]
