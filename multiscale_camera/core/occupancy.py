@@ -14,6 +14,8 @@ Pure numpy.
 
 import numpy as np
 
+from .family import dot3
+
 # Cells along the longest side of the box: fine enough that a bending stretch of short
 # segments above a ground plane finds its cells empty, coarse enough to build in a blink.
 CELLS = 64
@@ -98,7 +100,7 @@ class Occupancy:
         p = np.asarray(points, dtype=np.float64)
         hi = self.lo + self.size * self.shape
         d = np.maximum(np.maximum(self.lo - p, p - hi), 0.0)
-        outside = np.sqrt((d * d).sum(-1))
+        outside = np.sqrt(dot3(d, d))
         steps = self._steps()[tuple(np.moveaxis(self.cell_of(p), -1, 0))]
         return np.maximum(outside, np.maximum(steps - 1, 0) * self.size.min())
 

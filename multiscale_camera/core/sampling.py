@@ -81,7 +81,7 @@ def footprint(points, eyes, angles):
     best = None
     for eye, angle in zip(eyes, angles):
         d = p - eye
-        f = np.sqrt((d * d).sum(-1)) * angle
+        f = np.sqrt(dot3(d, d)) * angle
         best = f if best is None else np.minimum(best, f)
     return best
 
@@ -94,7 +94,7 @@ def box_distance(points, bounds):
         return np.zeros(p.shape[:-1])
     lo, hi = bounds
     d = np.maximum(np.maximum(lo - p, p - hi), 0.0)
-    return np.sqrt((d * d).sum(-1))
+    return np.sqrt(dot3(d, d))
 
 
 def polyline_measures(
@@ -129,11 +129,11 @@ def polyline_measures(
         _check(should_stop)
         v = np.asarray(vertices[a : a + CHUNK], dtype=np.float64)
         d = v[:, 1:] - v[:, :-1]
-        n = np.sqrt((d * d).sum(-1))
+        n = np.sqrt(dot3(d, d))
         seglen[a : a + CHUNK] = n
         if k >= 3:
             u = d / np.maximum(n, 1e-30)[..., None]
-            t = np.arccos(np.clip((u[:, :-1] * u[:, 1:]).sum(-1), -1.0, 1.0))
+            t = np.arccos(np.clip(dot3(u[:, :-1], u[:, 1:]), -1.0, 1.0))
             t[t < NOISE] = 0.0
             turn[a : a + CHUNK] = t
         far = box_distance(v, bounds) if clearance is None else clearance(v)
