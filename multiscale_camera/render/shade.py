@@ -109,6 +109,34 @@ def albedo_and_emission(geometry, triangles, weights):
     return albedo, emission
 
 
+def smooth_faces(geometry):
+    """(T,) bool, cached on the geometry: triangles whose corner normals differ (smooth
+    shading), as opposed to flat ones, which carry their face normal at every corner."""
+    planes = triangle_planes(geometry)
+    smooth = planes.get("smooth")
+    if smooth is None:
+        nor = geometry.normals
+        if nor is None or len(nor) == 0:
+            smooth = np.zeros(len(planes["a"]), dtype=bool)
+        else:
+            smooth = (nor[:, 1] != nor[:, 0]).any(-1) | (nor[:, 2] != nor[:, 0]).any(-1)
+        planes["smooth"] = smooth
+    return smooth
+
+
+def textured_faces(geometry):
+    """(T,) bool, cached on the geometry: triangles whose material has an image texture."""
+    planes = triangle_planes(geometry)
+    textured = planes.get("textured")
+    if textured is None:
+        textured = np.zeros(len(planes["a"]), dtype=bool)
+        if geometry.material is not None and geometry.materials:
+            has = np.array([m.texture is not None for m in geometry.materials], dtype=bool)
+            textured = has[geometry.material]
+        planes["textured"] = textured
+    return textured
+
+
 def shading_normals(geometry, triangles, weights, geometric):
     """(P, 3) float64 unit shading normals: corner normals interpolated at ``weights``
     (equal to the face normal on flat faces); ``geometric`` where none are stored."""
@@ -155,8 +183,21 @@ def shade(geometry, hits, lights, world, tree, scale, should_stop=None):
     tri = hits.triangle[idx]
     points = hits.location[idx]
     n = face_normals(geometry, tri)
-    weights = barycentric(geometry, tri, points)
-    smooth = shading_normals(geometry, tri, weights, n)
+    # barycentrics only where something is interpolated: corner normals on smooth faces,
+    # UVs under an image texture (flat, untextured faces need none)
+    rounded = smooth_faces(geometry)[tri]
+    need = rounded | textured_faces(geometry)[tri]
+    weights = np.zeros((len(tri), 3))
+    if need.all():
+        weights = barycentric(geometry, tri, points)
+    elif need.any():
+        weights[need] = barycentric(geometry, tri[need], points[need])
+    smooth = n
+    if rounded.all():
+        smooth = shading_normals(geometry, tri, weights, n)
+    elif rounded.any():
+        smooth = n.copy()
+        smooth[rounded] = shading_normals(geometry, tri[rounded], weights[rounded], n[rounded])
     normal[idx] = smooth
     back = dot3(n, hits.direction[idx]) > 0
     sign = np.where(back, -1.0, 1.0)[:, None]
