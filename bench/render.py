@@ -6,14 +6,17 @@ Reports, in one run: the raw ``BVHTree.ray_cast`` rate on the scene, in a bare l
 over prepared lists on the same tree: over the very segments the engine casts (recorded
 from a render of the middle tiles: same rays, same tree), also in slices between the
 tiles of the timed render (so that both rates see the same machine), and over camera
-1's straight rays; the engine's segment-cast rate (segment casts over the time of the whole tile
-loop: ray sampling, culling, casting, shading with its shadow rays, and passes) and
-over the time of the march alone (culling, conversion, casting, hit bookkeeping); the
-time of the render with the field built cold and with it cached (the engine keeps
-built fields in memory), each as field + frame preparation + tiles; the cancel latency
-(from the first ``should_stop`` that says stop to the tile loop ending); and the tile
-loop in one worker process per core. CPU seconds of this process are reported next to
-wall seconds: the machine may be shared. Writes bench/render.json.
+1's straight rays; the engine's segment-cast rate (segment casts over the time of the
+whole tile loop: ray sampling, culling, casting, shading with its shadow rays, and
+passes), in-process per CPU second, over the time of the march alone (culling,
+conversion, casting, hit bookkeeping), and per second of the tile loop in the engine's
+worker processes (one per core by default) against one bare loop timed just before and
+after it; the time of the render with the field built cold (tiles in the engine's
+processes) and with it cached (the engine keeps built fields in memory), each as field
++ frame preparation + tiles; the cancel latency (from the first ``should_stop`` that
+says stop to the tile loop ending). CPU seconds (of this process, and of its reaped
+workers where they run) are reported next to wall seconds: the machine may be shared.
+Writes bench/render.json.
 """
 
 import argparse
@@ -119,6 +122,12 @@ def bare_rate(cast, origins, dirs, lengths, seconds=3.0):
     return done / (time.perf_counter() - start), done / spent, spent
 
 
+def cpu_with_children():
+    """CPU seconds of this process and its reaped children (the tile workers)."""
+    t = os.times()
+    return t[0] + t[1] + t[2] + t[3]
+
+
 def render_tiles(frame, should_stop=None, processes=1):
     """The engine's tile loop (without writing a Render Result)."""
     from multiscale_camera.render import pipeline, workers
@@ -164,6 +173,7 @@ def main():
     import bpy
 
     import multiscale_camera
+    from multiscale_camera.adapters.scene import processes_of
     from multiscale_camera.render import pipeline, workers
 
     multiscale_camera.register()
@@ -174,11 +184,13 @@ def main():
     depsgraph = bpy.context.evaluated_depsgraph_get()
     # a cold render: the field built now (the disk cache too is emptied)
     pipeline.clear_fields()
-    t0, c0 = time.perf_counter(), time.process_time()
+    # the engine's own worker count (one per core unless the threads are fixed)
+    processes = workers.worker_count(processes_of(scene))
+    t0, c0 = time.perf_counter(), cpu_with_children()
     frame = pipeline.prepare_frame(depsgraph)
-    t1, c1 = time.perf_counter(), time.process_time()
-    render_tiles(frame)
-    t2, c2 = time.perf_counter(), time.process_time()
+    t1, c1 = time.perf_counter(), cpu_with_children()
+    render_tiles(frame, processes=processes)
+    t2, c2 = time.perf_counter(), cpu_with_children()
     cold_stages = dict(frame.seconds)
     # the same render again, the field cached in memory as the engine keeps it; the
     # march is timed on its own
@@ -232,14 +244,18 @@ def main():
     for after in (0.5, 1.5, 3.0):
         frame.casts = frame.shadow_casts = frame.rays = 0
         latencies.append(cancel_latency(frame, after))
-    # and in worker processes, one per core (CPU: this process and its reaped children)
-    processes = workers.worker_count(os.cpu_count() or 1)
-    before = os.times()
+    # as the engine runs them, in its worker processes (CPU: this process and its reaped
+    # children), with the bare loop timed just before and just after, on one core
+    raw_before = bare_rate(frame.tree.ray_cast, *same, seconds=1.5)[0]
+    frame.casts = frame.shadow_casts = frame.rays = 0
+    before = cpu_with_children()
     t6 = time.perf_counter()
     render_tiles(frame, processes=processes)
     pooled = time.perf_counter() - t6
-    after = os.times()
-    pooled_cpu = sum(after[:4]) - sum(before[:4])
+    pooled_cpu = cpu_with_children() - before
+    pooled_casts = frame.casts
+    raw_after = bare_rate(frame.tree.ray_cast, *same, seconds=1.5)[0]
+    raw_around = 0.5 * (raw_before + raw_after)
     pooled_latency = cancel_latency(frame, 1.5, processes)
     frame.rays, frame.casts, frame.shadow_casts = counts
     result = {
@@ -278,6 +294,13 @@ def main():
         "segment_casts": frame.casts,
         "shadow_casts": frame.shadow_casts,
         "segment_casts_per_ray": round(frame.casts / max(frame.rays, 1), 3),
+        # the tile loop as the engine runs it: one worker process per core by default
+        "engine_processes": processes,
+        "engine_segment_casts_per_s_in_its_processes": round(pooled_casts / pooled),
+        "raw_ray_cast_per_s_one_loop_around_that_run": round(raw_around),
+        "engine_in_its_processes_share_of_one_raw_loop": round(
+            pooled_casts / pooled / raw_around, 3
+        ),
         "seconds": {
             "cold_field": {
                 "prepare_frame": round(t1 - t0, 2),
@@ -293,6 +316,7 @@ def main():
                 "render_total": round(t5 - t3, 2),
             },
             f"tiles_{processes}_processes": round(pooled, 2),
+            f"cached_field_render_total_{processes}_processes": round(t4 - t3 + pooled, 2),
         },
         # CPU seconds of this process: less sensitive than wall time to other work
         "cpu_seconds": {
@@ -321,7 +345,9 @@ def main():
         f"raw ray_cast {raw_cpu / 1e6:.2f} M/CPU s (engine's segments; camera 1's rays "
         f"{cam_raw_cpu / 1e6:.2f}) | engine {seg_rate_cpu / 1e6:.2f} M segment casts/CPU s "
         f"({seg_rate_cpu / raw_cpu:.0%} of raw; {seg_rate_cpu / raw_between:.0%} of the raw "
-        f"rate sampled between the tiles; wall-clock {seg_rate / raw:.0%}), march alone "
+        f"rate sampled between the tiles; wall-clock {seg_rate / raw:.0%}); in the engine's "
+        f"{processes} processes {pooled_casts / pooled / 1e6:.2f} M segment casts/s, "
+        f"{pooled_casts / pooled / raw_around:.0%} of one bare loop; march alone "
         f"{frame.casts / march_time[1] / raw_cpu:.0%}, segment and shadow casts together "
         f"{(frame.casts + frame.shadow_casts) / warm_cpu / raw_cpu:.0%}, "
         f"{frame.casts / frame.rays:.2f} casts/ray "
