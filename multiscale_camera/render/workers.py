@@ -6,11 +6,16 @@ is written).
 Only ``fork`` is used: a spawned worker would start a fresh interpreter and import the
 package, and with it ``bpy``, which must not happen inside Blender. Where fork is not
 available (Windows, or a Python that forbids it) the tiles render in-process. Workers
-never call bpy: ``render_rows`` works on the frame's numpy arrays and the tree.
+never call bpy: ``render_rows`` works on the frame's numpy arrays and the tree. They
+write their tiles into passes in shared memory (``shared_passes``) and send back only
+the rows and their cast counts.
 """
 
+import mmap
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
+
+import numpy as np
 
 from ..core.errors import Cancelled
 from ..core.parallel import POLL_SECONDS, cores, fork_context, stop, worker_init
@@ -19,8 +24,10 @@ from . import pipeline
 # A frame with fewer rays than this renders in-process: starting workers costs more.
 MIN_RAYS = 200_000
 
-# The frame the forked workers render (set in the parent just before forking).
+# The frame the forked workers render, and the passes they write (set in the parent
+# just before forking).
 _FRAME = None
+_SHARED = None
 
 
 def worker_count(requested=0):
@@ -34,11 +41,27 @@ def worker_count(requested=0):
 
 
 def _render_tile(rows):
+    """In a worker: render ``rows`` into the shared passes; (rows, counts) go back."""
     frame = _FRAME
     before = frame.casts, frame.shadow_casts, frame.rays
     passes = pipeline.render_rows(frame, rows[0], rows[1])
+    for name, data in passes.items():
+        _SHARED[name][rows[0] : rows[1]] = data
     counts = (frame.casts - before[0], frame.shadow_casts - before[1], frame.rays - before[2])
-    return rows, passes, counts
+    return rows, counts
+
+
+def shared_passes(width, height):
+    """dict pass name -> (height, width, channels) float32 array in memory shared with
+    the processes forked after it (an anonymous shared mapping): the workers write their
+    tiles there, so no image data is pickled through the pool's pipes."""
+    out, at = {}, 0
+    sizes = [(name, height * width * channels) for name, channels, _i, _k in pipeline.PASSES]
+    buffer = mmap.mmap(-1, max(4 * sum(n for _name, n in sizes), 1))
+    for (name, n), (_n, channels, _i, _k) in zip(sizes, pipeline.PASSES, strict=True):
+        out[name] = np.frombuffer(buffer, np.float32, n, at).reshape(height, width, channels)
+        at += 4 * n
+    return out
 
 
 def render_tiles(frame, tiles, processes, should_stop=None):
@@ -54,16 +77,17 @@ def render_tiles(frame, tiles, processes, should_stop=None):
     ------
     Cancelled when ``should_stop`` says so.
     """
-    global _FRAME
+    global _FRAME, _SHARED
     width, height = frame.size
     ctx = fork_context()
     pool = None
     if processes > 1 and ctx is not None and width * height * frame.samples >= MIN_RAYS:
         _FRAME = frame
         try:
+            _SHARED = shared_passes(width, height)
             pool = ProcessPoolExecutor(processes, mp_context=ctx, initializer=worker_init)
-        except OSError:  # no processes to be had (limits, sandbox): render here
-            _FRAME = None
+        except OSError:  # no memory or processes to be had (limits, sandbox): render here
+            _FRAME = _SHARED = None
     done = 0
     if pool is not None:
         try:
@@ -75,7 +99,7 @@ def render_tiles(frame, tiles, processes, should_stop=None):
                     if should_stop is not None and should_stop():
                         raise Cancelled()
                     try:
-                        rows, passes, counts = future.result(timeout=POLL_SECONDS)
+                        rows, counts = future.result(timeout=POLL_SECONDS)
                         break
                     except TimeoutError:
                         continue
@@ -83,14 +107,14 @@ def render_tiles(frame, tiles, processes, should_stop=None):
                 frame.shadow_casts += counts[1]
                 frame.rays += counts[2]
                 done += 1
-                yield rows, passes
+                yield rows, {name: data[rows[0] : rows[1]] for name, data in _SHARED.items()}
         except BrokenProcessPool:
             # a worker died (killed, or a forked copy of a threaded host that could not
             # run): the tiles it left render here, rather than waiting on it forever
             frame.notices.append(WORKER_DIED)
         finally:
             stop(pool)
-            _FRAME = None
+            _FRAME = _SHARED = None
     for row0, row1 in tiles[done:]:
         if should_stop is not None and should_stop():
             raise Cancelled()
