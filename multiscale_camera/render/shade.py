@@ -237,11 +237,12 @@ def _occluded(tree, origins, directions, distances, which, should_stop=None, par
     sel = np.flatnonzero(which)
     n = len(sel)
     with gc_paused():
-        if parallel is not None:
+        if parallel is not None:  # a sun: one direction, and no end short of the scene's
             dirs = repeat(tuple(np.asarray(parallel, dtype=np.float64).tolist()), n)
+            far = repeat(1e30, n)
         else:
             dirs = flat_triples(directions[sel])
-        far = np.minimum(distances[sel], 1e30)
-        tri = cast_all(tree.ray_cast, flat_triples(origins[sel]), dirs, far.tolist(), should_stop)
+            far = np.minimum(distances[sel], 1e30).tolist()
+        tri = cast_all(tree.ray_cast, flat_triples(origins[sel]), dirs, far, should_stop)
     blocked[sel] = tri == tri  # not NaN: a hit
     return blocked
