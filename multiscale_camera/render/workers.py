@@ -80,11 +80,11 @@ def render_tiles(frame, tiles, processes, should_stop=None):
     global _FRAME, _SHARED
     width, height = frame.size
     ctx = fork_context()
-    pool = None
+    pool = shared = None
     if processes > 1 and ctx is not None and width * height * frame.samples >= MIN_RAYS:
         _FRAME = frame
         try:
-            _SHARED = shared_passes(width, height)
+            _SHARED = shared = shared_passes(width, height)
             pool = ProcessPoolExecutor(processes, mp_context=ctx, initializer=worker_init)
         except OSError:  # no memory or processes to be had (limits, sandbox): render here
             _FRAME = _SHARED = None
@@ -107,7 +107,7 @@ def render_tiles(frame, tiles, processes, should_stop=None):
                 frame.shadow_casts += counts[1]
                 frame.rays += counts[2]
                 done += 1
-                yield rows, {name: data[rows[0] : rows[1]] for name, data in _SHARED.items()}
+                yield rows, {name: data[rows[0] : rows[1]] for name, data in shared.items()}
         except BrokenProcessPool:
             # a worker died (killed, or a forked copy of a threaded host that could not
             # run): the tiles it left render here, rather than waiting on it forever
