@@ -81,7 +81,8 @@ demo: build sample_blends/demo.blend
 # against the paper's explicit diffusion (capped at 8 minutes a size: a capped run gives
 # a lower bound on the ratio), then every method at every quality on five rigs at 480x270
 # (the 1000x rig on nested grids takes minutes a build even there), then the
-# Cycles hand-off against plain Cycles at 480x270, 64 samples (about 3 minutes on 2 cores),
+# Cycles hand-off against plain Cycles at 480x270, 64 samples, on the three-camera test
+# scene and on the 100k-triangle scene of bench-render (about 3 minutes on 2 cores),
 # then volume ray casting of a 256^3 phantom at 1920x1080.
 bench: venv bench-render
 	$(PY) bench/solvers.py --sizes 64 128 256 320 --diffusion-sizes 64 128 --cap 480

@@ -122,8 +122,6 @@ def prepare_frame(depsgraph, should_stop=None):
     RigError, SolverDidNotConverge: the rig cannot be rendered (the message says why).
     Cancelled: ``should_stop`` said so.
     """
-    from mathutils.bvhtree import BVHTree
-
     scene = depsgraph.scene
     # volumes first: a missing or unusable volume file stops the render before the build
     volumes, volume_notices = prepare_volumes(depsgraph)
@@ -136,14 +134,7 @@ def prepare_frame(depsgraph, should_stop=None):
     notices = list(ray_field.notices) + list(ray_field.warnings)
     bounds = occupancy = None
     if len(geometry):
-        tree = BVHTree.FromPolygons(
-            geometry.vertices.tolist(), geometry.triangles.tolist(), all_triangles=True
-        )
-        lo, hi = geometry.vertices.min(0), geometry.vertices.max(0)
-        scale = float(np.linalg.norm(hi - lo))
-        pad = BOUNDS_PAD * max(scale, 1e-6) + 1e-6
-        bounds = (lo - pad, hi + pad)
-        occupancy = Occupancy(geometry.vertices, geometry.triangles, *bounds, pad=pad)
+        tree, bounds, occupancy, scale = scene_tree(geometry)
     else:
         tree, scale = None, 1.0
     notices += volume_notices
@@ -187,6 +178,41 @@ def prepare_frame(depsgraph, should_stop=None):
         volumes=volumes,
         occupancy=occupancy,
     )
+
+
+# The last scene_tree result, keyed on a digest of the triangles it was built from.
+_TREE = {}
+
+
+def scene_tree(geometry):
+    """The BVH tree, padded bounds, occupancy grid and size of ``geometry``'s triangles,
+    reused from the last call when the triangles are the same (building them takes most
+    of a frame's preparation: 0.14 of 0.25 s for 100k triangles).
+
+    Returns
+    -------
+    tree : BVHTree. bounds : ((3,), (3,)) float64, world units. occupancy : Occupancy.
+    scale : float, the diagonal of the triangles' bounding box, world units.
+    """
+    import hashlib
+
+    from mathutils.bvhtree import BVHTree
+
+    digest = hashlib.blake2b(np.ascontiguousarray(geometry.vertices).tobytes())
+    digest.update(np.ascontiguousarray(geometry.triangles).tobytes())
+    key = digest.hexdigest()
+    if key not in _TREE:
+        tree = BVHTree.FromPolygons(
+            geometry.vertices.tolist(), geometry.triangles.tolist(), all_triangles=True
+        )
+        lo, hi = geometry.vertices.min(0), geometry.vertices.max(0)
+        scale = float(np.linalg.norm(hi - lo))
+        pad = BOUNDS_PAD * max(scale, 1e-6) + 1e-6
+        bounds = (lo - pad, hi + pad)
+        occupancy = Occupancy(geometry.vertices, geometry.triangles, *bounds, pad=pad)
+        _TREE.clear()
+        _TREE[key] = tree, bounds, occupancy, scale
+    return _TREE[key]
 
 
 def sampler_for(ray_field, tol_px, bounds, should_stop=None, occupancy=None):

@@ -90,8 +90,12 @@ def test_one_camera_full_mask_matches_plain_cycles(empty_scene, tmp_path):
     # against the other seed, the hand-off differs by Cycles' noise and no more
     assert rms(handoff0, plain1) <= 1.1 * noise
     assert rms(handoff1, plain0) <= 1.1 * noise
-    # with the same seed (same sub-pixel jitter) it is the same image, far below the noise
-    assert rms(handoff0, plain0) <= 0.1 * noise
+    # with the same seed (same sub-pixel jitter) it is the same image: every block of
+    # pixels shows camera 1's own rays, which the custom camera computes at each jittered
+    # sub-pixel position as Cycles' own camera does (the table's interpolated rays alone
+    # gave a difference of up to a tenth of the noise)
+    assert cycles.LAST_BLOCKS["share"] == 1.0
+    assert rms(handoff0, plain0) <= 1e-3 * noise
     mean_gap = abs(handoff0["Combined"][..., :3].mean() - plain1["Combined"][..., :3].mean())
     assert mean_gap <= 0.01 * plain1["Combined"][..., :3].mean()
     print("idx agree", (handoff0["IndexOB"] == plain0["IndexOB"]).mean())

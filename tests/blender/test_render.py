@@ -407,3 +407,20 @@ def test_default_simplification_is_invisible(empty_scene, tmp_path):
     coarse = render_to(scene, tmp_path / "coarse.exr")
     print(f"8 px: PSNR {psnr(coarse['Combined'][..., :3], exact['Combined'][..., :3]):.1f} dB")
     assert psnr(coarse["Combined"][..., :3], exact["Combined"][..., :3]) < score
+
+
+def test_scene_tree_is_reused_only_for_the_same_triangles(empty_scene):
+    """The BVH tree and occupancy grid are kept across frames while the triangles stay the
+    same, and rebuilt when a mesh moves."""
+    from multiscale_camera.render import pipeline
+
+    two_camera_scene(empty_scene)
+    first = pipeline.prepare_frame(bpy.context.evaluated_depsgraph_get())
+    again = pipeline.prepare_frame(bpy.context.evaluated_depsgraph_get())
+    assert again.tree is first.tree and again.occupancy is first.occupancy
+    empty_scene.objects["Cube"].location.z += 0.5
+    bpy.context.view_layer.update()
+    moved = pipeline.prepare_frame(bpy.context.evaluated_depsgraph_get())
+    assert moved.tree is not first.tree
+    hit = moved.tree.ray_cast((0.0, 0.0, 10.0), (0.0, 0.0, -1.0))
+    assert abs(hit[0][2] - 2.5) < 1e-5  # the cube's top, moved up by 0.5

@@ -1,19 +1,26 @@
-"""The hand-off's table helpers in plain numpy: camera space, the two-plane table and edge
-padding."""
+"""The hand-off's table helpers in plain numpy: camera space, the two-plane table, edge
+padding and the blocks of pinhole rays."""
 
 import numpy as np
 
 from multiscale_camera.render.cycles import (
     OSL_SOURCE,
     PAD,
+    PINHOLE_TOLERANCE_PX,
     UNUSABLE,
     UNUSABLE_LIMIT,
     camera_space,
     pad_edges,
+    pinhole_affine,
+    pinhole_blocks,
+    pinhole_classes,
+    pinhole_rays,
     plane_rays,
+    shader_source,
 )
+from multiscale_camera.render.tables import RayTables
 
-from .rigs import look_at
+from .rigs import look_at, three_camera_rig
 
 
 def test_camera_space_is_cycles_camera_frame():
@@ -110,3 +117,88 @@ def test_plane_rays_mark_rays_that_do_not_head_forward():
     np.testing.assert_array_equal(padded[:, PAD], np.zeros((1 + 2 * PAD, 4)))
     assert np.isfinite(padded).all()
     assert f"< {UNUSABLE_LIMIT!r})" in OSL_SOURCE and UNUSABLE < 1e38  # float32 holds it
+
+
+def tables_of(origin, direction):
+    """RayTables holding only the rays (the other fields unused by the classification)."""
+    shape = origin.shape[:2]
+    zeros = np.zeros(shape)
+    return RayTables(origin, direction, zeros, zeros, zeros > 0, zeros, zeros, 0)
+
+
+def test_pinhole_affine_gives_each_cameras_rays_at_any_raster_position():
+    """The shader's affine rays at raster (rx, ry) are the rig camera's own rays through
+    that image point, in the render camera's space (the direction up to its length)."""
+    cameras, _ = three_camera_rig(48, 27)
+    render = cameras[0].matrix_world
+    rng = np.random.default_rng(3)
+    rx, ry = rng.uniform(-0.05, 1.05, (2, 50))  # the pixel filter reaches past the edges
+    for cam in cameras:
+        a = pinhole_affine(cam, render)
+        origin = a[0:3] + rx[:, None] * a[3:6] + ry[:, None] * a[6:9]
+        direction = a[9:12] + rx[:, None] * a[12:15] + ry[:, None] * a[15:18]
+        world, _ = pinhole_rays(cam, rx * cam.width, (1.0 - ry) * cam.height)
+        o, d = camera_space(
+            world, pinhole_rays(cam, rx * cam.width, (1.0 - ry) * cam.height)[1], render
+        )
+        np.testing.assert_allclose(origin, o, atol=1e-9)
+        np.testing.assert_allclose(direction, d, atol=1e-12)
+        # the origin is on the camera's near plane
+        np.testing.assert_allclose((world - cam.eye) @ cam.forward, cam.clip_start)
+
+
+def pinhole_tables(cam, width, height):
+    px, py = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
+    origin, direction = pinhole_rays(cam, px, py)
+    return origin, direction / np.linalg.norm(direction, axis=-1)[..., None]
+
+
+def test_pinhole_classes_find_each_cameras_own_rays_and_nothing_else():
+    cameras, _ = three_camera_rig(48, 27)
+    w, h = 48, 27
+    origin, direction = pinhole_tables(cameras[0], w, h)
+    o2, d2 = pinhole_tables(cameras[1], w, h)
+    origin[:, 20:], direction[:, 20:] = o2[:, 20:], d2[:, 20:]
+    # segments further along the same straight ray count (the march found nothing
+    # before them); a start before the camera's near plane does not
+    origin[0, :10] += direction[0, :10] * 0.7
+    origin[1, :10] -= direction[1, :10] * 0.01
+    # a turn of a tenth of camera 1's pixel is too much, a hundredth is not
+    xmin, xmax, _, _ = cameras[0].view_plane()
+    pixel = (xmax - xmin) / w
+    side = np.cross(direction[2:4, :10], [0.0, 0.0, 1.0])
+    side /= np.linalg.norm(side, axis=-1)[..., None]
+    turned = direction[2:4, :10] + side * pixel * np.array([0.1, 0.01])[:, None, None]
+    direction[2:4, :10] = turned / np.linalg.norm(turned, axis=-1)[..., None]
+    direction[5, 5] = 0.0  # a pixel without a ray
+    classes = pinhole_classes(tables_of(origin, direction), cameras)
+    expected = np.ones((h, w), dtype=np.int32)
+    expected[:, 20:] = 2
+    expected[1, :10] = expected[2, :10] = expected[5, 5] = 0
+    np.testing.assert_array_equal(classes, expected)
+    assert PINHOLE_TOLERANCE_PX < 0.1
+
+
+def test_pinhole_blocks_keep_only_blocks_of_one_camera():
+    cameras, _ = three_camera_rig(48, 27)
+    classes = np.zeros((27, 48), dtype=np.int32)
+    classes[:, :20] = 1
+    classes[10:, 30:] = 3
+    blocks = pinhole_blocks(classes, cameras, cameras[0].matrix_world, max_blocks=100)
+    assert blocks.size == 4 and blocks.classes.shape == (7, 12)
+    expected = np.zeros((7, 12), dtype=np.int32)
+    expected[:, :5] = 1  # columns 0..19
+    expected[3:, 8:] = 3  # rows 12.., columns 32..; the last row of blocks is 24..27
+    np.testing.assert_array_equal(blocks.classes, expected)
+    assert blocks.pinhole.shape == (3, 18)
+
+
+def test_shader_source_compiles_the_blocks_in():
+    cameras, _ = three_camera_rig(48, 27)
+    classes = np.ones((27, 48), dtype=np.int32)
+    blocks = pinhole_blocks(classes, cameras, cameras[0].matrix_world, max_blocks=100)
+    source = shader_source(blocks)
+    assert "@" not in source
+    assert f"int block_class[{7 * 12}] = {{{','.join(['1'] * 84)}}}" in source
+    assert "float pinhole[54] = {" in source
+    assert "int block_class[1] = {0}" in shader_source(None)
