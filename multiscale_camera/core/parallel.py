@@ -18,12 +18,15 @@ Row-wise products go through ``family.dot3`` (``einsum``), sums of products thro
 ``einsum`` (tests/unit/test_blas_threads.py).
 """
 
+import mmap
 import multiprocessing
 import os
 import signal
 import sys
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
+
+import numpy as np
 
 from .errors import Cancelled
 
@@ -68,6 +71,25 @@ def stop(pool):
             proc.terminate()
     for proc in processes:
         proc.join(timeout=5)
+
+
+def shared_array(shape, dtype):
+    """A zeroed array in memory shared with the processes forked after it (an anonymous
+    shared mapping), so that forked workers can write their part of a result in place
+    instead of pickling it back.
+
+    Parameters
+    ----------
+    shape : tuple of int. dtype : numpy dtype.
+
+    Returns
+    -------
+    ndarray of ``shape`` and ``dtype``; its buffer lives as long as the array does.
+    """
+    dtype = np.dtype(dtype)
+    count = int(np.prod(shape, dtype=np.int64))
+    buffer = mmap.mmap(-1, max(count * dtype.itemsize, 1))
+    return np.frombuffer(buffer, dtype, count).reshape(shape)
 
 
 def _run(item):

@@ -12,6 +12,7 @@ from ..adapters.scene import field_settings, processes_of, rig_from_scene
 from ..core.fingerprint import field_key
 from ..core.methods import prepare
 from ..core.occupancy import Occupancy
+from ..core.parallel import cores
 from ..core.sampling import DEFAULT_TOLERANCE_PX, RaySampler, sample_offsets
 from ..core.validate import crossing_messages, empty_mask_messages
 from ..io import cache
@@ -153,7 +154,7 @@ def prepare_frame(depsgraph, should_stop=None):
     t3 = time.perf_counter()
     settings = scene.multiscale
     tol = getattr(settings, "simplify_px", DEFAULT_TOLERANCE_PX)
-    sampler = sampler_for(ray_field, tol, bounds, should_stop, occupancy)
+    sampler = sampler_for(ray_field, tol, bounds, should_stop, occupancy, processes_of(scene))
     t4 = time.perf_counter()
     return Frame(
         rig=rig,
@@ -215,10 +216,11 @@ def scene_tree(geometry):
     return _TREE[key]
 
 
-def sampler_for(ray_field, tol_px, bounds, should_stop=None, occupancy=None):
+def sampler_for(ray_field, tol_px, bounds, should_stop=None, occupancy=None, processes=1):
     """The field's RaySampler at ``tol_px`` pixels for geometry inside ``bounds`` (and in
     the occupied cells of ``occupancy``, when given), built once per field, tolerance and
-    geometry layout."""
+    geometry layout; its simplification in ``processes`` forked workers (0: one per
+    core)."""
     cache = ray_field.__dict__.setdefault("_samplers", {})
     box = None if bounds is None else tuple(np.round(np.concatenate(bounds), 9).tolist())
     cells = None if occupancy is None else occupancy.digest()
@@ -227,7 +229,10 @@ def sampler_for(ray_field, tol_px, bounds, should_stop=None, occupancy=None):
         cache.clear()
         clearance = None if occupancy is None else occupancy.clearance
         occupied = None if occupancy is None else occupancy.any_between
-        cache[key] = RaySampler(ray_field, key[0], bounds, should_stop, clearance, occupied)
+        workers = processes if processes > 0 else cores()
+        cache[key] = RaySampler(
+            ray_field, key[0], bounds, should_stop, clearance, occupied, workers
+        )
     return cache[key]
 
 

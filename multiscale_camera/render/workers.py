@@ -11,14 +11,20 @@ write their tiles into passes in shared memory (``shared_passes``) and send back
 the rows and their cast counts.
 """
 
-import mmap
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 
 import numpy as np
 
 from ..core.errors import Cancelled
-from ..core.parallel import POLL_SECONDS, cores, fork_context, stop, worker_init
+from ..core.parallel import (
+    POLL_SECONDS,
+    cores,
+    fork_context,
+    shared_array,
+    stop,
+    worker_init,
+)
 from . import pipeline
 
 # A frame with fewer rays than this renders in-process: starting workers costs more.
@@ -53,15 +59,12 @@ def _render_tile(rows):
 
 def shared_passes(width, height):
     """dict pass name -> (height, width, channels) float32 array in memory shared with
-    the processes forked after it (an anonymous shared mapping): the workers write their
+    the processes forked after it (``parallel.shared_array``): the workers write their
     tiles there, so no image data is pickled through the pool's pipes."""
-    out, at = {}, 0
-    sizes = [(name, height * width * channels) for name, channels, _i, _k in pipeline.PASSES]
-    buffer = mmap.mmap(-1, max(4 * sum(n for _name, n in sizes), 1))
-    for (name, n), (_n, channels, _i, _k) in zip(sizes, pipeline.PASSES, strict=True):
-        out[name] = np.frombuffer(buffer, np.float32, n, at).reshape(height, width, channels)
-        at += 4 * n
-    return out
+    return {
+        name: shared_array((height, width, channels), np.float32)
+        for name, channels, _i, _k in pipeline.PASSES
+    }
 
 
 def render_tiles(frame, tiles, processes, should_stop=None):

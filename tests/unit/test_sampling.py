@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from multiscale_camera.core import sampling
+from multiscale_camera.core import parallel, sampling
 from multiscale_camera.core.methods import Settings, prepare
 from multiscale_camera.core.rig import Rig
 
@@ -202,3 +202,30 @@ def test_lattice_simplification_hears_a_stop_request(traced_field):
     seen = []
     sampling.RaySampler(traced_field, 0.25, should_stop=lambda: seen.append(1) and False)
     assert len(seen) >= traced_field.traced.vertices.shape[1] // 16
+
+
+@pytest.mark.skipif(parallel.fork_context() is None, reason="no fork on this platform")
+def test_lattice_simplified_in_worker_processes_is_the_same(traced_field, monkeypatch):
+    """The lattice's measures and leaf schedules, shared among forked workers that write
+    into shared memory, equal those made in-process."""
+    alone = sampling.RaySampler(traced_field, 0.25)
+    monkeypatch.setattr(sampling, "CHUNK", 7)  # many chunks from a small lattice
+    ran = []
+    forked_map = parallel.forked_map
+
+    def counted(task, items, processes, should_stop=None):
+        ran.append(len(items))
+        return forked_map(task, items, processes, should_stop)
+
+    monkeypatch.setattr(sampling, "forked_map", counted)
+    pooled = sampling.RaySampler(traced_field, 0.25, processes=2)
+    assert len(ran) == 2 and min(ran) > 2  # the measures and the leaf schedules
+    np.testing.assert_array_equal(pooled.leaf_keep, alone.leaf_keep)
+    np.testing.assert_array_equal(pooled.slot_terms, alone.slot_terms)
+    np.testing.assert_array_equal(pooled.slot_castable is None, alone.slot_castable is None)
+    v = traced_field.traced.vertices
+    eyes, angles = sampling.camera_footprints(traced_field.rig.cameras)
+    one = sampling.polyline_measures(v, eyes, angles, 0.25)
+    two = sampling.polyline_measures(v, eyes, angles, 0.25, processes=2)
+    for a, b in zip(one, two, strict=True):
+        np.testing.assert_array_equal(a, b)
