@@ -39,8 +39,8 @@ _SHARED = None
 def worker_count(requested=0):
     """Processes to use: ``requested`` if positive, else one per core (as the field's
     trace; Render > Performance > Threads: Fixed at 1 keeps the tiles in Blender's
-    process). On 2 cores the tiles of a 1920x1080 frame take about 70% of their
-    in-process time (bench/render.json)."""
+    process). On 2 cores the tiles of a 1920x1080 frame take half to 70% of their
+    in-process time (bench/render.json; the machine's speed drifts)."""
     if requested and requested > 0:
         return int(requested)
     return cores()
