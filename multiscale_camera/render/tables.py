@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..core.bundle import RayBundle
+from ..core.parallel import forked_map, shared_array
 from ..core.sampling import Segments
 from .raycast import bundle_segments, march
 
@@ -149,34 +150,49 @@ def ray_tables(frame, should_stop=None, progress=None, keep_polylines=False):
 
     Parameters
     ----------
-    frame : pipeline.Frame. should_stop : callable -> bool (raises ``Cancelled``).
-    progress : callable(fraction) or None, called after each tile of rows.
-    keep_polylines : bool, also return the simplified polylines (``Polylines``).
+    frame : pipeline.Frame; its tiles of rows are marched in its worker processes
+        (``workers.worker_count(frame.processes)``, into shared tables) when the image
+        has ``workers.MIN_RAYS`` pixels or more, else here.
+    should_stop : callable -> bool (raises ``Cancelled``).
+    progress : callable(fraction) or None, called after each tile of rows (once at the
+        end when workers marched them).
+    keep_polylines : bool, also return the simplified polylines (``Polylines``); they
+        are made here.
 
     Returns
     -------
     RayTables, or (RayTables, Polylines) with ``keep_polylines``.
     """
     from .pipeline import rows_per_tile
+    from .workers import MIN_RAYS, worker_count
 
     width, height = frame.size
     shape = (height, width)
-    origin = np.zeros((*shape, 3))
-    direction = np.zeros((*shape, 3))
-    distance = np.full(shape, np.inf)
-    depth = np.full(shape, np.inf)
-    hit = np.zeros(shape, dtype=bool)
-    membership = np.zeros(shape, dtype=np.float32)
-    index = np.zeros(shape, dtype=np.float32)
-    casts = 0
-    lines = []
     step = rows_per_tile(width)
-    for row0 in range(0, height, step):
-        row1 = min(row0 + step, height)
+    tiles = [(row0, min(row0 + step, height)) for row0 in range(0, height, step)]
+    processes = 1 if keep_polylines else worker_count(frame.processes)
+    shared = processes > 1 and width * height >= MIN_RAYS and len(tiles) > 1
+
+    def table(extra, dtype, fill):
+        out = shared_array((*shape, *extra), dtype) if shared else np.empty((*shape, *extra), dtype)
+        out[...] = fill
+        return out
+
+    origin = table((3,), np.float64, 0.0)
+    direction = table((3,), np.float64, 0.0)
+    distance = table((), np.float64, np.inf)
+    depth = table((), np.float64, np.inf)
+    hit = table((), bool, False)
+    membership = table((), np.float32, 0.0)
+    index = table((), np.float32, 0.0)
+    lines = []
+
+    def fill(tile, stop=None):
+        """March rows tile[0] .. tile[1] - 1 into the tables; their segment casts."""
+        row0, row1 = tile
         iy, ix = (a.ravel() for a in np.mgrid[row0:row1, 0:width])
         seg = frame.sampler.segments(ix + 0.5, iy + 0.5, ix, iy)
-        hits = march(frame.tree, seg, should_stop, frame.bounds, frame.geometry, frame.occupancy)
-        casts += hits.casts
+        hits = march(frame.tree, seg, stop, frame.bounds, frame.geometry, frame.occupancy)
         o, d, t = first_hit_segments(seg, hits, START_MARGIN * frame.scale)
         rows = slice(row0, row1)
         origin[rows] = o.reshape(row1 - row0, width, 3)
@@ -192,8 +208,19 @@ def ray_tables(frame, should_stop=None, progress=None, keep_polylines=False):
         index[rows] = tile_index.reshape(row1 - row0, width)
         if keep_polylines:
             lines.append(_polylines(frame.field.rays(ix, iy), seg, frame.sampler.reach))
-        if progress is not None:
-            progress(row1 / height)
+        return hits.casts
+
+    # in forked workers (one per core by default) that write into shared tables, or here
+    counts = forked_map(fill, tiles, processes, should_stop) if shared else None
+    if counts is not None and progress is not None:
+        progress(1.0)
+    if counts is None:
+        counts = []
+        for tile in tiles:
+            counts.append(fill(tile, should_stop))
+            if progress is not None:
+                progress(tile[1] / height)
+    casts = int(sum(counts))
     frame.casts += casts
     tables = RayTables(origin, direction, distance, depth, hit, membership, index, casts)
     if not keep_polylines:

@@ -135,3 +135,32 @@ def _die(rows):
 def _hang(rows):
     """A worker's tile that does not end for half a minute (stopped by the pool's end)."""
     time.sleep(30)
+
+
+@pytest.mark.skipif(workers.fork_context() is None, reason="no fork on this platform")
+def test_ray_tables_marched_in_workers_are_the_same(empty_scene, monkeypatch):
+    """The Cycles hand-off's tables, marched in forked workers into shared memory, equal
+    the tables marched in-process."""
+    from multiscale_camera.core import parallel as par
+    from multiscale_camera.render import tables
+
+    two_camera_scene(empty_scene, 64, 48)
+    monkeypatch.setattr(workers, "MIN_RAYS", 0)
+    monkeypatch.setattr(pipeline, "rows_per_tile", lambda width, rays=0, samples=1: 5)
+    frame = frame_of(empty_scene)
+    frame.processes = 1
+    alone = tables.ray_tables(frame)
+    frame.processes = 2
+    results = []
+
+    def forked_map(*args, **kwargs):
+        results.append(par.forked_map(*args, **kwargs))
+        return results[-1]
+
+    monkeypatch.setattr(tables, "forked_map", forked_map)
+    pooled = tables.ray_tables(frame)
+    assert len(results) == 1 and len(results[0]) == 10  # every tile in a worker
+    assert pooled.casts == alone.casts > 0
+    for name in ("origin", "direction", "distance", "depth", "hit", "membership"):
+        np.testing.assert_array_equal(getattr(pooled, name), getattr(alone, name))
+    np.testing.assert_array_equal(pooled.object_index, alone.object_index)
