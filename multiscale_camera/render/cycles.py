@@ -35,6 +35,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..core.errors import Cancelled
+from ..core.family import dot3
 from ..io.exr import ExrError, write_channels
 from .tables import blocked_before, ray_tables
 
@@ -372,20 +373,23 @@ def pinhole_classes(tables, cameras, tolerance_px=PINHOLE_TOLERANCE_PX):
     height, width = tables.hit.shape
     px, py = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
     classes = np.zeros((height, width), dtype=np.int32)
-    length = np.linalg.norm(tables.direction, axis=-1)
+    length = np.sqrt(dot3(tables.direction, tables.direction))
     for i, camera in enumerate(cameras):
         origin, direction = pinhole_rays(camera, px, py)
-        direction /= np.linalg.norm(direction, axis=-1)[..., None]
+        direction /= np.sqrt(dot3(direction, direction))[..., None]
         # the camera's pixel, as an angle at unit distance (its narrowest, off axis)
         xmin, xmax, ymin, ymax = camera.view_plane()
         pixel = min((xmax - xmin) / width, (ymax - ymin) / height)
         pixel /= 1.0 + max(xmin * xmin, xmax * xmax) + max(ymin * ymin, ymax * ymax)
         limit = tolerance_px * pixel
         rel = tables.origin - origin
-        along = np.einsum("...k,...k->...", rel, direction)
-        off = np.linalg.norm(rel - along[..., None] * direction, axis=-1)
-        seen_from = np.linalg.norm(tables.origin - camera.eye, axis=-1)
-        turn = np.linalg.norm(tables.direction - direction, axis=-1)
+        along = dot3(rel, direction)
+        rel -= along[..., None] * direction
+        off = np.sqrt(dot3(rel, rel))
+        eye = tables.origin - camera.eye
+        seen_from = np.sqrt(dot3(eye, eye))
+        bend = tables.direction - direction
+        turn = np.sqrt(dot3(bend, bend))
         same = (
             (length > 0)
             & (turn <= limit)
