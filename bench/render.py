@@ -173,7 +173,7 @@ def main():
     import bpy
 
     import multiscale_camera
-    from multiscale_camera.adapters.scene import processes_of
+    from multiscale_camera.adapters.scene import render_processes_of
     from multiscale_camera.render import pipeline, workers
 
     multiscale_camera.register()
@@ -185,7 +185,7 @@ def main():
     # a cold render: the field built now (the disk cache too is emptied)
     pipeline.clear_fields()
     # the engine's own worker count (one per core unless the threads are fixed)
-    processes = workers.worker_count(processes_of(scene))
+    processes = workers.worker_count(render_processes_of(scene))
     t0, c0 = time.perf_counter(), cpu_with_children()
     frame = pipeline.prepare_frame(depsgraph)
     t1, c1 = time.perf_counter(), cpu_with_children()

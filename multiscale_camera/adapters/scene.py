@@ -20,6 +20,22 @@ def processes_of(scene):
     return int(render.threads) if render.threads_mode == "FIXED" else 0
 
 
+def render_processes_of(scene):
+    """Worker processes for a render's tiles, simplification and ray tables: the count
+    when Threads is Fixed; else one per core (0) in background mode, and 1 (Blender's
+    own process) with Blender's window open. A render forks from its job thread while
+    the window's thread draws and allocates, and a forked copy can then hang on a lock
+    of the memory allocator that thread held (seen in Blender 5.2: the workers spun in
+    libtbbmalloc for good); the workers' watchdog would end them after
+    ``parallel.STALL_SECONDS``, but that wait is not worth taking by default."""
+    import bpy
+
+    count = processes_of(scene)
+    if count or bpy.app.background:
+        return count
+    return 1
+
+
 def field_settings(scene):
     """The core ``Settings`` of the scene's quality, accuracy target and threads."""
     from dataclasses import replace

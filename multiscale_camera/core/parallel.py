@@ -23,6 +23,7 @@ import multiprocessing
 import os
 import signal
 import sys
+import time
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 
@@ -35,6 +36,9 @@ from .errors import Cancelled
 _TASK = None
 # How often the parent asks ``should_stop`` while it waits for workers, seconds.
 POLL_SECONDS = 0.1
+# Seconds with no item done after which workers on short items (a tile, a part of a
+# simplification: well under a second each) are taken for stuck.
+STALL_SECONDS = 20.0
 
 
 def fork_context():
@@ -92,11 +96,36 @@ def shared_array(shape, dtype):
     return np.frombuffer(buffer, dtype, count).reshape(shape)
 
 
+class Stalled(Exception):
+    """Forked workers have done nothing for longer than they may."""
+
+
+def wait_for(future, should_stop=None, stall_seconds=None):
+    """The result of a pool's ``future``, asking ``should_stop`` every POLL_SECONDS.
+
+    Raises
+    ------
+    Cancelled when ``should_stop`` says so; Stalled when ``stall_seconds`` (None: no
+    limit) pass first. A forked copy of a process that runs other threads can hang for
+    ever on a lock another thread held at the fork (Blender's memory allocator's, seen
+    in Blender 5.2's window), without dying: only the time it takes tells.
+    """
+    start = time.monotonic()
+    while True:
+        if should_stop is not None and should_stop():
+            raise Cancelled()
+        try:
+            return future.result(timeout=POLL_SECONDS)
+        except TimeoutError:
+            if stall_seconds is not None and time.monotonic() - start > stall_seconds:
+                raise Stalled() from None
+
+
 def _run(item):
     return _TASK(item)
 
 
-def forked_map(task, items, processes, should_stop=None):
+def forked_map(task, items, processes, should_stop=None, stall_seconds=None):
     """``[task(item) for item in items]``, the items shared among forked workers.
 
     Parameters
@@ -106,12 +135,15 @@ def forked_map(task, items, processes, should_stop=None):
     items : sequence of picklable items. processes : int, workers (at most one an item);
         1, or no fork, runs in-process.
     should_stop : callable () -> bool, asked while waiting: True ends the workers.
+    stall_seconds : float or None: when no item has been done for this long, the workers
+        are taken for stuck (``STALL_SECONDS``) and ended; None waits as long as it
+        takes (for items that may take long).
 
     Returns
     -------
     list of results, in the order of ``items``; or None when the work could not be
-    shared (no fork, no processes to be had, or a worker died): the caller then runs
-    it in-process.
+    shared (no fork, no processes to be had, a worker died or stalled): the caller then
+    runs it in-process.
 
     Raises
     ------
@@ -132,16 +164,9 @@ def forked_map(task, items, processes, should_stop=None):
         futures = [pool.submit(_run, item) for item in items]
         results = []
         for future in futures:
-            while True:
-                if should_stop is not None and should_stop():
-                    raise Cancelled()
-                try:
-                    results.append(future.result(timeout=POLL_SECONDS))
-                    break
-                except TimeoutError:
-                    continue
+            results.append(wait_for(future, should_stop, stall_seconds))
         return results
-    except BrokenProcessPool:
+    except (BrokenProcessPool, Stalled):
         # a worker died (killed, or a forked copy of a threaded host that could not
         # run): the caller does the work in-process rather than wait on it forever
         return None

@@ -25,7 +25,7 @@ import numpy as np
 
 from .errors import Cancelled
 from .family import dot3
-from .parallel import forked_map, shared_array
+from .parallel import STALL_SECONDS, forked_map, shared_array
 
 # Turning below this (radians) is float32 noise of the stored vertices, not a bend.
 NOISE = 1e-4
@@ -168,7 +168,11 @@ def in_chunks(fill, n, processes=1, should_stop=None):
         size = min(CHUNK, max(1, -(-n // (processes * PARTS_PER_WORKER))))
     parts = [(a, min(a + size, n)) for a in range(0, n, size)]
     if processes > 1 and len(parts) > 1:
-        shared = forked_map(lambda part: fill(part, None), parts, processes, should_stop)
+
+        def task(part):
+            fill(part, None)
+
+        shared = forked_map(task, parts, processes, should_stop, STALL_SECONDS)
         if shared is not None:
             return
     for part in parts:

@@ -8,7 +8,7 @@ import numpy as np
 
 from ..adapters.lights import scene_lights, scene_world
 from ..adapters.meshes import scene_geometry
-from ..adapters.scene import field_settings, processes_of, rig_from_scene
+from ..adapters.scene import field_settings, render_processes_of, rig_from_scene
 from ..core.fingerprint import field_key
 from ..core.methods import prepare
 from ..core.occupancy import Occupancy
@@ -154,7 +154,8 @@ def prepare_frame(depsgraph, should_stop=None):
     t3 = time.perf_counter()
     settings = scene.multiscale
     tol = getattr(settings, "simplify_px", DEFAULT_TOLERANCE_PX)
-    sampler = sampler_for(ray_field, tol, bounds, should_stop, occupancy, processes_of(scene))
+    processes = render_processes_of(scene)
+    sampler = sampler_for(ray_field, tol, bounds, should_stop, occupancy, processes)
     t4 = time.perf_counter()
     return Frame(
         rig=rig,
@@ -175,7 +176,7 @@ def prepare_frame(depsgraph, should_stop=None):
         bounds=bounds,
         samples=max(1, int(settings.samples)),
         filter_width=float(getattr(scene.render, "filter_size", 1.5)),
-        processes=processes_of(scene),
+        processes=processes,
         volumes=volumes,
         occupancy=occupancy,
     )

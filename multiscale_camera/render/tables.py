@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..core.bundle import RayBundle
-from ..core.parallel import forked_map, shared_array
+from ..core.parallel import STALL_SECONDS, forked_map, shared_array
 from ..core.sampling import Segments
 from .raycast import bundle_segments, march
 
@@ -211,7 +211,7 @@ def ray_tables(frame, should_stop=None, progress=None, keep_polylines=False):
         return hits.casts
 
     # in forked workers (one per core by default) that write into shared tables, or here
-    counts = forked_map(fill, tiles, processes, should_stop) if shared else None
+    counts = forked_map(fill, tiles, processes, should_stop, STALL_SECONDS) if shared else None
     if counts is not None and progress is not None:
         progress(1.0)
     if counts is None:

@@ -18,11 +18,13 @@ import numpy as np
 
 from ..core.errors import Cancelled
 from ..core.parallel import (
-    POLL_SECONDS,
+    STALL_SECONDS,
+    Stalled,
     cores,
     fork_context,
     shared_array,
     stop,
+    wait_for,
     worker_init,
 )
 from . import pipeline
@@ -97,15 +99,9 @@ def render_tiles(frame, tiles, processes, should_stop=None):
             futures = [pool.submit(_render_tile, rows) for rows in tiles]
             for future in futures:
                 # asked while waiting too, so that Esc ends a tile loop whose workers are
-                # slow (or stuck: a forked copy of a threaded host can hang on a lock)
-                while True:
-                    if should_stop is not None and should_stop():
-                        raise Cancelled()
-                    try:
-                        rows, counts = future.result(timeout=POLL_SECONDS)
-                        break
-                    except TimeoutError:
-                        continue
+                # slow; workers that do no tile for STALL_SECONDS are taken for stuck (a
+                # forked copy of a threaded host can hang on a lock)
+                rows, counts = wait_for(future, should_stop, STALL_SECONDS)
                 frame.casts += counts[0]
                 frame.shadow_casts += counts[1]
                 frame.rays += counts[2]
@@ -115,6 +111,8 @@ def render_tiles(frame, tiles, processes, should_stop=None):
             # a worker died (killed, or a forked copy of a threaded host that could not
             # run): the tiles it left render here, rather than waiting on it forever
             frame.notices.append(WORKER_DIED)
+        except Stalled:
+            frame.notices.append(WORKER_STALLED)
         finally:
             stop(pool)
             _FRAME = _SHARED = None
@@ -125,3 +123,8 @@ def render_tiles(frame, tiles, processes, should_stop=None):
 
 
 WORKER_DIED = "A render worker process died; the remaining tiles rendered in Blender's process"
+WORKER_STALLED = (
+    "The render worker processes stopped making progress (a forked copy of Blender can "
+    "hang on a lock another thread held); the remaining tiles rendered in Blender's "
+    "process. Render > Performance > Threads: Fixed at 1 renders there from the start"
+)

@@ -164,3 +164,36 @@ def test_ray_tables_marched_in_workers_are_the_same(empty_scene, monkeypatch):
     for name in ("origin", "direction", "distance", "depth", "hit", "membership"):
         np.testing.assert_array_equal(getattr(pooled, name), getattr(alone, name))
     np.testing.assert_array_equal(pooled.object_index, alone.object_index)
+
+
+@pytest.mark.skipif(workers.fork_context() is None, reason="no fork on this platform")
+def test_stalled_workers_give_way_to_the_render_in_process(empty_scene, monkeypatch):
+    """Workers that do no tile for STALL_SECONDS (as forked copies of Blender's window
+    did, spinning for good in its memory allocator) are ended and the tiles render in
+    Blender's process, with a notice; the image is the one rendered in-process."""
+    two_camera_scene(empty_scene, 64, 48)
+    monkeypatch.setattr(workers, "MIN_RAYS", 0)
+    monkeypatch.setattr(workers, "STALL_SECONDS", 0.5)
+    frame = frame_of(empty_scene)
+    alone = collect(frame, 1)
+    monkeypatch.setattr(workers, "_render_tile", _hang)
+    start = time.perf_counter()
+    rescued = collect(frame, 2)
+    assert time.perf_counter() - start < 10.0
+    assert list(rescued) == list(alone) and workers.WORKER_STALLED in frame.notices
+    for rows in alone:
+        np.testing.assert_array_equal(rescued[rows]["Combined"], alone[rows]["Combined"])
+
+
+def test_render_workers_are_one_per_core_headless_and_none_with_a_window(empty_scene, monkeypatch):
+    from types import SimpleNamespace
+
+    from multiscale_camera.adapters.scene import render_processes_of
+
+    empty_scene.render.threads_mode = "AUTO"
+    assert bpy.app.background and render_processes_of(empty_scene) == 0
+    monkeypatch.setattr(bpy, "app", SimpleNamespace(background=False))
+    assert render_processes_of(empty_scene) == 1
+    empty_scene.render.threads_mode = "FIXED"
+    empty_scene.render.threads = 3
+    assert render_processes_of(empty_scene) == 3

@@ -84,6 +84,17 @@ def test_a_stop_request_ends_the_workers():
     assert time.perf_counter() - start < 10
 
 
+@needs_fork
+def test_stalled_workers_leave_the_work_to_the_caller():
+    """Workers that do nothing for stall_seconds (a forked copy of a threaded host
+    spinning on a lock never ends nor dies) are ended; the caller does the work."""
+    import time
+
+    start = time.perf_counter()
+    assert parallel.forked_map(lambda x: time.sleep(30), [1, 2], 2, stall_seconds=0.5) is None
+    assert time.perf_counter() - start < 10
+
+
 def test_without_fork_the_work_stays_in_process(monkeypatch):
     monkeypatch.setattr(parallel, "fork_context", lambda: None)
     assert parallel.forked_map(lambda x: x, [1, 2], 2) is None

@@ -213,9 +213,9 @@ def test_lattice_simplified_in_worker_processes_is_the_same(traced_field, monkey
     ran = []
     forked_map = parallel.forked_map
 
-    def counted(task, items, processes, should_stop=None):
+    def counted(task, items, *args, **kwargs):
         ran.append(len(items))
-        return forked_map(task, items, processes, should_stop)
+        return forked_map(task, items, *args, **kwargs)
 
     monkeypatch.setattr(sampling, "forked_map", counted)
     pooled = sampling.RaySampler(traced_field, 0.25, processes=2)
