@@ -787,7 +787,11 @@ class FieldTracer:
         n = max(workers, -(-rays // MAX_RAYS_PER_SHARE))
         shares = [np.arange(k, rays, n) for k in range(n)]
         parts = parallel.forked_map(
-            lambda rows: self._part(task, rows), shares, workers, should_stop
+            lambda rows: self._part(task, rows),
+            shares,
+            workers,
+            should_stop,
+            parallel.STALL_SECONDS,
         )
         if parts is None:
             return None
@@ -818,7 +822,7 @@ class FieldTracer:
         Cancelled when ``should_stop`` says so.
         """
         traced = self._shared(
-            lambda rows: self._trace_here(u0[rows], v0[rows], step, max_steps),
+            lambda rows: self._trace_here(u0[rows], v0[rows], step, max_steps, parallel.beat),
             len(u0),
             should_stop,
         )
@@ -836,7 +840,7 @@ class FieldTracer:
         Traced of the R rays, in the order of the pixels.
         """
         traced = self._shared(
-            lambda rows: self._pixels_here(ix[rows], iy[rows], step, max_steps),
+            lambda rows: self._pixels_here(ix[rows], iy[rows], step, max_steps, parallel.beat),
             len(ix),
             should_stop,
         )

@@ -388,7 +388,11 @@ def solve_levels(rig, grids, families, fill_membership, should_stop=None, proces
     shared = None
     if processes > 1:
         shared = parallel.forked_map(
-            lambda grid: fill_membership(rig, grid, families), grids, processes, should_stop
+            lambda grid: fill_membership(rig, grid, families, should_stop=parallel.beat),
+            grids,
+            processes,
+            should_stop,
+            parallel.STALL_SECONDS,
         )
     fields, fills, its, res, ok = [], [], 0, 0.0, True
     for lev, grid in enumerate(grids):

@@ -32,8 +32,10 @@ import numpy as np
 from .errors import Cancelled
 
 # What forked workers run: the callable is set in the parent just before forking, so
-# the children find it (and everything it holds) in their copy of the parent's memory.
+# the children find it (and everything it holds) in their copy of the parent's memory;
+# and the counter in shared memory that they count up as they make progress (``beat``).
 _TASK = None
+_BEATS = None
 # How often the parent asks ``should_stop`` while it waits for workers, seconds.
 POLL_SECONDS = 0.1
 # Seconds with no item done after which workers on short items (a tile, a part of a
@@ -100,25 +102,41 @@ class Stalled(Exception):
     """Forked workers have done nothing for longer than they may."""
 
 
-def wait_for(future, should_stop=None, stall_seconds=None):
+def wait_for(future, should_stop=None, stall_seconds=None, beats=None):
     """The result of a pool's ``future``, asking ``should_stop`` every POLL_SECONDS.
+
+    Parameters
+    ----------
+    beats : (1,) int64 shared array the workers count up (``beat``), or None: while it
+        changes, the workers count as busy however long the item takes.
 
     Raises
     ------
     Cancelled when ``should_stop`` says so; Stalled when ``stall_seconds`` (None: no
-    limit) pass first. A forked copy of a process that runs other threads can hang for
-    ever on a lock another thread held at the fork (Blender's memory allocator's, seen
-    in Blender 5.2's window), without dying: only the time it takes tells.
+    limit) pass first with no beat. A forked copy of a process that runs other threads
+    can hang for ever on a lock another thread held at the fork (Blender's memory
+    allocator's, seen in Blender 5.2's window), without dying: only the time tells.
     """
     start = time.monotonic()
+    seen = None if beats is None else int(beats[0])
     while True:
         if should_stop is not None and should_stop():
             raise Cancelled()
         try:
             return future.result(timeout=POLL_SECONDS)
         except TimeoutError:
+            if beats is not None and int(beats[0]) != seen:
+                seen, start = int(beats[0]), time.monotonic()
             if stall_seconds is not None and time.monotonic() - start > stall_seconds:
                 raise Stalled() from None
+
+
+def beat():
+    """In a worker of ``forked_map``: tell the parent that it is making progress. Returns
+    False, so that it can be passed where a ``should_stop`` is polled."""
+    if _BEATS is not None:
+        _BEATS[0] += 1
+    return False
 
 
 def _run(item):
@@ -135,9 +153,9 @@ def forked_map(task, items, processes, should_stop=None, stall_seconds=None):
     items : sequence of picklable items. processes : int, workers (at most one an item);
         1, or no fork, runs in-process.
     should_stop : callable () -> bool, asked while waiting: True ends the workers.
-    stall_seconds : float or None: when no item has been done for this long, the workers
-        are taken for stuck (``STALL_SECONDS``) and ended; None waits as long as it
-        takes (for items that may take long).
+    stall_seconds : float or None: when no item has been done, and no worker has called
+        ``beat``, for this long, the workers are taken for stuck and ended; None waits
+        as long as it takes.
 
     Returns
     -------
@@ -149,22 +167,23 @@ def forked_map(task, items, processes, should_stop=None, stall_seconds=None):
     ------
     Cancelled when ``should_stop`` says so.
     """
-    global _TASK
+    global _TASK, _BEATS
     processes = min(int(processes), len(items))
     ctx = fork_context()
     if processes < 2 or ctx is None:
         return None
     _TASK = task
+    _BEATS = beats = shared_array((1,), np.int64)
     try:
         pool = ProcessPoolExecutor(processes, mp_context=ctx, initializer=worker_init)
     except OSError:  # no processes to be had (limits, sandbox)
-        _TASK = None
+        _TASK = _BEATS = None
         return None
     try:
         futures = [pool.submit(_run, item) for item in items]
         results = []
         for future in futures:
-            results.append(wait_for(future, should_stop, stall_seconds))
+            results.append(wait_for(future, should_stop, stall_seconds, beats))
         return results
     except (BrokenProcessPool, Stalled):
         # a worker died (killed, or a forked copy of a threaded host that could not
@@ -172,4 +191,4 @@ def forked_map(task, items, processes, should_stop=None, stall_seconds=None):
         return None
     finally:
         stop(pool)
-        _TASK = None
+        _TASK = _BEATS = None

@@ -25,7 +25,7 @@ import numpy as np
 
 from .errors import Cancelled
 from .family import dot3
-from .parallel import STALL_SECONDS, forked_map, shared_array
+from .parallel import STALL_SECONDS, beat, forked_map, shared_array
 
 # Turning below this (radians) is float32 noise of the stored vertices, not a bend.
 NOISE = 1e-4
@@ -159,7 +159,7 @@ def polyline_measures(
 def in_chunks(fill, n, processes=1, should_stop=None):
     """Call ``fill((a, b), stop)`` over consecutive ranges of ``range(n)`` (at most CHUNK
     long): in forked workers when ``processes`` > 1, ``PARTS_PER_WORKER`` ranges each,
-    with ``stop`` None (``fill`` then writes into arrays made with
+    with ``stop`` = ``parallel.beat`` (``fill`` then writes into arrays made with
     ``parallel.shared_array`` before the call; the parent asks ``should_stop`` while it
     waits); else, or where the work cannot be shared, in this process, with ``stop`` =
     ``should_stop``, also asked before each range (raises ``Cancelled``)."""
@@ -170,7 +170,7 @@ def in_chunks(fill, n, processes=1, should_stop=None):
     if processes > 1 and len(parts) > 1:
 
         def task(part):
-            fill(part, None)
+            fill(part, beat)
 
         shared = forked_map(task, parts, processes, should_stop, STALL_SECONDS)
         if shared is not None:

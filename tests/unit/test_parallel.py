@@ -27,8 +27,8 @@ def test_rays_traced_in_two_processes_equal_those_traced_in_one(monkeypatch):
     calls, shares = [], []
     real = parallel.forked_map
 
-    def counting(task, items, processes, should_stop=None):
-        out = real(task, items, processes, should_stop)
+    def counting(task, items, *args, **kwargs):
+        out = real(task, items, *args, **kwargs)
         calls.append(out is not None)
         shares.append(len(items))
         return out
@@ -108,8 +108,8 @@ def test_nested_levels_filled_and_rays_laid_out_in_workers_equal_those_done_in_p
     calls = []
     real = parallel.forked_map
 
-    def counting(task, items, processes, should_stop=None):
-        out = real(task, items, processes, should_stop)
+    def counting(task, items, *args, **kwargs):
+        out = real(task, items, *args, **kwargs)
         calls.append((len(items), out is not None))
         return out
 
@@ -128,3 +128,17 @@ def test_nested_levels_filled_and_rays_laid_out_in_workers_equal_those_done_in_p
     np.testing.assert_allclose(one.traced.vertices, two.traced.vertices, rtol=0, atol=1e-5)
     np.testing.assert_array_equal(one.traced.counts, two.traced.counts)
     np.testing.assert_array_equal(one.index, two.index)
+
+
+@needs_fork
+def test_workers_that_beat_are_not_taken_for_stalled():
+    """An item longer than stall_seconds is waited for while its worker beats."""
+    import time
+
+    def slow(x):
+        for _ in range(20):
+            time.sleep(0.1)
+            parallel.beat()
+        return x
+
+    assert parallel.forked_map(slow, [1, 2], 2, stall_seconds=0.5) == [1, 2]
