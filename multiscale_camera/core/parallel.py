@@ -187,7 +187,7 @@ def forked_map(task, items, processes, should_stop=None, stall_seconds=None):
         return results
     except (BrokenProcessPool, Stalled):
         # a worker died (killed, or a forked copy of a threaded host that could not
-        # run): the caller does the work in-process rather than wait on it forever
+        # run) or hangs: the caller does the work in-process rather than wait for ever
         return None
     finally:
         stop(pool)
