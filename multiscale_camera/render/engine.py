@@ -36,6 +36,7 @@ class MultiscaleRenderEngine(bpy.types.RenderEngine):
             self.add_pass(name, channels, chan_id)
         loop_start = time.perf_counter()
         processes = workers.worker_count(frame.processes)
+        reported = len(frame.notices)
         try:
             for (row0, row1), passes in workers.render_tiles(
                 frame, pipeline.tiles(frame), processes, self.test_break
@@ -44,6 +45,10 @@ class MultiscaleRenderEngine(bpy.types.RenderEngine):
                 self.write_rows(passes, row0, row1, height, width)
                 self.update_progress(row1 / height)
                 self.update_stats("", stats_line(frame, row1, height, loop_start))
+                # what the tile loop had to say (workers given up) is said at once
+                for notice in frame.notices[reported:]:
+                    self.report({"WARNING"}, f"Multiscale: {notice}")
+                reported = len(frame.notices)
         except Cancelled:
             return
         seconds = time.perf_counter() - start

@@ -197,3 +197,18 @@ def test_render_workers_are_one_per_core_headless_and_none_with_a_window(empty_s
     empty_scene.render.threads_mode = "FIXED"
     empty_scene.render.threads = 3
     assert render_processes_of(empty_scene) == 3
+
+
+@pytest.mark.skipif(workers.fork_context() is None, reason="no fork on this platform")
+def test_render_says_when_its_workers_were_given_up(empty_scene, monkeypatch, tmp_path, capfd):
+    """The engine reported its notices before the tile loop only, so a worker that died
+    (or stalled) during it went unsaid; the warning now reaches the user."""
+    two_camera_scene(empty_scene, 64, 48)
+    monkeypatch.setattr(workers, "MIN_RAYS", 0)
+    monkeypatch.setattr(workers, "_render_tile", _die)
+    empty_scene.render.threads_mode = "FIXED"
+    empty_scene.render.threads = 2
+    empty_scene.render.filepath = str(tmp_path / "out.png")
+    bpy.ops.render.render(write_still=True)
+    assert f"Multiscale: {workers.WORKER_DIED}" in capfd.readouterr().out
+    assert (tmp_path / "out.png").exists()
