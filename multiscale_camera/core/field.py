@@ -773,7 +773,7 @@ class FieldTracer:
 
     def _workers(self, rays):
         """Worker processes for ``rays`` rays: 1 (in-process) when too few to share."""
-        workers = self.processes if self.processes > 0 else parallel.cores()
+        workers = parallel.worker_count(self.processes)
         return min(workers, rays // MIN_RAYS_PER_PROCESS)
 
     def _shared(self, task, rays, should_stop):

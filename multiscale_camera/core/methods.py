@@ -37,7 +37,7 @@ from .field import (
 from .guides import DEFAULT_SEGMENTS, build_guides, curved_rays
 from .harmonic import mask_weights
 from .nested import NestedDomain, ScaleField, choose_levels, solve_levels
-from .parallel import cores
+from .parallel import worker_count
 from .solvers import solve_membership
 from .trace import StopReason
 from .validate import check_rig, conflict_messages, guard_messages
@@ -547,7 +547,7 @@ def _prepare_nested(rig, settings, should_stop):
     if levels.capped:
         fld.warnings.append(capped_message(settings, levels.wanted_cell, levels.grids[-1].cell))
     families = [Family(rig.cameras, i, rig.beta) for i in range(len(rig.cameras))]
-    workers = settings.processes if settings.processes > 0 else cores()
+    workers = worker_count(settings.processes)
     solved = solve_levels(rig, levels.grids, families, fill_membership, should_stop, workers)
     t1 = time.perf_counter()
     if not solved.converged:

@@ -61,6 +61,14 @@ def cores():
         return os.cpu_count() or 1
 
 
+def worker_count(requested=0):
+    """int, processes to use: ``requested`` if positive, else one per core (``cores``);
+    1 keeps the work in this process."""
+    if requested and requested > 0:
+        return int(requested)
+    return cores()
+
+
 def worker_init():
     """A worker ends when its pool terminates it, whatever handlers the host installed,
     and leaves Ctrl+C to the parent."""

@@ -12,7 +12,7 @@ from ..adapters.scene import field_settings, render_processes_of, rig_from_scene
 from ..core.fingerprint import field_key
 from ..core.methods import prepare
 from ..core.occupancy import Occupancy
-from ..core.parallel import cores
+from ..core.parallel import worker_count
 from ..core.sampling import DEFAULT_TOLERANCE_PX, RaySampler, sample_offsets
 from ..core.validate import crossing_messages, empty_mask_messages
 from ..io import cache
@@ -49,7 +49,8 @@ class Frame:
     notices : list of str, for the user. seconds : dict, stage timings.
     sampler : core.sampling.RaySampler. bounds : ((3,), (3,)) float64 padded scene box
         or None. samples : int, rays per pixel. filter_width : float, pixels.
-    processes : int, worker processes for the tiles (0: one per core).
+    processes : int, worker processes for the tiles, the simplification and the ray
+        tables (0: one per core; ``adapters.scene.render_processes_of``).
     occupancy : core.occupancy.Occupancy of the triangles in ``bounds``, or None.
     casts, shadow_casts, rays : int, counted as the render goes.
     """
@@ -230,9 +231,8 @@ def sampler_for(ray_field, tol_px, bounds, should_stop=None, occupancy=None, pro
         cache.clear()
         clearance = None if occupancy is None else occupancy.clearance
         occupied = None if occupancy is None else occupancy.any_between
-        workers = processes if processes > 0 else cores()
         cache[key] = RaySampler(
-            ray_field, key[0], bounds, should_stop, clearance, occupied, workers
+            ray_field, key[0], bounds, should_stop, clearance, occupied, worker_count(processes)
         )
     return cache[key]
 
