@@ -21,7 +21,13 @@ which cost Cycles more per pixel than camera 1's view: "content_ratio_estimate" 
 each camera's plain render time by the share of the picture it shows (the mean over the
 pixels of the tent weights max(0, 1 - |membership - i|)), an estimate of what a plain
 render of the multiscale picture would cost against camera 1's, and "overhead_ratio"
-is the hand-off's time over that estimate. The ray field is built before the timed renders (it
+is the hand-off's time over that estimate. Cycles charges for an OSL custom camera as
+such: "custom_camera_floor" is a plain render from a copy of camera 1 made a custom
+camera whose shader computes camera 1's own pinhole rays and nothing else (the hand-off
+shader's pinhole branch, one block), so "custom_camera_floor_ratio" is what any OSL
+custom camera costs here, and "lowest_ratio_estimate" (that floor times the picture's
+own cost) is the ratio a hand-off that cost nothing of its own (no march, no tables, no
+texture lookups) would show. The ray field is built before the timed renders (it
 is cached across renders while the rig is unchanged); the first hand-off render, which
 also builds it, is reported on its own. Times are wall-clock seconds of
 ``bpy.ops.render.render()`` and the process's CPU seconds over all threads (less
@@ -34,6 +40,7 @@ import argparse
 import json
 import os
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -85,6 +92,38 @@ def dense_scene(args):
     return build_scene(args.width, args.height, DENSE_TRIANGLES)
 
 
+def floor_camera(scene, camera, pinhole_camera, folder):
+    """A copy of ``camera`` (linked to ``scene``) made an OSL custom camera whose shader
+    computes ``pinhole_camera``'s own rays (core.camera.PinholeCamera of ``camera`` at the
+    render size): the hand-off's shader with one pinhole block over the whole image."""
+    import hashlib
+
+    import numpy as np
+
+    from multiscale_camera.render import cycles
+
+    width, height = pinhole_camera.width, pinhole_camera.height
+    blocks = cycles.PinholeBlocks(
+        max(width, height),
+        np.ones((1, 1), dtype=np.int32),
+        cycles.pinhole_affine(pinhole_camera, np.asarray(camera.matrix_world))[None],
+    )
+    bytecode = cycles.compile_shader(folder, blocks)
+    copy = camera.copy()
+    copy.data = camera.data.copy()
+    copy.name = copy.data.name = "custom camera floor"
+    scene.collection.objects.link(copy)
+    data = copy.data
+    data.type = "CUSTOM"
+    data.custom_mode = "INTERNAL"
+    data.custom_bytecode = bytecode
+    data.custom_bytecode_hash = hashlib.sha1(bytecode.encode()).hexdigest()
+    # the shader's rays start on camera 1's near plane
+    data.clip_end = camera.data.clip_end - camera.data.clip_start
+    data.clip_start = 1e-6
+    return copy
+
+
 def set_rig(scene, items):
     """Make the scene's rig ``items``: [(camera object, mask image)]."""
     scene.multiscale.cameras.clear()
@@ -124,11 +163,19 @@ def measure(scene, args):
     first, _ = timed_render("MULTISCALE")
     set_rig(scene, one_camera)
     timed_render("MULTISCALE")  # builds the one-camera field
-    runs = {"plain": [], "handoff": [], "one_camera": []}
+    one_frame = pipeline.prepare_frame(bpy.context.evaluated_depsgraph_get())
+    with tempfile.TemporaryDirectory() as folder:
+        floor = floor_camera(scene, camera1, one_frame.rig.cameras[0], folder)
+    scene.camera = floor
+    timed_render("CYCLES")  # warm-up: the custom camera's kernels
+    scene.camera = camera1
+    runs = {"plain": [], "handoff": [], "one_camera": [], "custom_camera_floor": []}
     runs.update({f"plain_camera_{i + 1}": [] for i in range(1, len(rig))})
     stages, blocks = [], {}
     for _ in range(args.repeats):
         runs["plain"].append(timed_render("CYCLES"))
+        scene.camera = floor
+        runs["custom_camera_floor"].append(timed_render("CYCLES"))
         for i in range(1, len(rig)):
             scene.camera = rig[i][0]
             runs[f"plain_camera_{i + 1}"].append(timed_render("CYCLES"))
@@ -141,6 +188,7 @@ def measure(scene, args):
         runs["one_camera"].append(timed_render("MULTISCALE"))
         blocks["one_camera"] = dict(cycles.LAST_BLOCKS)
     set_rig(scene, rig)
+    bpy.data.cameras.remove(floor.data)
     load_end = os.getloadavg()[0]
 
     depsgraph = bpy.context.evaluated_depsgraph_get()
@@ -162,6 +210,7 @@ def measure(scene, args):
     content = sum(w * t for w, t in zip(shares, plain_times, strict=True)) / (
         sum(shares) * wall["plain"]
     )
+    floor_ratio = wall["custom_camera_floor"] / wall["plain"]
     return {
         "triangles": triangles,
         "cameras": len(rig),
@@ -181,6 +230,9 @@ def measure(scene, args):
         "camera_shares": [round(w, 3) for w in shares],
         "content_ratio_estimate": round(content, 3),
         "overhead_ratio": round(ratio / content, 3),
+        "custom_camera_floor_ratio": round(floor_ratio, 3),
+        "custom_camera_floor_cpu_ratio": round(cpu["custom_camera_floor"] / cpu["plain"], 3),
+        "lowest_ratio_estimate": round(floor_ratio * content, 3),
         "meets_target": bool(ratio <= TARGET_RATIO),
         "load_average": [round(load_start, 2), round(load_end, 2)],
     }
@@ -241,7 +293,9 @@ def main():
             f"plain: overhead alone) {figures['one_camera_ratio']:.2f}x; the multiscale "
             f"picture's own cost, estimated from plain renders of each camera, "
             f"{figures['content_ratio_estimate']:.2f}x, the hand-off "
-            f"{figures['overhead_ratio']:.2f}x that; "
+            f"{figures['overhead_ratio']:.2f}x that; any OSL custom camera "
+            f"{figures['custom_camera_floor_ratio']:.2f}x, so a hand-off costing nothing "
+            f"of its own would be {figures['lowest_ratio_estimate']:.2f}x; "
             f"march + tables {figures['march_and_tables_seconds']:.2f} s; "
             f"load {figures['load_average'][0]:.1f} to {figures['load_average'][1]:.1f}"
         )

@@ -11,7 +11,8 @@ whole tile loop: ray sampling, culling, casting, shading with its shadow rays, a
 passes), in-process per CPU second, over the time of the march alone (culling,
 conversion, casting, hit bookkeeping), and per second of the tile loop in the engine's
 worker processes (one per core by default) against one bare loop timed just before and
-after it; the time of the render with the field built cold (tiles in the engine's
+after it, and the share one process could reach were the casts its only cost (its
+segment casts over its segment and shadow casts, both at the raw rate); the time of the render with the field built cold (tiles in the engine's
 processes) and with it cached (the engine keeps built fields in memory), each as field
 + frame preparation + tiles; the cancel latency (from the first ``should_stop`` that
 says stop to the tile loop ending). CPU seconds (of this process, and of its reaped
@@ -290,6 +291,12 @@ def main():
         "engine_all_casts_share_of_raw_cpu": round(
             (frame.casts + frame.shadow_casts) / warm_cpu / raw_cpu, 3
         ),
+        # the share of raw one process could reach if everything but the casts (ray
+        # sampling, culling, shading, passes) took no time at all: its shadow casts run
+        # on the same tree at the same rate, and the target counts segment casts only
+        "engine_share_of_raw_ceiling_in_process": round(
+            frame.casts / (frame.casts + frame.shadow_casts), 3
+        ),
         "rays": frame.rays,
         "segment_casts": frame.casts,
         "shadow_casts": frame.shadow_casts,
@@ -349,7 +356,9 @@ def main():
         f"{processes} processes {pooled_casts / pooled / 1e6:.2f} M segment casts/s, "
         f"{pooled_casts / pooled / raw_around:.0%} of one bare loop; march alone "
         f"{frame.casts / march_time[1] / raw_cpu:.0%}, segment and shadow casts together "
-        f"{(frame.casts + frame.shadow_casts) / warm_cpu / raw_cpu:.0%}, "
+        f"{(frame.casts + frame.shadow_casts) / warm_cpu / raw_cpu:.0%}; one process "
+        f"could reach {frame.casts / (frame.casts + frame.shadow_casts):.0%} if only its "
+        f"casts took time, "
         f"{frame.casts / frame.rays:.2f} casts/ray "
         f"| {args.width}x{args.height} {len(frame.geometry)} tris: cold field {t2 - t0:.1f} s "
         f"(CPU {c2 - c0:.1f} s), cached field {t5 - t3:.1f} s (CPU {c5 - c3:.1f} s); tiles in "
