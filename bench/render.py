@@ -12,9 +12,10 @@ passes), in-process per CPU second, over the time of the march alone (culling,
 conversion, casting, hit bookkeeping), and per second of the tile loop in the engine's
 worker processes (one per core by default) against one bare loop timed just before and
 after it, and the share one process could reach were the casts its only cost (its
-segment casts over its segment and shadow casts, both at the raw rate); the time of the render with the field built cold (tiles in the engine's
-processes) and with it cached (the engine keeps built fields in memory), each as field
-+ frame preparation + tiles; the cancel latency (from the first ``should_stop`` that
+segment casts over its segment and shadow casts, both at the raw rate); the time of
+the render with the field built cold (tiles in the engine's processes) and with it
+cached (the engine keeps built fields in memory), each as field + frame preparation +
+tiles; the cancel latency (from the first ``should_stop`` that
 says stop to the tile loop ending). CPU seconds (of this process, and of its reaped
 workers where they run) are reported next to wall seconds: the machine may be shared.
 Writes bench/render.json.

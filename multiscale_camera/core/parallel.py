@@ -41,6 +41,15 @@ POLL_SECONDS = 0.1
 # Seconds with no item done after which workers on short items (a tile, a part of a
 # simplification: well under a second each) are taken for stuck.
 STALL_SECONDS = 20.0
+# How many times ``forked_map`` has given up its workers in this process (one died, or
+# all stalled): work that must tell the user compares ``given_up()`` before and after.
+_GIVEN_UP = [0]
+
+
+def given_up():
+    """int, how many times ``forked_map`` has given up its workers in this process (the
+    caller then did the work in-process: the same result, only slower)."""
+    return _GIVEN_UP[0]
 
 
 def fork_context():
@@ -196,6 +205,7 @@ def forked_map(task, items, processes, should_stop=None, stall_seconds=None):
     except (BrokenProcessPool, Stalled):
         # a worker died (killed, or a forked copy of a threaded host that could not
         # run) or hangs: the caller does the work in-process rather than wait for ever
+        _GIVEN_UP[0] += 1
         return None
     finally:
         stop(pool)

@@ -34,9 +34,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..core import parallel
 from ..core.errors import Cancelled
 from ..core.family import dot3
 from ..io.exr import ExrError, write_channels
+from .pipeline import WORKERS_GIVEN_UP
 from .tables import blocked_before, ray_tables
 
 # The custom camera (camera.type = 'CUSTOM') came with Blender 4.5.
@@ -519,12 +521,15 @@ def render(engine, depsgraph, frame):
 
     try:
         engine.update_stats("", "Multiscale: marching rays for Cycles")
+        given_up = parallel.given_up()
         try:
             tables = ray_tables(
                 frame, engine.test_break, progress=lambda f: engine.update_progress(0.2 * f)
             )
         except Cancelled:
             return True
+        if parallel.given_up() > given_up:
+            engine.report({"WARNING"}, f"Multiscale: {WORKERS_GIVEN_UP}")
         lap("march")
         if engine.test_break():
             return True

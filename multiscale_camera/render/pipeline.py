@@ -9,6 +9,7 @@ import numpy as np
 from ..adapters.lights import scene_lights, scene_world
 from ..adapters.meshes import scene_geometry
 from ..adapters.scene import field_settings, render_processes_of, rig_from_scene
+from ..core import parallel
 from ..core.fingerprint import field_key
 from ..core.methods import prepare
 from ..core.occupancy import Occupancy
@@ -31,6 +32,12 @@ PASSES = (
 # Depth written where a ray hits nothing, as Blender's own engines do.
 MISS_DEPTH = 1e10
 NO_MESH = "The scene has no visible mesh: only the world is rendered"
+# Worker processes of the field's trace, the simplification or the ray tables gave way.
+WORKERS_GIVEN_UP = (
+    "Worker processes died or stopped making progress (a forked copy of Blender can hang "
+    "on a lock another thread held); their work went on in Blender's process, only "
+    "slower. Render > Performance > Threads: Fixed at 1 keeps it there from the start"
+)
 NO_LIGHTS = "The scene has no lights: surfaces are lit by the world colour alone"
 # Bounds padding, a fraction of the scene's size: float32 BVH boxes round outwards.
 BOUNDS_PAD = 1e-4
@@ -125,6 +132,7 @@ def prepare_frame(depsgraph, should_stop=None):
     Cancelled: ``should_stop`` said so.
     """
     scene = depsgraph.scene
+    given_up = parallel.given_up()
     # volumes first: a missing or unusable volume file stops the render before the build
     volumes, volume_notices = prepare_volumes(depsgraph)
     t0 = time.perf_counter()
@@ -158,6 +166,8 @@ def prepare_frame(depsgraph, should_stop=None):
     processes = render_processes_of(scene)
     sampler = sampler_for(ray_field, tol, bounds, should_stop, occupancy, processes)
     t4 = time.perf_counter()
+    if parallel.given_up() > given_up:  # the field's trace or the simplification
+        notices.append(WORKERS_GIVEN_UP)
     return Frame(
         rig=rig,
         field=ray_field,

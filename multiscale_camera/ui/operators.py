@@ -221,6 +221,8 @@ class MULTISCALE_OT_compute_field(bpy.types.Operator):
         scene.multiscale.report = to_json(report)
         for notice in fld.warnings:
             self.report({"WARNING"}, notice)
+        if request.gave_up:
+            self.report({"WARNING"}, pipeline.WORKERS_GIVEN_UP)
         self.report(
             {"INFO"},
             f"{headline(report)} ({'built' if built else 'cached'}, "
@@ -256,6 +258,8 @@ class FieldRequest:
         self.field = self.cache.get(self.key, rig)
         self.built = False
         self.report = None
+        # whether the build's worker processes were given up (it went on in-process)
+        self.gave_up = False
         if self.field is not None:
             self.field.notices = list(rig.notices)
             # the report measured when the field was built (measuring takes a while)
@@ -263,9 +267,12 @@ class FieldRequest:
             self.report = dict(kept) if kept is not None else None
 
     def run(self, should_stop=None):
+        from ..core import parallel
         from ..core.methods import prepare
 
+        given_up = parallel.given_up()
         fld = prepare(self.rig, self.method, self.settings, should_stop)
+        self.gave_up = parallel.given_up() > given_up
         fld.notices = list(self.rig.notices)
         self.report = build_report(fld, self.quality, time.perf_counter() - self.start)
         fld.report = self.report

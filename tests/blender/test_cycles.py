@@ -2,6 +2,7 @@
 
 import os
 import tempfile
+import time
 
 import bpy
 import numpy as np
@@ -9,7 +10,7 @@ import pytest
 from scipy.ndimage import binary_erosion
 
 from multiscale_camera.io.exr import read_channels
-from multiscale_camera.render import cycles
+from multiscale_camera.render import cycles, workers
 from tests.exr import read_passes
 
 from .scenes import add_camera, add_mesh, mask_image, two_camera_scene
@@ -409,3 +410,35 @@ def test_tiled_cycles_render_is_not_lost(empty_scene, tmp_path):
     assert whole["Combined"][..., :3].mean() > 0.01
     np.testing.assert_array_equal(tiled["Combined"], whole["Combined"])
     np.testing.assert_array_equal(tiled["IndexOB"], whole["IndexOB"])
+
+
+@pytest.mark.skipif(workers.fork_context() is None, reason="no fork on this platform")
+def test_handoff_says_when_its_march_workers_were_given_up(
+    empty_scene, tmp_path, monkeypatch, capfd
+):
+    """The hand-off's tables, marched in workers that stalled, were marched again in
+    Blender's process without a word; the render now says why it was slow."""
+    from multiscale_camera.render import pipeline, tables
+
+    scene = empty_scene
+    two_camera_scene(scene, 64, 48)
+    scene.multiscale.shading = "CYCLES"
+    cycles_settings(scene, samples=1)
+    scene.render.threads_mode = "FIXED"
+    scene.render.threads = 2
+    monkeypatch.setattr(workers, "MIN_RAYS", 0)
+    monkeypatch.setattr(pipeline, "rows_per_tile", lambda width, rays=0, samples=1: 8)
+    monkeypatch.setattr(tables, "STALL_SECONDS", 0.5)
+    parent, march = os.getpid(), tables.march
+
+    def march_that_hangs_in_workers(*args):
+        if os.getpid() != parent:
+            time.sleep(30)
+        return march(*args)
+
+    monkeypatch.setattr(tables, "march", march_that_hangs_in_workers)
+    start = time.perf_counter()
+    passes = render(scene, tmp_path / "a.exr", "MULTISCALE")
+    assert time.perf_counter() - start < 30.0
+    assert f"Multiscale: {pipeline.WORKERS_GIVEN_UP}" in capfd.readouterr().out
+    assert set(np.unique(passes["IndexOB"])) >= {1.0, 2.0, 3.0}

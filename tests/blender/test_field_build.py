@@ -1,10 +1,13 @@
 """compute_field, the report and the field cache, driven headless."""
 
 import json
+import time
 
 import bpy
 import numpy as np
+import pytest
 
+from multiscale_camera.core import parallel
 from multiscale_camera.render import pipeline
 
 from .scenes import mask_image, two_camera_scene
@@ -49,3 +52,30 @@ def test_field_is_reused_until_the_rig_changes(empty_scene):
     assert pipeline.build_field(scene)[1]
     scene.multiscale.quality = "PREVIEW"
     assert pipeline.build_field(scene)[1]
+
+
+@pytest.mark.skipif(parallel.fork_context() is None, reason="no fork on this platform")
+def test_compute_field_says_when_its_workers_were_given_up(empty_scene, monkeypatch, capfd):
+    """The field's trace, in workers that stalled, went on in Blender's process without a
+    word; Compute Field now says why it was slow, and the field is the one traced there."""
+    from multiscale_camera.core import field as field_module
+
+    scene = empty_scene
+    two_camera_scene(scene, 64, 48)
+    scene.render.threads_mode = "FIXED"
+    scene.render.threads = 1
+    pipeline.clear_fields()
+    alone, _ = pipeline.build_field(scene)
+    pipeline.clear_fields()
+    scene.render.threads = 2
+    monkeypatch.setattr(field_module, "MIN_RAYS_PER_PROCESS", 16)
+    monkeypatch.setattr(parallel, "STALL_SECONDS", 0.5)
+    # ``beat`` is what the trace's workers call as they go (the parent asks Esc)
+    monkeypatch.setattr(parallel, "beat", lambda: time.sleep(30))
+    start = time.perf_counter()
+    assert bpy.ops.multiscale.compute_field() == {"FINISHED"}
+    assert time.perf_counter() - start < 30.0
+    assert pipeline.WORKERS_GIVEN_UP in capfd.readouterr().out
+    rescued, built = pipeline.build_field(scene)
+    assert not built
+    np.testing.assert_array_equal(rescued.traced.vertices, alone.traced.vertices)

@@ -212,3 +212,32 @@ def test_render_says_when_its_workers_were_given_up(empty_scene, monkeypatch, tm
     bpy.ops.render.render(write_still=True)
     assert f"Multiscale: {workers.WORKER_DIED}" in capfd.readouterr().out
     assert (tmp_path / "out.png").exists()
+
+
+@pytest.mark.skipif(workers.fork_context() is None, reason="no fork on this platform")
+def test_frame_says_when_the_simplification_workers_were_given_up(empty_scene, monkeypatch):
+    """Workers of the ray simplification that stalled gave way to the parent without a
+    word: the frame was only slower, and nobody said why. Now its notices say so; the
+    simplified rays are those made in-process."""
+    from multiscale_camera.core import sampling
+
+    two_camera_scene(empty_scene, 64, 48)
+    empty_scene.render.threads_mode = "FIXED"
+    empty_scene.render.threads = 1
+    alone = frame_of(empty_scene)
+    assert pipeline.WORKERS_GIVEN_UP not in alone.notices
+    alone.field.__dict__.pop("_samplers")
+    empty_scene.render.threads = 2
+    monkeypatch.setattr(sampling, "CHUNK", 64)
+    monkeypatch.setattr(sampling, "STALL_SECONDS", 0.5)
+    # ``beat`` is what the workers call as they go (the parent asks ``should_stop``)
+    monkeypatch.setattr(sampling, "beat", lambda: time.sleep(30))
+    start = time.perf_counter()
+    rescued = frame_of(empty_scene)
+    assert time.perf_counter() - start < 20.0
+    assert rescued.field is alone.field and pipeline.WORKERS_GIVEN_UP in rescued.notices
+    iy, ix = (a.ravel() for a in np.mgrid[0:48, 0:64])
+    a = alone.sampler.segments(ix + 0.5, iy + 0.5, ix, iy)
+    b = rescued.sampler.segments(ix + 0.5, iy + 0.5, ix, iy)
+    np.testing.assert_array_equal(a.offsets, b.offsets)
+    np.testing.assert_array_equal(a.origin, b.origin)

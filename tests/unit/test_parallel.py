@@ -91,8 +91,22 @@ def test_stalled_workers_leave_the_work_to_the_caller():
     import time
 
     start = time.perf_counter()
+    given_up = parallel.given_up()
     assert parallel.forked_map(lambda x: time.sleep(30), [1, 2], 2, stall_seconds=0.5) is None
     assert time.perf_counter() - start < 10
+    # counted, so that the work's caller can say why it was slow
+    assert parallel.given_up() == given_up + 1
+
+
+@needs_fork
+def test_workers_that_die_are_counted_as_given_up_and_done_work_is_not():
+    import os
+
+    given_up = parallel.given_up()
+    assert parallel.forked_map(lambda x: x * 2, [1, 2], 2) == [2, 4]
+    assert parallel.given_up() == given_up
+    assert parallel.forked_map(lambda x: os._exit(3), [1, 2], 2) is None
+    assert parallel.given_up() == given_up + 1
 
 
 def test_without_fork_the_work_stays_in_process(monkeypatch):
