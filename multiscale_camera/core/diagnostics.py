@@ -1,0 +1,160 @@
+"""What one job (a field build, a frame, a render) has to say, and how it is steered.
+
+A ``Diagnostics`` is made by whoever starts the work (an operator, the render engine,
+the viewport) and handed down through every stage: the stages add messages with a
+level, time themselves with ``stage``, ask ``check`` where they may stop, and report
+``progress``. The caller reads it back: ``messages`` for the user, ``seconds`` for the
+report. It replaces lists of notice strings carried on shared objects, ad-hoc timers and
+``should_stop`` callables checked by hand.
+
+A Diagnostics belongs to one job and one caller: a cached field is shared by many
+callers, so nothing a caller says is written onto the field. ``child`` gives a stage
+run elsewhere (a worker thread) its own messages and seconds with the same cancel check
+and progress; ``merge`` brings them back.
+"""
+
+from __future__ import annotations
+
+import enum
+import time
+from collections.abc import Callable, Iterable
+from contextlib import contextmanager
+from dataclasses import dataclass
+
+from .errors import Cancelled
+
+
+class Level(enum.IntEnum):
+    """How much a message matters; the order is the severity."""
+
+    INFO = 0
+    WARNING = 1
+    ERROR = 2
+
+
+@dataclass(frozen=True)
+class Message:
+    """One thing said to the user: ``text`` at ``level``, from ``stage`` (or None)."""
+
+    level: Level
+    text: str
+    stage: str | None = None
+
+
+class Diagnostics:
+    """Messages, seconds per stage, the cancel check and progress of one job.
+
+    Parameters
+    ----------
+    should_stop : callable () -> bool, or None
+        Asked by ``check``; True makes it raise ``Cancelled`` (Esc, a new stroke).
+    on_progress : callable (float) -> None, or None
+        Told the job's progress in [0, 1] by ``progress``.
+
+    Attributes
+    ----------
+    seconds : dict of str to float
+        Wall-clock seconds per stage name, summed over the stage's runs.
+    checks : int
+        How many times ``check`` was asked (a rough sign of life for a progress bar).
+    """
+
+    def __init__(
+        self,
+        should_stop: Callable[[], bool] | None = None,
+        on_progress: Callable[[float], None] | None = None,
+    ):
+        self._should_stop = should_stop
+        self._on_progress = on_progress
+        self._messages: list[Message] = []
+        self._stages: list[str] = []
+        self.seconds: dict[str, float] = {}
+        self.checks = 0
+
+    # --- messages ------------------------------------------------------------------
+
+    def say(self, text: str, level: Level = Level.WARNING) -> None:
+        """Add ``text`` at ``level`` (WARNING by default), once: a text already said at
+        that level is not repeated."""
+        stage = self._stages[-1] if self._stages else None
+        if any(m.text == text and m.level == level for m in self._messages):
+            return
+        self._messages.append(Message(Level(level), str(text), stage))
+
+    def warn(self, text: str) -> None:
+        self.say(text, Level.WARNING)
+
+    def info(self, text: str) -> None:
+        self.say(text, Level.INFO)
+
+    def extend(self, texts: Iterable[str], level: Level = Level.WARNING) -> None:
+        """``say`` each of ``texts``."""
+        for text in texts:
+            self.say(text, level)
+
+    @property
+    def messages(self) -> tuple[Message, ...]:
+        """Every message, in the order said."""
+        return tuple(self._messages)
+
+    def texts(self, level: Level | None = None) -> list[str]:
+        """The texts of the messages at ``level`` (all when None), in order."""
+        return [m.text for m in self._messages if level is None or m.level == level]
+
+    def since(self, count: int) -> tuple[Message, ...]:
+        """The messages said after the first ``count`` (a caller that reports as the
+        job goes keeps ``len(messages)`` and asks for what is new)."""
+        return tuple(self._messages[count:])
+
+    # --- time ----------------------------------------------------------------------
+
+    @contextmanager
+    def stage(self, name: str):
+        """Time the block as stage ``name`` (seconds add up over repeated runs);
+        messages said inside it name the stage."""
+        self._stages.append(name)
+        start = time.perf_counter()
+        try:
+            yield self
+        finally:
+            self.seconds[name] = self.seconds.get(name, 0.0) + time.perf_counter() - start
+            self._stages.pop()
+
+    # --- steering ------------------------------------------------------------------
+
+    @property
+    def stopped(self) -> bool:
+        """Whether the job was asked to stop (``should_stop`` says so)."""
+        self.checks += 1
+        return bool(self._should_stop is not None and self._should_stop())
+
+    def check(self) -> None:
+        """Raise ``Cancelled`` when the job was asked to stop."""
+        if self.stopped:
+            raise Cancelled()
+
+    def progress(self, fraction: float) -> None:
+        """Report the job's progress, ``fraction`` in [0, 1] (clipped)."""
+        if self._on_progress is not None:
+            self._on_progress(min(1.0, max(0.0, float(fraction))))
+
+    # --- composition -----------------------------------------------------------------
+
+    def child(self) -> Diagnostics:
+        """A Diagnostics with the same cancel check and progress, and its own messages
+        and seconds (for a stage whose messages the caller may keep or drop)."""
+        return Diagnostics(self._should_stop, self._on_progress)
+
+    def merge(self, other: Diagnostics) -> None:
+        """Add ``other``'s messages (those not said yet) and seconds to this one."""
+        for m in other.messages:
+            if not any(n.text == m.text and n.level == m.level for n in self._messages):
+                self._messages.append(m)
+        for name, sec in other.seconds.items():
+            self.seconds[name] = self.seconds.get(name, 0.0) + sec
+        self.checks += other.checks
+
+
+def diagnostics_of(diag: Diagnostics | None) -> Diagnostics:
+    """``diag``, or a fresh Diagnostics that never stops (for callers that pass none)."""
+    return diag if diag is not None else Diagnostics()
