@@ -40,8 +40,7 @@ def rig_for(config, width, height):
     import numpy as np
     import phantom
 
-    from multiscale_camera.core.camera import pixel_centres
-    from multiscale_camera.core.rig import Rig
+    from multiscale_camera.core.geometry import Rig, pixel_centres
     from tests.unit import rigs
 
     cams = tuple(

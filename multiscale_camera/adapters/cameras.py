@@ -2,8 +2,8 @@
 
 import numpy as np
 
-from ..core.camera import PinholeCamera
 from ..core.errors import RigError
+from ..core.geometry import PinholeCamera
 
 _TYPE_NAMES = {"ORTHO": "orthographic", "PANO": "panoramic", "CUSTOM": "a custom (OSL) camera"}
 

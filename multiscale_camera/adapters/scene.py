@@ -3,7 +3,7 @@
 import numpy as np
 
 from ..core.errors import RigError
-from ..core.rig import Rig, resolve_conflicts
+from ..core.geometry import Rig, resolve_conflicts
 from .cameras import pinhole_from_object, render_size
 from .masks import mask_from_image
 

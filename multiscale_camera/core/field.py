@@ -24,9 +24,8 @@ import numpy as np
 
 from . import parallel
 from .errors import Cancelled
-from .family import Family, dot3, solve3
+from .geometry import DEFAULT_SEGMENTS, Family, build_guides, curved_rays, dot3, solve3
 from .grid import FieldSampler, Grid
-from .guides import DEFAULT_SEGMENTS, build_guides, curved_rays
 from .trace import StopReason, rk4_streamlines
 
 # Cells across the smallest camera's near plane, per pixel of accuracy asked for: the

@@ -18,9 +18,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from .bundle import RayBundle
 from .errors import Cancelled, RigError, SolverDidNotConverge
-from .family import Family
 from .field import (
     CELLS_ACROSS_NEAR_PER_PX,
     MAX_STRIDE,
@@ -34,7 +32,7 @@ from .field import (
     run_on,
     step_cells,
 )
-from .guides import DEFAULT_SEGMENTS, build_guides, curved_rays
+from .geometry import DEFAULT_SEGMENTS, Family, RayBundle, build_guides, curved_rays
 from .harmonic import mask_weights
 from .nested import NestedDomain, ScaleField, choose_levels, solve_levels
 from .parallel import worker_count

@@ -27,8 +27,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import parallel
+from .geometry import DEFAULT_SEGMENTS, build_guides, curved_rays
 from .grid import FieldSampler, Grid
-from .guides import DEFAULT_SEGMENTS, build_guides, curved_rays
 from .solvers import solve_membership
 
 # Level L starts where the cell the bundle asks for falls below this many times level

@@ -14,7 +14,7 @@ Pure numpy.
 
 import numpy as np
 
-from .family import dot3
+from .geometry import dot3
 
 # Cells along the longest side of the box: fine enough that a bending stretch of short
 # segments above a ground plane finds its cells empty, coarse enough to build in a blink.

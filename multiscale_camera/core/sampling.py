@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import Cancelled
-from .family import dot3
+from .geometry import dot3
 from .parallel import STALL_SECONDS, beat, forked_map, shared_array
 
 # Turning below this (radians) is float32 noise of the stored vertices, not a bend.

@@ -18,10 +18,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import Cancelled, SolverDidNotConverge
-from .family import Family, dot3
 from .field import FieldTracer, Traced, fill_membership
+from .geometry import DEFAULT_SEGMENTS, Family, build_guides, curved_rays, dot3
 from .grid import FieldSampler
-from .guides import DEFAULT_SEGMENTS, build_guides, curved_rays
 from .methods import (
     RayField,
     Settings,

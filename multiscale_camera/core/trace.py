@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .family import dot3
+from .geometry import dot3
 
 # Rays traced together: bounds the memory of the state, the stages and the vertex
 # buffer (about 65536 * K * 12 bytes for K recorded vertices).

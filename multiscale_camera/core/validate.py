@@ -99,7 +99,7 @@ def guard_pairs(cameras, beta, size):
     -------
     list of int.
     """
-    from .guides import build_guides
+    from .geometry import build_guides
 
     if len(cameras) < 2:
         return []
@@ -220,7 +220,7 @@ def bending_paths(rig, i, limit=MAX_CHECK_RAYS):
     stages : list of i arrays (P, S + 1, 3) float64, world units: the rays R_i from
         camera j's near plane to camera j+1's, for j = 0 .. i-1 (S vertices a stage).
     """
-    from .guides import DEFAULT_SEGMENTS, build_guides, curved_rays
+    from .geometry import DEFAULT_SEGMENTS, build_guides, curved_rays
 
     ix, iy = sample_pixels(rig.masks[i], limit)
     if len(ix) == 0:

@@ -7,7 +7,7 @@ import numpy as np
 from ..adapters.meshes import scene_geometry
 from ..adapters.scene import rig_from_scene
 from ..core import validate
-from ..core.bundle import RayBundle
+from ..core.geometry import RayBundle
 from .raycast import march
 
 

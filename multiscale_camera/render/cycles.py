@@ -36,7 +36,7 @@ import numpy as np
 
 from ..core import parallel
 from ..core.errors import Cancelled
-from ..core.family import dot3
+from ..core.geometry import dot3
 from ..io.exr import ExrError, write_channels
 from .pipeline import WORKERS_GIVEN_UP
 from .tables import blocked_before, ray_tables

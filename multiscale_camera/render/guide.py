@@ -3,7 +3,7 @@ mask while it is painted: our solid raycast, for when no GPU context can run Wor
 
 import numpy as np
 
-from ..core.bundle import RayBundle
+from ..core.geometry import RayBundle
 from .raycast import march
 from .shade import face_normals
 

@@ -19,9 +19,8 @@ from operator import itemgetter
 
 import numpy as np
 
-from ..core.bundle import RayBundle
 from ..core.errors import Cancelled
-from ..core.family import dot3
+from ..core.geometry import RayBundle, dot3
 from ..core.sampling import greedy_keep, polyline_measures, segments_from_points
 
 # Segments between two calls of ``should_stop``: a few milliseconds of casting.

@@ -11,7 +11,7 @@ from itertools import repeat
 
 import numpy as np
 
-from ..core.family import dot3
+from ..core.geometry import dot3
 from .raycast import cast_all, flat_triples, gc_paused, triangle_planes
 
 # Shadow-ray origins are lifted off the surface by this fraction of the scene's size,

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..core.bundle import RayBundle
+from ..core.geometry import RayBundle
 from ..core.parallel import STALL_SECONDS, forked_map, shared_array
 from ..core.sampling import Segments
 from .raycast import bundle_segments, march

@@ -3,7 +3,7 @@
 import numpy as np
 from mathutils.bvhtree import BVHTree
 
-from multiscale_camera.core.bundle import RayBundle
+from multiscale_camera.core.geometry import RayBundle
 from multiscale_camera.render.raycast import march
 from multiscale_camera.render.tables import first_hit_segments
 

@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from multiscale_camera.core.camera import PinholeCamera, pixel_centres
+from multiscale_camera.core.geometry import PinholeCamera, pixel_centres
 
 
 def look_at(eye, target, up=(0.0, 0.0, 1.0)):
@@ -152,7 +152,7 @@ def contradictory_rig(width=192, height=108):
     """Two cameras at 4x whose masks overlap: the same pixels asked of both. As the scene
     adapter does, the smaller camera keeps the shared pixels, so the two preserved regions
     touch with no room for a transition."""
-    from multiscale_camera.core.rig import resolve_conflicts
+    from multiscale_camera.core.geometry import resolve_conflicts
 
     cams = _chain((20.0, 5.0), (8.0, 2.5), (0, 20), width, height)
     masks, _notices = resolve_conflicts(

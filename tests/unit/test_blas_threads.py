@@ -11,7 +11,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from multiscale_camera.core.family import Family
+from multiscale_camera.core.geometry import Family
 from multiscale_camera.core.metrics import bending_active
 from multiscale_camera.core.solvers import _dot
 from multiscale_camera.render.shade import _irradiance_factor

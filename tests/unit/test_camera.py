@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from multiscale_camera.core.camera import pixel_centres
+from multiscale_camera.core.geometry import pixel_centres
 
 from .rigs import camera
 

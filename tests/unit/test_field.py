@@ -7,11 +7,10 @@ import pytest
 from scipy.integrate import solve_ivp
 
 from multiscale_camera.core.errors import RigError
-from multiscale_camera.core.family import Family
 from multiscale_camera.core.field import FieldTracer, choose_grid, fill_membership
+from multiscale_camera.core.geometry import Family, Rig
 from multiscale_camera.core.methods import prepare, settings_for
 from multiscale_camera.core.report import build_report
-from multiscale_camera.core.rig import Rig
 from multiscale_camera.core.solvers import solve_membership
 from multiscale_camera.core.validate import turn_deg
 

@@ -1,6 +1,6 @@
 import numpy as np
 
-from multiscale_camera.core.guides import GUARD_FRACTION, bezier, build_guides, curved_rays
+from multiscale_camera.core.geometry import GUARD_FRACTION, bezier, build_guides, curved_rays
 
 from .rigs import camera, two_camera_rig
 

@@ -2,8 +2,8 @@ import numpy as np
 import pytest
 
 from multiscale_camera.core.errors import RigError
+from multiscale_camera.core.geometry import Rig, resolve_conflicts
 from multiscale_camera.core.methods import prepare, settings_for
-from multiscale_camera.core.rig import Rig, resolve_conflicts
 
 from .rigs import two_camera_rig
 

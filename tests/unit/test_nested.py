@@ -5,8 +5,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from multiscale_camera.core.family import Family
 from multiscale_camera.core.field import choose_grid, fill_membership, scheduled_rays
+from multiscale_camera.core.geometry import Family, Rig
 from multiscale_camera.core.grid import sample
 from multiscale_camera.core.methods import prepare, settings_for
 from multiscale_camera.core.nested import (
@@ -17,7 +17,6 @@ from multiscale_camera.core.nested import (
     solve_levels,
 )
 from multiscale_camera.core.report import build_report
-from multiscale_camera.core.rig import Rig
 
 from .rigs import three_camera_rig, zoom1000_rig
 

@@ -10,8 +10,8 @@ import pytest
 from multiscale_camera.core import field as field_module
 from multiscale_camera.core import parallel
 from multiscale_camera.core.errors import Cancelled
+from multiscale_camera.core.geometry import Rig
 from multiscale_camera.core.methods import prepare, settings_for
-from multiscale_camera.core.rig import Rig
 
 from .rigs import three_camera_rig
 

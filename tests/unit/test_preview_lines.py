@@ -4,9 +4,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from multiscale_camera.core.bundle import RayBundle
+from multiscale_camera.core.geometry import RayBundle, Rig
 from multiscale_camera.core.methods import RayField
-from multiscale_camera.core.rig import Rig
 from multiscale_camera.ui.preview import PALETTE, camera_colour, frustum_lines, preview_lines
 
 from .rigs import two_camera_rig

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from multiscale_camera.core import parallel, sampling
+from multiscale_camera.core.geometry import Rig
 from multiscale_camera.core.methods import Settings, prepare
-from multiscale_camera.core.rig import Rig
 
 from .rigs import two_camera_rig
 

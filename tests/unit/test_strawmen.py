@@ -6,10 +6,9 @@ import dataclasses
 import numpy as np
 from scipy import ndimage
 
-from multiscale_camera.core.camera import pixel_centres
+from multiscale_camera.core.geometry import Rig, pixel_centres
 from multiscale_camera.core.methods import prepare_scalar_field, settings_for
 from multiscale_camera.core.report import build_report
-from multiscale_camera.core.rig import Rig
 from multiscale_camera.core.strawmen import (
     nearest_mask_pixels,
     prepare_linear,

@@ -4,8 +4,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..errors import RigError
 from .camera import PinholeCamera
-from .errors import RigError
 
 
 @dataclass(frozen=True)
