@@ -22,7 +22,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from multiscale_camera.core.solvers import (  # noqa: E402
+from multiscale_camera.core.field import (  # noqa: E402
     explicit_diffusion,
     solve_membership,
 )

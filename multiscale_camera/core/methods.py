@@ -21,23 +21,25 @@ import numpy as np
 from .errors import Cancelled, RigError, SolverDidNotConverge
 from .field import (
     CELLS_ACROSS_NEAR_PER_PX,
-    MAX_STRIDE,
     MIN_CELLS_ACROSS_NEAR,
     FieldTracer,
+    NestedDomain,
+    ScaleField,
+    StopReason,
     Traced,
     choose_grid,
+    choose_levels,
     fill_membership,
+    mask_weights,
     merge,
     near_plane_width,
     run_on,
+    solve_levels,
+    solve_membership,
     step_cells,
 )
 from .geometry import DEFAULT_SEGMENTS, Family, RayBundle, build_guides, curved_rays
-from .harmonic import mask_weights
-from .nested import NestedDomain, ScaleField, choose_levels, solve_levels
 from .parallel import worker_count
-from .solvers import solve_membership
-from .trace import StopReason
 from .validate import check_rig, conflict_messages, guard_messages
 
 
@@ -256,6 +258,11 @@ def _across(d, t):
     arc-length layout lets neighbouring vertices slide along their rays, which moves
     nothing in the image."""
     return np.linalg.norm(d - (d * t).sum(-1, keepdims=True) * t, axis=-1)
+
+
+# Lattice stride bounds in pixels: one traced ray per stride x stride block, the others
+# interpolated (rays bend on the scale of a cell, many pixels wide).
+MAX_STRIDE = 16
 
 
 # Ray vertices weighed together by ``_AdaptiveLattice.deviation`` (about 24 bytes each
@@ -624,8 +631,7 @@ def field_to_arrays(fld):
     import dataclasses
     import json
 
-    from .field import Traced
-    from .grid import Grid
+    from .field import Grid, Traced
 
     out = {}
     meta = {"version": ARRAYS_VERSION, "class": type(fld).__name__, "plain": {}}
@@ -672,8 +678,7 @@ def field_from_arrays(arrays, rig):
     """
     import json
 
-    from .field import Traced
-    from .grid import Grid
+    from .field import Grid, Traced
 
     meta = json.loads(bytes(np.asarray(arrays["meta"], dtype=np.uint8)).decode())
     if meta.get("version") != ARRAYS_VERSION:

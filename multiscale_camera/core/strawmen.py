@@ -18,9 +18,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import Cancelled, SolverDidNotConverge
-from .field import FieldTracer, Traced, fill_membership
+from .field import FieldSampler, FieldTracer, Traced, fill_membership, solve_membership
 from .geometry import DEFAULT_SEGMENTS, Family, build_guides, curved_rays, dot3
-from .grid import FieldSampler
 from .methods import (
     RayField,
     Settings,
@@ -29,7 +28,6 @@ from .methods import (
     guard_warnings,
     trace_field,
 )
-from .solvers import solve_membership
 from .validate import check_rig
 
 # --- LINEAR ----------------------------------------------------------------------------

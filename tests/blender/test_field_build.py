@@ -58,7 +58,7 @@ def test_field_is_reused_until_the_rig_changes(empty_scene):
 def test_compute_field_says_when_its_workers_were_given_up(empty_scene, monkeypatch, capfd):
     """The field's trace, in workers that stalled, went on in Blender's process without a
     word; Compute Field now says why it was slow, and the field is the one traced there."""
-    from multiscale_camera.core import field as field_module
+    from multiscale_camera.core.field import tracer as field_module
 
     scene = empty_scene
     two_camera_scene(scene, 64, 48)

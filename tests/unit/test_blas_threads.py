@@ -11,9 +11,9 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from multiscale_camera.core.field.solvers import _dot
 from multiscale_camera.core.geometry import Family
 from multiscale_camera.core.metrics import bending_active
-from multiscale_camera.core.solvers import _dot
 from multiscale_camera.render.shade import _irradiance_factor
 
 from .rigs import three_camera_rig

@@ -8,8 +8,8 @@ ROOT = Path(__file__).resolve().parents[2]
 def test_core_imports_neither_bpy_nor_mathutils():
     code = (
         "import sys, pkgutil, importlib, multiscale_camera.core as core; "
-        "[importlib.import_module('multiscale_camera.core.' + m.name) "
-        "for m in pkgutil.iter_modules(core.__path__)]; "
+        "[importlib.import_module(m.name) "
+        "for m in pkgutil.walk_packages(core.__path__, 'multiscale_camera.core.')]; "
         "bad = sorted(m for m in sys.modules "
         "if m.split('.')[0] in ('bpy', 'mathutils', 'bmesh', 'gpu')); "
         "print(bad); sys.exit(1 if bad else 0)"

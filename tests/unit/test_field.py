@@ -7,11 +7,10 @@ import pytest
 from scipy.integrate import solve_ivp
 
 from multiscale_camera.core.errors import RigError
-from multiscale_camera.core.field import FieldTracer, choose_grid, fill_membership
+from multiscale_camera.core.field import FieldTracer, choose_grid, fill_membership, solve_membership
 from multiscale_camera.core.geometry import Family, Rig
 from multiscale_camera.core.methods import prepare, settings_for
 from multiscale_camera.core.report import build_report
-from multiscale_camera.core.solvers import solve_membership
 from multiscale_camera.core.validate import turn_deg
 
 from .rigs import camera, disk_masks, orbit, zoom_rig
@@ -201,8 +200,8 @@ def test_family_jacobian_matches_central_differences():
 
 @pytest.mark.parametrize("nested", [False, True])
 def test_a_solve_that_does_not_converge_is_reported(monkeypatch, nested):
+    import multiscale_camera.core.field.nested as nested_grids
     import multiscale_camera.core.methods as methods
-    import multiscale_camera.core.nested as nested_grids
     from multiscale_camera.core.errors import SolverDidNotConverge
 
     def stalled(values, constrained, **_kw):

@@ -4,13 +4,15 @@ import numpy as np
 import pytest
 from scipy.interpolate import RegularGridInterpolator
 
-from multiscale_camera.core.grid import FieldSampler, Grid, sample
-from multiscale_camera.core.trace import (
+from multiscale_camera.core.field import (
     MIDPOINT,
     RK4,
+    FieldSampler,
+    Grid,
     StopReason,
     Streamlines,
     rk4_streamlines,
+    sample,
 )
 
 

@@ -4,7 +4,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from multiscale_camera.core.errors import RigError
-from multiscale_camera.core.harmonic import mask_weights
+from multiscale_camera.core.field import mask_weights
 
 from .rigs import disk_masks
 

@@ -5,17 +5,19 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from multiscale_camera.core.field import choose_grid, fill_membership, scheduled_rays
-from multiscale_camera.core.geometry import Family, Rig
-from multiscale_camera.core.grid import sample
-from multiscale_camera.core.methods import prepare, settings_for
-from multiscale_camera.core.nested import (
+from multiscale_camera.core.field import (
     BAND_CELLS,
     NestedDomain,
     ScaleField,
+    choose_grid,
     choose_levels,
+    fill_membership,
+    sample,
+    scheduled_rays,
     solve_levels,
 )
+from multiscale_camera.core.geometry import Family, Rig
+from multiscale_camera.core.methods import prepare, settings_for
 from multiscale_camera.core.report import build_report
 
 from .rigs import three_camera_rig, zoom1000_rig

@@ -7,9 +7,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from multiscale_camera.core import field as field_module
 from multiscale_camera.core import parallel
 from multiscale_camera.core.errors import Cancelled
+from multiscale_camera.core.field import tracer as field_module
 from multiscale_camera.core.geometry import Rig
 from multiscale_camera.core.methods import prepare, settings_for
 

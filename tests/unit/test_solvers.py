@@ -5,13 +5,13 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from bench.solvers import cones  # the benchmark's membership-like problem
-from multiscale_camera.core import solvers
-from multiscale_camera.core.solvers import (
+from multiscale_camera.core.field import (
     ISOLATED_VALUE,
     apply_laplacian,
     explicit_diffusion,
     isolated_voxels,
     solve_membership,
+    solvers,
 )
 
 

@@ -26,8 +26,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import parallel
-from .geometry import DEFAULT_SEGMENTS, build_guides, curved_rays
+from .. import parallel
+from ..errors import Cancelled
+from ..geometry import DEFAULT_SEGMENTS, build_guides, curved_rays
 from .grid import FieldSampler, Grid
 from .solvers import solve_membership
 
@@ -383,7 +384,6 @@ def solve_levels(rig, grids, families, fill_membership, should_stop=None, proces
     -------
     LevelSolve
     """
-    from .errors import Cancelled
 
     shared = None
     if processes > 1:

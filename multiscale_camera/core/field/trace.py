@@ -8,7 +8,8 @@ for a cheaper second-order trace.
 
 All rays of a chunk advance together, vectorised; a ray that stops leaves the active
 set, so later stages evaluate the field only where rays are still running. Why each
-ray stopped is a ``StopReason``, as VTK's stream tracer records it.
+ray stopped is a ``StopReason``, as VTK's stream tracer records it. ``Traced`` holds a
+trace's rays resampled to one layout; ``merge`` gathers the parts of a shared trace.
 """
 
 import enum
@@ -16,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .geometry import dot3
+from ..geometry import dot3
 
 # Rays traced together: bounds the memory of the state, the stages and the vertex
 # buffer (about 65536 * K * 12 bytes for K recorded vertices).
@@ -418,3 +419,72 @@ def _assemble(pieces, counts):
         slots = np.arange(len(rows)) - first + np.repeat(c, missing)
         out[rows, slots] = np.repeat(out[short, c - 1], missing, axis=0)
     return out
+
+
+@dataclass(frozen=True)
+class Traced:
+    """Streamlines of a set of seeds, resampled to a common arc-length layout.
+
+    vertices : (R, K, 3) float32: vertex k at arc length k * step from the seed; after a
+        ray stops, its vertices run straight on along its last tangent.
+    membership : (R, K) float32, N at each vertex.
+    counts : (R,) int32, vertices actually traced (the rest are the straight run-on).
+    reason : (R,) int8, ``StopReason`` values.
+    step : float, world units; or None when the step followed the local cell size of
+        nested grids (vertex k is then the k-th step's end, at no common arc length).
+    """
+
+    vertices: np.ndarray
+    membership: np.ndarray
+    counts: np.ndarray
+    reason: np.ndarray
+    step: float
+
+
+def run_on(traced, vertices):
+    """A ``Traced`` extended to ``vertices`` vertices by running straight on along each
+    ray's last segment at the same step."""
+    v, m = traced.vertices, traced.membership
+    extra = vertices - v.shape[1]
+    if extra <= 0:
+        return traced
+    d = (v[:, -1] - v[:, -2]).astype(np.float64)
+    if traced.step is not None:
+        d *= traced.step / np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-30)
+    # with a step that follows the local cell, the last segment's own length runs on
+    tail = v[:, -1:].astype(np.float64) + d[:, None] * np.arange(1, extra + 1)[None, :, None]
+    return Traced(
+        np.concatenate([v, tail.astype(np.float32)], axis=1),
+        np.concatenate([m, np.repeat(m[:, -1:], extra, axis=1)], axis=1),
+        traced.counts,
+        traced.reason,
+        traced.step,
+    )
+
+
+def merge(parts, order, total):
+    """Combine ``Traced`` parts into one, rays placed at ``order`` (one index array per
+    part) among ``total`` rays. Consumes ``parts``: each entry is released (set to None)
+    once copied, so a large merge holds little more than its result."""
+    k = max(p.vertices.shape[1] for p in parts)
+    step = parts[0].step
+    verts = np.empty((total, k, 3), dtype=np.float32)
+    mem = np.empty((total, k), dtype=np.float32)
+    counts = np.empty(total, dtype=np.int32)
+    reason = np.empty(total, dtype=np.int8)
+    for j, idx in enumerate(order):
+        p, parts[j] = parts[j], None
+        counts[idx], reason[idx] = p.counts, p.reason
+        block = max(1, MERGE_BLOCK_VERTICES // k)
+        for s in range(0, len(idx), block):
+            sl = slice(s, s + block)
+            sub = run_on(
+                Traced(p.vertices[sl], p.membership[sl], p.counts[sl], p.reason[sl], step), k
+            )
+            verts[idx[sl]], mem[idx[sl]] = sub.vertices, sub.membership
+        del p
+    return Traced(verts, mem, counts, reason, step)
+
+
+# Ray vertices ``merge`` extends at a time.
+MERGE_BLOCK_VERTICES = 1 << 22

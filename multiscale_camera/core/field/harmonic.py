@@ -10,7 +10,7 @@ by the same multigrid-preconditioned conjugate gradients as the membership field
 
 import numpy as np
 
-from .errors import RigError, SolverDidNotConverge
+from ..errors import RigError, SolverDidNotConverge
 from .solvers import SolveResult, solve_membership
 
 # Relative residual of each solve: weights then err by ~1e-6, far below what moves a

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import Cancelled
+from ..errors import Cancelled
 
 # Stop at this relative residual ||b - A x|| / ||b||: N then errs by ~1e-5 (values
 # 1..N), far below what bends a ray visibly.
