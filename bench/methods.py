@@ -63,7 +63,7 @@ def run_one(rig_name, method, quality, width, height):
     from multiscale_camera.core.geometry import Rig
     from multiscale_camera.core.methods import prepare, settings_for
     from multiscale_camera.core.parallel import cores
-    from multiscale_camera.core.report import build_report
+    from multiscale_camera.core.quality import build_report
     from tests.unit import rigs
 
     cams, masks = getattr(rigs, rig_name)(width, height)

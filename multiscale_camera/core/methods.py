@@ -40,7 +40,7 @@ from .field import (
 )
 from .geometry import DEFAULT_SEGMENTS, Family, RayBundle, build_guides, curved_rays
 from .parallel import worker_count
-from .validate import check_rig, conflict_messages, guard_messages
+from .quality import check_rig, conflict_messages, guard_messages
 
 
 @dataclass(frozen=True)
@@ -738,7 +738,7 @@ def prepare_auto(rig, settings=None, should_stop=None):
     and VECTOR_FIELD's preserved rays drift (docs/methods.md), so neither is a candidate.
     The choice and why are in ``stats["auto"]``.
     """
-    from .report import fold_map  # the report measures fields; it builds on this module
+    from .quality import fold_map  # the report measures fields; it builds on this module
 
     fld = prepare_image_blend(rig, settings, should_stop)
     folds = int(fold_map(fld)[0].sum())

@@ -28,7 +28,7 @@ from .methods import (
     guard_warnings,
     trace_field,
 )
-from .validate import check_rig
+from .quality import check_rig
 
 # --- LINEAR ----------------------------------------------------------------------------
 

@@ -1,18 +1,18 @@
 """Validation of a scene's rig, with the checks that need its geometry: what the
-``multiscale.validate`` operator and every build run first (``core.validate`` holds
+``multiscale.validate`` operator and every build run first (``core.quality`` holds
 the geometry-free checks)."""
 
 import numpy as np
 
 from ..adapters.meshes import scene_geometry
 from ..adapters.scene import rig_from_scene
-from ..core import validate
 from ..core.geometry import RayBundle
+from ..core.quality import obstruction_messages, preflight
 from .raycast import march
 
 
 def geometry_cast(geometry, tree):
-    """The ``cast`` callable of ``validate.obstruction_messages`` for a scene's
+    """The ``cast`` callable of ``core.quality.obstruction_messages`` for a scene's
     geometry and its world-space BVH (None: nothing is ever hit)."""
 
     def cast(vertices):
@@ -60,7 +60,7 @@ def validate_scene(depsgraph):
     """
     scene = depsgraph.scene
     rig = rig_from_scene(scene)
-    messages = list(rig.notices) + validate.preflight(rig)
+    messages = list(rig.notices) + preflight(rig)
     geometry, tree = scene_tree(depsgraph)
-    messages += validate.obstruction_messages(rig, geometry_cast(geometry, tree))
+    messages += obstruction_messages(rig, geometry_cast(geometry, tree))
     return rig, messages

@@ -14,8 +14,8 @@ from ..core.fingerprint import field_key
 from ..core.methods import prepare
 from ..core.occupancy import Occupancy
 from ..core.parallel import worker_count
+from ..core.quality import crossing_messages, empty_mask_messages
 from ..core.sampling import DEFAULT_TOLERANCE_PX, RaySampler, sample_offsets
-from ..core.validate import crossing_messages, empty_mask_messages
 from ..io import cache
 from .raycast import march
 from .shade import shade
@@ -156,7 +156,7 @@ def prepare_frame(depsgraph, should_stop=None):
         notices.append(NO_LIGHTS)
     world = scene_world(scene, notices)
     if built:  # geometry in the bending stretch hides a camera's view: say so once
-        from ..core.validate import obstruction_messages
+        from ..core.quality import obstruction_messages
         from .checks import geometry_cast
 
         notices += obstruction_messages(rig, geometry_cast(geometry, tree))

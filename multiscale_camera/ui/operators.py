@@ -7,7 +7,7 @@ from bpy.props import BoolProperty, EnumProperty, IntProperty, StringProperty
 
 from ..adapters.scene import field_settings, rig_from_scene
 from ..core.errors import RigError, SolverDidNotConverge
-from ..core.report import build_report, headline, to_json
+from ..core.quality import build_report, headline, to_json
 from ..render import pipeline
 from ..render.volume import prepare_volumes
 
@@ -716,7 +716,7 @@ class MULTISCALE_OT_report_show(bpy.types.Operator):
     def execute(self, context):
         import json
 
-        from ..core.report import readable
+        from ..core.quality import readable
 
         try:
             report = json.loads(_settings(context).report)

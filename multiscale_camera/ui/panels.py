@@ -4,7 +4,7 @@ import json
 
 import bpy
 
-from ..core.report import headline
+from ..core.quality import headline
 from .volume import draw_transfer_function
 
 
@@ -139,7 +139,7 @@ def guard_cameras(context):
     """Names of the cameras whose near distance breaks the guide guard (the handle from
     the previous camera would reach behind their eye); empty when the rig cannot tell."""
     from ..adapters.cameras import pinhole_from_object
-    from ..core.validate import guard_pairs
+    from ..core.quality import guard_pairs
 
     settings = context.scene.multiscale
     objs = [i.camera for i in settings.cameras]

@@ -16,7 +16,7 @@ drawn, nothing fails.
 
 import numpy as np
 
-from ..core.metrics import bending_active, quad_folds
+from ..core.quality import bending_active, quad_folds
 
 # Camera colours, first to last (a ray's colour blends them by its membership).
 PALETTE = np.array(

@@ -11,7 +11,7 @@ from mathutils import Vector
 from mathutils.geometry import barycentric_transform, intersect_point_tri
 
 from multiscale_camera.adapters.masks import mask_from_image
-from multiscale_camera.core.metrics import erode
+from multiscale_camera.core.quality import erode
 from multiscale_camera.render.pipeline import MISS_DEPTH
 from tests.exr import read_passes
 

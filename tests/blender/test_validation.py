@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from multiscale_camera.adapters.cameras import pinhole_from_object
-from multiscale_camera.core.validate import turn_deg
+from multiscale_camera.core.quality import turn_deg
 
 from .scenes import add_camera, add_mesh, disk, mask_image, two_camera_scene
 

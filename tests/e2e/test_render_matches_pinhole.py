@@ -7,7 +7,7 @@ import sys
 import numpy as np
 import pytest
 
-from multiscale_camera.core.metrics import erode
+from multiscale_camera.core.quality import erode
 from tests.conftest import REPO
 from tests.exr import read_passes
 

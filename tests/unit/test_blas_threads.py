@@ -13,7 +13,7 @@ import pytest
 
 from multiscale_camera.core.field.solvers import _dot
 from multiscale_camera.core.geometry import Family
-from multiscale_camera.core.metrics import bending_active
+from multiscale_camera.core.quality import bending_active
 from multiscale_camera.render.shade import _irradiance_factor
 
 from .rigs import three_camera_rig

@@ -10,8 +10,7 @@ from multiscale_camera.core.errors import RigError
 from multiscale_camera.core.field import FieldTracer, choose_grid, fill_membership, solve_membership
 from multiscale_camera.core.geometry import Family, Rig
 from multiscale_camera.core.methods import prepare, settings_for
-from multiscale_camera.core.report import build_report
-from multiscale_camera.core.validate import turn_deg
+from multiscale_camera.core.quality import build_report, turn_deg
 
 from .rigs import camera, disk_masks, orbit, zoom_rig
 
@@ -218,7 +217,7 @@ def test_a_solve_that_does_not_converge_is_reported(monkeypatch, nested):
 
 
 def test_crossing_views_of_cameras_that_are_not_neighbours_are_named():
-    from multiscale_camera.core.validate import conflict_messages
+    from multiscale_camera.core.quality import conflict_messages
 
     overlaps = np.array([[0, 4, 9], [4, 0, 0], [9, 0, 0]])
     messages = conflict_messages(["A", "B", "C"], overlaps)

@@ -60,7 +60,7 @@ def test_resolve_conflicts_gives_shared_pixels_to_the_smaller_scale():
 
 def test_auto_takes_image_blend_where_its_rays_do_not_fold():
     from multiscale_camera.core.methods import prepare_image_blend
-    from multiscale_camera.core.report import fold_map
+    from multiscale_camera.core.quality import fold_map
 
     from .rigs import zoom_rig
 

@@ -18,7 +18,7 @@ from multiscale_camera.core.field import (
 )
 from multiscale_camera.core.geometry import Family, Rig
 from multiscale_camera.core.methods import prepare, settings_for
-from multiscale_camera.core.report import build_report
+from multiscale_camera.core.quality import build_report
 
 from .rigs import three_camera_rig, zoom1000_rig
 

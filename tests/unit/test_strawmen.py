@@ -8,7 +8,7 @@ from scipy import ndimage
 
 from multiscale_camera.core.geometry import Rig, pixel_centres
 from multiscale_camera.core.methods import prepare_scalar_field, settings_for
-from multiscale_camera.core.report import build_report
+from multiscale_camera.core.quality import build_report
 from multiscale_camera.core.strawmen import (
     nearest_mask_pixels,
     prepare_linear,

@@ -8,7 +8,7 @@ from scipy.ndimage import map_coordinates
 from multiscale_camera.core import volume as V
 from multiscale_camera.core.geometry import Rig, pixel_centres
 from multiscale_camera.core.methods import prepare
-from multiscale_camera.core.metrics import erode
+from multiscale_camera.core.quality import erode
 
 from . import rigs
 

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .geometry import dot3
+from ..geometry import dot3
 
 # Erosion of the masks, pixels, before measuring preserved rays (DESIGN.md).
 ERODE_PX = 2

@@ -2,7 +2,9 @@
 
 import numpy as np
 
-from .errors import RigError
+from ..errors import RigError
+from ..field import choose_grid
+from ..geometry import DEFAULT_SEGMENTS, build_guides, curved_rays
 
 # Consecutive cameras may turn at most this much: beyond it the guides of neighbouring
 # pixels cross (paper, section 6).
@@ -99,8 +101,6 @@ def guard_pairs(cameras, beta, size):
     -------
     list of int.
     """
-    from .geometry import build_guides
-
     if len(cameras) < 2:
         return []
     w, h = size
@@ -152,8 +152,6 @@ def sample_pixels(mask, limit=MAX_CHECK_RAYS):
 
 def _bending_box(rig):
     """(lo, hi) world box of the bending stretch (the field grid's box)."""
-    from .field import choose_grid
-
     grid = choose_grid(rig, 2.0, 32**3).grid
     return grid.bounds
 
@@ -220,8 +218,6 @@ def bending_paths(rig, i, limit=MAX_CHECK_RAYS):
     stages : list of i arrays (P, S + 1, 3) float64, world units: the rays R_i from
         camera j's near plane to camera j+1's, for j = 0 .. i-1 (S vertices a stage).
     """
-    from .geometry import DEFAULT_SEGMENTS, build_guides, curved_rays
-
     ix, iy = sample_pixels(rig.masks[i], limit)
     if len(ix) == 0:
         return ix, iy, []

@@ -1,0 +1,65 @@
+"""What a build is measured and checked by: the metrics of a field's rays (preserved
+error, folded quads, where they bend), the build report of the report schema, and the
+checks of a rig that explain before a build what would go wrong and what to change.
+Built on ``geometry`` and ``field``; it measures any ray field through its ``rays``
+alone, so it needs none of the methods.
+"""
+
+from .metrics import (
+    ERODE_PX,
+    MAX_MEASURED,
+    Preserved,
+    bending_active,
+    erode,
+    measured_pixels,
+    plane_crossing,
+    preserved_error,
+    quad_folds,
+)
+from .report import build_report, fold_map, headline, measure, readable, to_json
+from .validate import (
+    MAX_TURN_DEG,
+    bending_paths,
+    check_rig,
+    conflict_messages,
+    crossing_messages,
+    empty_mask_messages,
+    guard_message,
+    guard_messages,
+    guard_pairs,
+    obstruction_messages,
+    preflight,
+    sample_pixels,
+    turn_deg,
+)
+
+__all__ = [
+    "ERODE_PX",
+    "MAX_MEASURED",
+    "MAX_TURN_DEG",
+    "Preserved",
+    "bending_active",
+    "bending_paths",
+    "build_report",
+    "check_rig",
+    "conflict_messages",
+    "crossing_messages",
+    "empty_mask_messages",
+    "erode",
+    "fold_map",
+    "guard_message",
+    "guard_messages",
+    "guard_pairs",
+    "headline",
+    "measure",
+    "measured_pixels",
+    "obstruction_messages",
+    "plane_crossing",
+    "preflight",
+    "preserved_error",
+    "quad_folds",
+    "readable",
+    "sample_pixels",
+    "to_json",
+    "turn_deg",
+]
