@@ -12,10 +12,9 @@ from ..adapters.scene import field_settings, render_processes_of, rig_from_scene
 from ..core import parallel
 from ..core.fingerprint import field_key
 from ..core.methods import prepare
-from ..core.occupancy import Occupancy
 from ..core.parallel import worker_count
 from ..core.quality import crossing_messages, empty_mask_messages
-from ..core.sampling import DEFAULT_TOLERANCE_PX, RaySampler, sample_offsets
+from ..core.sampling import DEFAULT_TOLERANCE_PX, Occupancy, RaySampler, sample_offsets
 from ..io import cache
 from .raycast import march
 from .shade import shade

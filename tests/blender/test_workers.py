@@ -219,7 +219,7 @@ def test_frame_says_when_the_simplification_workers_were_given_up(empty_scene, m
     """Workers of the ray simplification that stalled gave way to the parent without a
     word: the frame was only slower, and nobody said why. Now its notices say so; the
     simplified rays are those made in-process."""
-    from multiscale_camera.core import sampling
+    from multiscale_camera.core.sampling import simplification as sampling
 
     two_camera_scene(empty_scene, 64, 48)
     empty_scene.render.threads_mode = "FIXED"

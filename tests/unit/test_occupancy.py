@@ -3,7 +3,7 @@ a triangle, and does cull segments through empty space."""
 
 import numpy as np
 
-from multiscale_camera.core.occupancy import Occupancy
+from multiscale_camera.core.sampling import Occupancy
 
 
 def segment_hits_triangle(p0, p1, a, b, c):

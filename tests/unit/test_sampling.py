@@ -10,6 +10,7 @@ import pytest
 from multiscale_camera.core import parallel, sampling
 from multiscale_camera.core.geometry import Rig
 from multiscale_camera.core.methods import Settings, prepare
+from multiscale_camera.core.sampling import simplification
 
 from .rigs import two_camera_rig
 
@@ -209,7 +210,7 @@ def test_lattice_simplified_in_worker_processes_is_the_same(traced_field, monkey
     """The lattice's measures and leaf schedules, shared among forked workers that write
     into shared memory, equal those made in-process."""
     alone = sampling.RaySampler(traced_field, 0.25)
-    monkeypatch.setattr(sampling, "CHUNK", 7)  # many chunks from a small lattice
+    monkeypatch.setattr(simplification, "CHUNK", 7)  # many chunks from a small lattice
     ran = []
     forked_map = parallel.forked_map
 
@@ -217,7 +218,7 @@ def test_lattice_simplified_in_worker_processes_is_the_same(traced_field, monkey
         ran.append(len(items))
         return forked_map(task, items, *args, **kwargs)
 
-    monkeypatch.setattr(sampling, "forked_map", counted)
+    monkeypatch.setattr(simplification, "forked_map", counted)
     pooled = sampling.RaySampler(traced_field, 0.25, processes=2)
     assert len(ran) == 2 and min(ran) > 2  # the measures and the leaf schedules
     np.testing.assert_array_equal(pooled.leaf_keep, alone.leaf_keep)

@@ -12,9 +12,11 @@ lets the ray simplification straighten a polyline more where nothing is near.
 Pure numpy.
 """
 
+import hashlib
+
 import numpy as np
 
-from .geometry import dot3
+from ..geometry import dot3
 
 # Cells along the longest side of the box: fine enough that a bending stretch of short
 # segments above a ground plane finds its cells empty, coarse enough to build in a blink.
@@ -127,8 +129,6 @@ class Occupancy:
 
     def digest(self):
         """str, a digest of the occupied cells and the grid (for caches keyed on them)."""
-        import hashlib
-
         h = hashlib.sha1(np.packbits(self.occupied).tobytes())
         h.update(np.concatenate([self.lo, self.size]).tobytes())
         return h.hexdigest()
