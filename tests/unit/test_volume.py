@@ -1,4 +1,4 @@
-"""Volume ray casting (core/volume.py) against a plain numpy ray caster, and the
+"""Volume ray casting (core/volume/) against a plain numpy ray caster, and the
 transfer functions of a multiscale rig."""
 
 import numpy as np
@@ -9,6 +9,7 @@ from multiscale_camera.core import volume as V
 from multiscale_camera.core.geometry import Rig, pixel_centres
 from multiscale_camera.core.methods import prepare
 from multiscale_camera.core.quality import erode
+from multiscale_camera.core.volume import runs as volume_runs
 
 from . import rigs
 
@@ -315,7 +316,7 @@ def test_occupancy_of_block_boxes_matches_brute_force():
     b1 = np.clip(b0 + rng.integers(-reach, reach + 1, (4000, 3)), 0, shape - 1)
     lo_cam = rng.integers(0, 3, 4000)
     hi_cam = np.minimum(lo_cam + rng.integers(0, 3, 4000), 2)
-    got = V._occupied(
+    got = volume_runs._occupied(
         scene,
         list(b0.T.astype(np.int32)),
         list(b1.T.astype(np.int32)),
