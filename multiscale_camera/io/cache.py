@@ -1,11 +1,11 @@
 """The field cache: built ray fields kept in memory and on disk, keyed by ``field_key``.
 
 A field depends only on the cameras, the masks, the method and its settings (the digest
-``core.fingerprint.field_key``), so moving a light or editing a material renders again
+``core.methods.field_key``), so moving a light or editing a material renders again
 without a rebuild, and a field built yesterday is still good today. Fields live
 
 - in memory: the ``KEEP_IN_MEMORY`` newest, for renders in a row;
-- on disk: one ``<key>.npz`` per field (``core.methods.field_to_arrays``) in the
+- on disk: one ``<key>.npz`` per field (``io.fields.field_to_arrays``) in the
   extension's user folder (``bpy.utils.extension_path_user(__package__, "cache")``),
   the least recently used removed first once the folder outgrows its size limit.
 
@@ -18,7 +18,7 @@ import zipfile
 
 import numpy as np
 
-from ..core.methods import field_from_arrays, field_to_arrays
+from .fields import field_from_arrays, field_to_arrays
 
 # Fields kept in memory, newest last: two covers a render after a preview build.
 KEEP_IN_MEMORY = 2
@@ -37,7 +37,7 @@ def default_folder():
     if env:
         os.makedirs(env, exist_ok=True)
         return env
-    import bpy
+    import bpy  # here only: the rest of the cache runs in plain Python, without Blender
 
     package = __package__.rpartition(".")[0]  # the package, not its io module
     try:

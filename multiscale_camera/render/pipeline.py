@@ -10,8 +10,7 @@ from ..adapters.lights import scene_lights, scene_world
 from ..adapters.meshes import scene_geometry
 from ..adapters.scene import field_settings, render_processes_of, rig_from_scene
 from ..core import parallel
-from ..core.fingerprint import field_key
-from ..core.methods import prepare
+from ..core.methods import field_key, prepare
 from ..core.parallel import worker_count
 from ..core.quality import crossing_messages, empty_mask_messages
 from ..core.sampling import DEFAULT_TOLERANCE_PX, Occupancy, RaySampler, sample_offsets

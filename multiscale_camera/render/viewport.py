@@ -114,7 +114,7 @@ def frame_for_view(depsgraph):
     import bpy
 
     from ..adapters.scene import field_settings, rig_from_scene
-    from ..core.fingerprint import field_key
+    from ..core.methods import field_key
     from ..io import cache
     from . import pipeline
 

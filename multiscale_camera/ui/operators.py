@@ -243,7 +243,7 @@ class FieldRequest:
     """
 
     def __init__(self, settings_group, rig):
-        from ..core.fingerprint import field_key
+        from ..core.methods import field_key
         from ..io import cache
 
         self.start = time.perf_counter()

@@ -179,7 +179,7 @@ def update(scene, fld=None):
 
 def _cached_field(scene):
     from ..adapters.scene import field_settings, rig_from_scene
-    from ..core.fingerprint import field_key
+    from ..core.methods import field_key
     from ..io import cache
 
     s = scene.multiscale

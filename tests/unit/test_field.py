@@ -200,14 +200,14 @@ def test_family_jacobian_matches_central_differences():
 @pytest.mark.parametrize("nested", [False, True])
 def test_a_solve_that_does_not_converge_is_reported(monkeypatch, nested):
     import multiscale_camera.core.field.nested as nested_grids
-    import multiscale_camera.core.methods as methods
+    import multiscale_camera.core.methods.scalar_field as scalar_field
     from multiscale_camera.core.errors import SolverDidNotConverge
 
     def stalled(values, constrained, **_kw):
         result = solve_membership(values, constrained, max_iterations=1)
         return type(result)(result.x, False, 1, result.residuals)
 
-    monkeypatch.setattr(methods, "solve_membership", stalled)
+    monkeypatch.setattr(scalar_field, "solve_membership", stalled)
     monkeypatch.setattr(nested_grids, "solve_membership", stalled)
     cams, masks = zoom_rig(64, 48)
     with pytest.raises(SolverDidNotConverge) as info:

@@ -5,15 +5,10 @@ import os
 import numpy as np
 import pytest
 
-from multiscale_camera.core.fingerprint import field_key
 from multiscale_camera.core.geometry import Rig
-from multiscale_camera.core.methods import (
-    Settings,
-    field_from_arrays,
-    field_to_arrays,
-    prepare,
-)
+from multiscale_camera.core.methods import Settings, field_key, prepare
 from multiscale_camera.io.cache import FieldCache
+from multiscale_camera.io.fields import field_from_arrays, field_to_arrays
 
 from .rigs import two_camera_rig
 

@@ -51,7 +51,7 @@ def test_rays_traced_in_two_processes_equal_those_traced_in_one(monkeypatch):
 
 
 def test_processes_are_not_part_of_the_fields_identity():
-    from multiscale_camera.core.fingerprint import field_key
+    from multiscale_camera.core.methods import field_key
 
     cams, masks = three_camera_rig(32, 18)
     rig = Rig(cams, masks)

@@ -7,13 +7,14 @@ import numpy as np
 from scipy import ndimage
 
 from multiscale_camera.core.geometry import Rig, pixel_centres
-from multiscale_camera.core.methods import prepare_scalar_field, settings_for
-from multiscale_camera.core.quality import build_report
-from multiscale_camera.core.strawmen import (
+from multiscale_camera.core.methods import (
     nearest_mask_pixels,
     prepare_linear,
+    prepare_scalar_field,
     prepare_vector_field,
+    settings_for,
 )
+from multiscale_camera.core.quality import build_report
 
 from .rigs import zoom_rig
 

@@ -1,0 +1,64 @@
+"""The ray-generation methods by name, and AUTO, which picks the cheapest that meets the
+accuracy target on a rig.
+
+- IMAGE_BLEND: each pixel's ray is its curves R_i blended by harmonic mask weights.
+- LINEAR: the paper's strawman, a transition pixel's ray interpolates linearly between
+  the rays of the nearest preserved pixels of two cameras.
+- VECTOR_FIELD: eq. 3, the tangents of preserved rays smoothed directly into a field.
+- SCALAR_FIELD: eq. 4 to 6, a smoothed membership blends exact tangent fields.
+
+Each method is one function ``prepare_<method>(rig, settings, should_stop=None)`` that
+builds a ``RayField`` once.
+"""
+
+from ..errors import Cancelled, RigError
+from ..quality import fold_map
+from .base import Settings
+from .image_blend import prepare_image_blend
+from .linear import prepare_linear
+from .scalar_field import prepare_scalar_field
+from .vector_field import prepare_vector_field
+
+METHODS = {
+    "IMAGE_BLEND": prepare_image_blend,
+    "LINEAR": prepare_linear,
+    "VECTOR_FIELD": prepare_vector_field,
+    "SCALAR_FIELD": prepare_scalar_field,
+}
+
+
+def prepare_auto(rig, settings=None, should_stop=None):
+    """AUTO: the cheapest method that meets the accuracy target on this rig.
+
+    IMAGE_BLEND is the cheapest (no 3D grid) and its preserved rays are exact by
+    construction, so it meets any target unless its transition rays fold; its folds
+    are counted on the rays it would render, and where there are any, SCALAR_FIELD is
+    built (on nested grids where one uniform grid cannot hold the cells the target asks
+    for). LINEAR folds wherever a transition has more than one nearest preserved pixel,
+    and VECTOR_FIELD's preserved rays drift (docs/methods.md), so neither is a candidate.
+    The choice and why are in ``stats["auto"]``.
+    """
+    fld = prepare_image_blend(rig, settings, should_stop)
+    folds = int(fold_map(fld)[0].sum())
+    if folds == 0:
+        fld.stats["auto"] = "IMAGE_BLEND: its rays do not fold on this rig"
+        return fld
+    if should_stop is not None and should_stop():
+        raise Cancelled()
+    out = prepare_scalar_field(rig, settings, should_stop)
+    out.stats["auto"] = f"SCALAR_FIELD: IMAGE_BLEND would fold {folds} quads on this rig"
+    return out
+
+
+METHODS["AUTO"] = prepare_auto
+
+
+def prepare(rig, method, settings=None, should_stop=None):
+    """Prepare the ray field of ``method`` (an enum name of DESIGN.md) for ``rig``."""
+    try:
+        builder = METHODS[method]
+    except KeyError:
+        raise RigError(
+            f"Method '{method}' is not available in this version; use one of: " + ", ".join(METHODS)
+        ) from None
+    return builder(rig, settings or Settings(), should_stop)

@@ -1,0 +1,341 @@
+"""Rays traced through a field on an adaptive pixel lattice (``TracedField``), the
+base of SCALAR_FIELD and VECTOR_FIELD: the lattice traces rays where interpolating
+them would err, and every other pixel's ray is interpolated from the traced ones.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import Cancelled
+from ..field import (
+    FieldTracer,
+    StopReason,
+    Traced,
+    choose_grid,
+    merge,
+    near_plane_width,
+    run_on,
+    step_cells,
+)
+from ..quality import conflict_messages
+from .base import RayField, guard_warnings
+
+
+@dataclass
+class TracedField(RayField):
+    """Rays traced on an adaptive pixel lattice; every other pixel's ray is interpolated
+    bilinearly, vertex by vertex (vertex k of every ray lies at the same arc length),
+    from the four corners of the lattice cell (a quadtree leaf) that holds it.
+
+    traced : field.Traced, all traced rays. index : (H, W) int32, the traced ray of a
+    pixel or -1. leaves : (L, 4) int32 cells (x0, y0, x1, y1) in pixels, corners
+    included. leaf_of : (H, W) int32, the leaf holding each pixel. grid : Grid (with
+    nested grids, the coarsest). membership : (nx, ny, nz) float32 on ``grid``.
+    domain : nested.NestedDomain or None, the membership of every level.
+    step : float, world units, or a callable (P, 3) points -> (P,) lengths: the trace's
+    step (``rk4_streamlines``), so rays can be traced again as the field traced them.
+    """
+
+    traced: object = None
+    index: np.ndarray = None
+    leaves: np.ndarray = None
+    leaf_of: np.ndarray = None
+    grid: object = None
+    membership: np.ndarray = None
+    domain: object = None
+    step: object = None
+
+    def tracer(self, cubic=False):
+        """A FieldTracer of this field's membership (for tracing further rays)."""
+        return FieldTracer(self.rig, self.grid, self.membership, cubic=cubic, domain=self.domain)
+
+    def _corners(self, ix, iy):
+        x0, y0, x1, y1 = self.leaves[self.leaf_of[iy, ix]].T
+        fx = np.where(x1 > x0, (ix - x0) / np.maximum(x1 - x0, 1), 0.0).astype(np.float32)[:, None]
+        fy = np.where(y1 > y0, (iy - y0) / np.maximum(y1 - y0, 1), 0.0).astype(np.float32)[:, None]
+        idx = self.index
+        return (
+            (idx[y0, x0], (1 - fy) * (1 - fx)),
+            (idx[y0, x1], (1 - fy) * fx),
+            (idx[y1, x0], fy * (1 - fx)),
+            (idx[y1, x1], fy * fx),
+        )
+
+    def rays(self, ix, iy):
+        ix, iy = np.asarray(ix), np.asarray(iy)
+        corners = self._corners(ix, iy)
+        # past the last traced vertex every ray runs straight: one more vertex holds it
+        k = min(
+            self.traced.vertices.shape[1],
+            max(int(self.traced.counts[r].max()) for r, _w in corners) + 1,
+        )
+        k = max(k, 2)
+        verts = mem = None
+        for row, w in corners:  # in place: a (P, K, 3) temporary less per corner
+            v = self.traced.vertices[row, :k]
+            v *= w[:, :, None]
+            m = self.traced.membership[row, :k]
+            m *= w
+            if verts is None:
+                verts, mem = v, m
+            else:
+                verts += v
+                mem += m
+        return self._bundle(ix, iy, verts, mem)
+
+    def exit_index(self, ix, iy):
+        """(P,) int: for each pixel, the vertex where its ray leaves the grid (the
+        smallest traced count among the rays it is interpolated from)."""
+        counts = self.traced.counts
+        rows = [row for row, _w in self._corners(np.asarray(ix), np.asarray(iy))]
+        return np.minimum.reduce([counts[r] for r in rows]) - 1
+
+
+def _lattice_axis(n, stride):
+    """Lattice pixel indices 0, stride, ..., always including the last pixel n - 1."""
+    return np.unique(np.append(np.arange(0, n, stride), n - 1))
+
+
+def _across(d, t):
+    """Length of the part of vectors ``d`` (..., 3) across unit directions ``t``: the
+    arc-length layout lets neighbouring vertices slide along their rays, which moves
+    nothing in the image."""
+    return np.linalg.norm(d - (d * t).sum(-1, keepdims=True) * t, axis=-1)
+
+
+# Lattice stride bounds in pixels: one traced ray per stride x stride block, the others
+# interpolated (rays bend on the scale of a cell, many pixels wide).
+MAX_STRIDE = 16
+
+
+# Ray vertices weighed together by ``_AdaptiveLattice.deviation`` (about 24 bytes each
+# in each of its ten or so temporaries).
+DEVIATION_BLOCK_VERTICES = 1 << 20
+
+
+# A cell's interpolation error over its parent's midpoint deviation: 1/4 for smooth rays,
+# 1/2 where N's trilinear kinks make them only once differentiable (the bound used).
+CHILD_ERROR_RATIO = 2.0
+
+
+class _AdaptiveLattice:
+    """Traces rays on a pixel lattice and refines it where interpolation would err.
+
+    A cell's interpolation error is estimated from the second differences of its
+    rays (a child cell's bilinear interpolation errs by at most about half its parent's
+    midpoint deviation), in pixels of the multiscale image at each vertex (the spacing
+    of neighbouring rays there), both measured across the rays; cells above the
+    tolerance are split in four and their midpoints traced, down to single pixels.
+    """
+
+    def __init__(self, tracer, rig, step, max_steps, tol_px, should_stop):
+        self.tracer, self.rig, self.step = tracer, rig, step
+        self.max_steps, self.tol, self.should_stop = max_steps, tol_px, should_stop
+        w, h = rig.size
+        self.index = np.full((h, w), -1, dtype=np.int32)
+        self.parts, self.order, self.count = [], [], 0
+
+    def trace(self, px, py):
+        """Trace the pixels not traced yet (duplicates allowed)."""
+        key = np.unique(np.asarray(py, dtype=np.int64) * self.index.shape[1] + np.asarray(px))
+        py, px = np.divmod(key, self.index.shape[1])
+        new = self.index[py, px] < 0
+        px, py = px[new], py[new]
+        if len(px) == 0:
+            return
+        if self.should_stop is not None and self.should_stop():
+            raise Cancelled()
+        self.parts.append(
+            self.tracer.trace_pixels(px, py, self.step, self.max_steps, self.should_stop)
+        )
+        self.order.append(np.arange(self.count, self.count + len(px)))
+        self.index[py, px] = np.arange(self.count, self.count + len(px))
+        self.count += len(px)
+
+    def rows(self, ids):
+        """Vertices (n, K, 3) float32 and counts (n,) of traced rays ``ids`` (n,),
+        K the most any part has (shorter rays run straight on, as ``merge`` lays
+        them out). The parts stay apart until ``run`` ends: merging after every round
+        would hold two copies of every ray."""
+        k = max(p.vertices.shape[1] for p in self.parts)
+        ids = np.asarray(ids)
+        verts = np.empty((len(ids), k, 3), dtype=np.float32)
+        counts = np.empty(len(ids), dtype=np.int32)
+        starts = np.array([o[0] for o in self.order])
+        part = np.searchsorted(starts, ids, side="right") - 1
+        for j, p in enumerate(self.parts):
+            sel = np.flatnonzero(part == j)
+            if not len(sel):
+                continue
+            r = ids[sel] - starts[j]
+            sub = Traced(p.vertices[r], p.membership[r], p.counts[r], p.reason[r], p.step)
+            verts[sel] = run_on(sub, k).vertices
+            counts[sel] = p.counts[r]
+        return verts, counts
+
+    def deviation(self, mid, a, b, pixels):
+        """How far ray(mid) strays from the mean of rays a and b, in pixels.
+
+        Max over the vertices inside the grid of |ray(mid) - (ray(a) + ray(b)) / 2|
+        across the ray, over the spacing of the neighbouring rays there (|ray(b) -
+        ray(a)| / pixels): pixels of the multiscale image. Beyond the grid the rays run
+        straight and may cross far off, where that spacing vanishes; that stretch is not
+        weighed. (P,) arrays of flat pixel keys and pixel distances."""
+        ia, ib, im = (self.index.ravel()[k] for k in (a, b, mid))
+        pixels = np.asarray(pixels)
+        out = np.zeros(len(ia))
+        k = max(p.vertices.shape[1] for p in self.parts)
+        # in blocks: three float64 copies of every ray's vertices would take gigabytes
+        block = max(1, DEVIATION_BLOCK_VERTICES // max(k, 1))
+        for s in range(0, len(ia), block):
+            sl = slice(s, s + block)
+            (va, ca), (vb, cb), (vm, cm) = (self.rows(i[sl]) for i in (ia, ib, im))
+            va, vb, vm = (x.astype(np.float64) for x in (va, vb, vm))
+            t = np.diff(vm, axis=1, append=2 * vm[:, -1:] - vm[:, -2:-1])
+            t /= np.maximum(np.linalg.norm(t, axis=-1, keepdims=True), 1e-30)
+            d = _across(vm - 0.5 * (va + vb), t)
+            spacing = _across(vb - va, t) / np.maximum(pixels[sl], 1)[:, None]
+            traced = np.arange(k)[None, :] < np.minimum.reduce([ca, cb, cm])[:, None]
+            out[sl] = np.where(traced, d / np.maximum(spacing, 1e-12), 0.0).max(axis=1)
+        return out
+
+    def _lattice_roughness(self, xs, ys):
+        """(cells,) float: for each base cell, the largest deviation of a corner ray from
+        the mean of its two lattice neighbours (a span of two cells), row-major cells."""
+        w = self.index.shape[1]
+        gy, gx = np.meshgrid(ys, xs, indexing="ij")
+        key = gy * w + gx
+        dev = np.zeros(key.shape)
+        if len(xs) > 2:
+            d = self.deviation(
+                key[:, 1:-1].ravel(),
+                key[:, :-2].ravel(),
+                key[:, 2:].ravel(),
+                (gx[:, 2:] - gx[:, :-2]).ravel(),
+            )
+            dev[:, 1:-1] = np.maximum(dev[:, 1:-1], d.reshape(len(ys), -1))
+        if len(ys) > 2:
+            d = self.deviation(
+                key[1:-1].ravel(), key[:-2].ravel(), key[2:].ravel(), (gy[2:] - gy[:-2]).ravel()
+            )
+            dev[1:-1] = np.maximum(dev[1:-1], d.reshape(-1, len(xs)))
+        corners = np.maximum.reduce([dev[:-1, :-1], dev[:-1, 1:], dev[1:, :-1], dev[1:, 1:]])
+        return corners.ravel()
+
+    def run(self, stride):
+        w, h = self.rig.size
+        xs, ys = _lattice_axis(w, stride), _lattice_axis(h, stride)
+        gy, gx = np.meshgrid(ys, xs, indexing="ij")
+        self.trace(gx.ravel(), gy.ravel())
+        x0, y0 = np.meshgrid(xs[:-1], ys[:-1]) if len(xs) > 1 and len(ys) > 1 else (gx, gy)
+        x1, y1 = np.meshgrid(xs[1:], ys[1:]) if len(xs) > 1 and len(ys) > 1 else (gx, gy)
+        cells = np.stack([x0.ravel(), y0.ravel(), x1.ravel(), y1.ravel()], axis=1)
+        # the base lattice's own second differences estimate its cells' error, so only
+        # the cells that need it get their midpoints traced
+        rough = self._lattice_roughness(xs, ys)
+        flagged = rough / CHILD_ERROR_RATIO > self.tol
+        leaves = [cells[~flagged]]
+        cells = cells[flagged]
+        while len(cells):
+            x0, y0, x1, y1 = cells.T
+            xm, ym = (x0 + x1) // 2, (y0 + y1) // 2
+            split = (x1 - x0 > 1) | (y1 - y0 > 1)
+            leaves.append(cells[~split])
+            cells, x0, y0, x1, y1, xm, ym = (a[split] for a in (cells, x0, y0, x1, y1, xm, ym))
+            if not len(cells):
+                break
+            self.trace(np.concatenate([xm, xm, x0, x1, xm]), np.concatenate([y0, y1, ym, ym, ym]))
+            key = lambda x, y: y * w + x  # noqa: E731
+            err = np.maximum.reduce(
+                [
+                    self.deviation(key(xm, y0), key(x0, y0), key(x1, y0), x1 - x0),
+                    self.deviation(key(xm, y1), key(x0, y1), key(x1, y1), x1 - x0),
+                    self.deviation(key(x0, ym), key(x0, y0), key(x0, y1), y1 - y0),
+                    self.deviation(key(x1, ym), key(x1, y0), key(x1, y1), y1 - y0),
+                ]
+            )
+            # bilinear error falls as the cell size squared where the rays are smooth, but
+            # only linearly across the kinks of N at voxel faces: assume the slower rate
+            fine = err / CHILD_ERROR_RATIO <= self.tol
+            children = np.concatenate(
+                [
+                    np.stack([x0, y0, xm, ym], 1),
+                    np.stack([xm, y0, x1, ym], 1),
+                    np.stack([x0, ym, xm, y1], 1),
+                    np.stack([xm, ym, x1, y1], 1),
+                ]
+            )
+            keep = np.tile(fine, 4)
+            leaves.append(children[keep])
+            cells = children[~keep]
+        leaves = np.concatenate(leaves).astype(np.int32)
+        leaf_of = np.zeros((h, w), dtype=np.int32)
+        for n, (a, b, c, d) in enumerate(leaves.tolist()):
+            leaf_of[b : d + 1, a : c + 1] = n
+        parts, order = self.parts, self.order
+        self.parts, self.order = [], []
+        return merge(parts, order, self.count), self.index, leaves, leaf_of
+
+
+def lattice_stride(rig, grid):
+    """Pixels between traced rays: half the smallest camera's pixels per cell, so every
+    cell the rays cross is seen by two lattice rays, clamped to 1 .. MAX_STRIDE."""
+    cams = rig.cameras
+    w = rig.size[0]
+    px = min(near_plane_width(c) / w for c in cams)
+    return int(np.clip(grid.cell / px / 2, 1, MAX_STRIDE))
+
+
+def field_grid(fld, settings):
+    """The grid of a field method (``choose_grid``), with a warning on ``fld`` when the
+    voxel budget caps the cell the accuracy target asks for."""
+    choice = choose_grid(fld.rig, settings.accuracy_px, settings.max_voxels)
+    if choice.capped:
+        fld.warnings.append(capped_message(settings, choice.wanted_cell, choice.grid.cell))
+    return choice.grid
+
+
+def capped_message(settings, wanted, cell):
+    """The warning for a voxel budget that forced cells coarser than the target asks."""
+    return (
+        f"The accuracy target of {settings.accuracy_px:g} px wants {wanted:.3g}-unit cells; "
+        f"the voxel budget allows {cell:.3g}: transitions near the smallest camera may be "
+        "coarser than asked (raise the quality, or move that camera's near plane farther "
+        "from its eye)"
+    )
+
+
+def trace_field(fld, tracer, fill, settings, should_stop, levels=None):
+    """Trace a field method's rays on the adaptive lattice into ``fld`` (a TracedField
+    whose ``grid`` and ``membership`` are set) and record the stats and warnings.
+
+    ``levels``: the tuple of nested grids (coarsest first) when ``tracer`` reads N from
+    them; the step then follows the local cell (``NestedDomain.cell_at``)."""
+    rig, grid = fld.rig, fld.grid
+    grids = levels or (grid,)
+    stride = lattice_stride(rig, grids[-1])
+    cells = step_cells(settings.accuracy_px, rig.size[0])
+    max_steps = int(sum(np.ceil(np.linalg.norm(np.array(g.shape)) / cells * 2) for g in grids)) + 8
+    if levels:
+        domain = tracer.domain
+        step = lambda x: cells * domain.cell_at(x)  # noqa: E731
+    else:
+        step = cells * grid.cell
+    fld.step = step
+    lattice = _AdaptiveLattice(tracer, rig, step, max_steps, settings.accuracy_px, should_stop)
+    traced, fld.index, fld.leaves, fld.leaf_of = lattice.run(stride)
+    fld.traced = traced
+    fld.grids.extend(list(g.shape) for g in grids)
+    fld.stats.update(
+        conflicts=fill.conflicts,
+        stalled=int((traced.reason == StopReason.STALLED).sum()),
+        unfinished=int((traced.reason == StopReason.REACHED_LIMIT).sum()),
+        stride=stride,
+        traced=int(len(traced.counts)),
+        cell=grids[-1].cell,
+        levels=len(grids),
+        newton_lost=int(getattr(tracer, "missed", 0)),
+    )
+    fld.warnings += conflict_messages([c.name for c in rig.cameras], fill.overlaps)
+    fld.warnings += guard_warnings(rig)
