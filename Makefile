@@ -6,7 +6,7 @@
 #   make demo     install the linux zip in a throwaway user folder, render demo.blend to out/
 #   make bench    speed and accuracy: solver, every method, the renderer, the Cycles hand-off,
 #                 volume ray casting: bench/*.json
-#   make lint     ruff
+#   make lint     ruff and the import contracts (pyproject.toml, [tool.importlinter])
 #   make e2e-real the extension in real Blender 5.2 and 4.3, screenshots to docs/images/
 #
 # BLENDER defaults to tools/blender (Blender's command line on the bpy wheel);
@@ -19,6 +19,9 @@ SHELL := bash
 PYTHON311 := $(shell command -v python3.11)
 VENV := .venv
 PY := $(VENV)/bin/python
+# The import contracts of pyproject.toml: the core imports no other layer and no bpy, and
+# its stages import only the stages below them.
+LINT_IMPORTS := $(VENV)/bin/lint-imports --no-logo
 VENV_STAMP := $(VENV)/.stamp
 BPY_SCRIPTS := $(VENV)/lib/python3.11/site-packages/bpy/5.0/scripts
 BLENDER_EXT := $(PY) $(BPY_SCRIPTS)/addons_core/bl_pkg/cli/blender_ext.py
@@ -63,6 +66,7 @@ $(LINUX_ZIP): $(VENV_STAMP) blender_manifest.toml tools/stage.py $(PACKAGE_FILES
 
 test: build
 	$(PY) -m ruff check .
+	$(LINT_IMPORTS)
 	$(PY) -m pytest -q tests
 
 samples: venv
@@ -103,9 +107,10 @@ e2e-real: build sample_blends/demo.blend
 
 lint: venv
 	$(PY) -m ruff check .
+	$(LINT_IMPORTS)
 
 clean:
-	rm -rf build dist out .pytest_cache .ruff_cache
+	rm -rf build dist out .pytest_cache .ruff_cache .import_linter_cache
 	find . -path ./$(VENV) -prune -o -name __pycache__ -type d -prune -exec rm -rf {} +
 
 distclean: clean
