@@ -94,7 +94,7 @@ def dense_scene(args):
 
 def floor_camera(scene, camera, pinhole_camera, folder):
     """A copy of ``camera`` (linked to ``scene``) made an OSL custom camera whose shader
-    computes ``pinhole_camera``'s own rays (core.camera.PinholeCamera of ``camera`` at the
+    computes ``pinhole_camera``'s own rays (core.geometry.PinholeCamera of ``camera`` at the
     render size): the hand-off's shader with one pinhole block over the whole image."""
     import hashlib
 

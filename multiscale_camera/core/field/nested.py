@@ -376,7 +376,7 @@ def solve_levels(rig, grids, families, fill_membership, should_stop=None, proces
     ----------
     rig : Rig. grids : sequence of Grid, coarsest first. families : list of Family.
     fill_membership : callable (rig, grid, families, should_stop=) -> Fill
-        (``field.fill_membership``).
+        (``fill.fill_membership``).
     should_stop : optional callable, asked during each level's fill and solve.
     processes : int, worker processes for the fills (1: in-process).
 
