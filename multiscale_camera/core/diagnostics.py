@@ -68,6 +68,7 @@ class Diagnostics:
         self._on_progress = on_progress
         self._messages: list[Message] = []
         self._stages: list[str] = []
+        self._started: dict[str, float] = {}
         self.seconds: dict[str, float] = {}
         self.checks = 0
 
@@ -110,28 +111,37 @@ class Diagnostics:
 
     @contextmanager
     def stage(self, name: str):
-        """Time the block as stage ``name`` (seconds add up over repeated runs);
-        messages said inside it name the stage."""
+        """Time the block as stage ``name`` (seconds add up over repeated runs; a stage
+        run inside itself counts once); messages said inside it name the stage."""
+        if name in self._started:
+            yield self
+            return
         self._stages.append(name)
-        start = time.perf_counter()
+        start = self._started[name] = time.perf_counter()
         try:
             yield self
         finally:
             self.seconds[name] = self.seconds.get(name, 0.0) + time.perf_counter() - start
             self._stages.pop()
+            del self._started[name]
+
+    def running_seconds(self, name: str) -> float:
+        """Seconds of stage ``name`` so far, its current run included."""
+        start = self._started.get(name)
+        now = 0.0 if start is None else time.perf_counter() - start
+        return self.seconds.get(name, 0.0) + now
 
     # --- steering ------------------------------------------------------------------
 
-    @property
-    def stopped(self) -> bool:
-        """Whether the job was asked to stop (``should_stop`` says so)."""
+    def should_stop(self) -> bool:
+        """Whether the job was asked to stop. The bound method is the cancel check that
+        numeric kernels take as their ``should_stop`` callable."""
         self.checks += 1
         return bool(self._should_stop is not None and self._should_stop())
 
     def check(self) -> None:
         """Raise ``Cancelled`` when the job was asked to stop."""
-        if self.stopped:
-            raise Cancelled()
+        check_stop(self.should_stop)
 
     def progress(self, fraction: float) -> None:
         """Report the job's progress, ``fraction`` in [0, 1] (clipped)."""
@@ -153,6 +163,14 @@ class Diagnostics:
         for name, sec in other.seconds.items():
             self.seconds[name] = self.seconds.get(name, 0.0) + sec
         self.checks += other.checks
+
+
+def check_stop(should_stop: Callable[[], bool] | None) -> None:
+    """Raise ``Cancelled`` when ``should_stop`` (a callable, or None: never) says so: the
+    one cancel check of the numeric kernels, which take a plain callable so that they
+    run the same in a worker process (where it beats, ``core.parallel.beat``)."""
+    if should_stop is not None and should_stop():
+        raise Cancelled()
 
 
 def diagnostics_of(diag: Diagnostics | None) -> Diagnostics:

@@ -9,6 +9,7 @@ without a rebuild, and a field built yesterday is still good today. Fields live
   extension's user folder (``bpy.utils.extension_path_user(__package__, "cache")``),
   the least recently used removed first once the folder outgrows its size limit.
 
+The field service (``render.fields.SERVICE``) owns the one cache every caller uses.
 Only ``default_folder`` touches bpy; the rest is plain Python and numpy.
 """
 
@@ -191,7 +192,3 @@ class FieldCache:
                 except OSError:
                     pass
         return removed
-
-
-# The cache the engine and the operators share; its folder is found on first use.
-CACHE = FieldCache(lazy_folder=True)

@@ -4,8 +4,9 @@ import time
 
 import bpy
 
+from ..core.diagnostics import Diagnostics, Level
 from ..core.errors import Cancelled, RigError, SolverDidNotConverge
-from . import pipeline, workers
+from . import cycles, pipeline, viewport, workers
 
 
 class MultiscaleRenderEngine(bpy.types.RenderEngine):
@@ -17,47 +18,51 @@ class MultiscaleRenderEngine(bpy.types.RenderEngine):
     def render(self, depsgraph):
         start = time.perf_counter()
         self.update_stats("", "Multiscale: building rays")
+        diag = Diagnostics(should_stop=self.test_break)
         try:
-            frame = pipeline.prepare_frame(depsgraph, self.test_break)
+            frame = pipeline.prepare_frame(depsgraph, diag)
         except (RigError, SolverDidNotConverge) as err:
             self.fail(f"Multiscale: {err}")
             return
         except Cancelled:
             return
-        for notice in frame.notices:
-            self.report({"WARNING"}, f"Multiscale: {notice}")
+        reported = self.say(diag, 0)
         if depsgraph.scene.multiscale.shading == "CYCLES":
-            from . import cycles
-
             if cycles.render(self, depsgraph, frame):
                 return
         width, height = frame.size
         for name, channels, chan_id, _kind in pipeline.PASSES[1:]:
             self.add_pass(name, channels, chan_id)
-        loop_start = time.perf_counter()
         processes = workers.worker_count(frame.processes)
-        reported = len(frame.notices)
         try:
-            for (row0, row1), passes in workers.render_tiles(
-                frame, pipeline.tiles(frame), processes, self.test_break
-            ):
-                # each tile goes into the Render Result as soon as it is done
-                self.write_rows(passes, row0, row1, height, width)
-                self.update_progress(row1 / height)
-                self.update_stats("", stats_line(frame, row1, height, loop_start))
-                # what the tile loop had to say (workers given up) is said at once
-                for notice in frame.notices[reported:]:
-                    self.report({"WARNING"}, f"Multiscale: {notice}")
-                reported = len(frame.notices)
+            with diag.stage("render"):
+                for (row0, row1), passes in workers.render_tiles(
+                    frame, pipeline.tiles(frame), processes, self.test_break
+                ):
+                    # each tile goes into the Render Result as soon as it is done
+                    self.write_rows(passes, row0, row1, height, width)
+                    self.update_progress(row1 / height)
+                    self.update_stats("", stats_line(frame, row1, height, diag))
+                    # what the tile loop had to say (workers given up) is said at once
+                    reported = self.say(diag, reported)
         except Cancelled:
             return
         seconds = time.perf_counter() - start
-        frame.seconds["render"] = time.perf_counter() - loop_start
         print(
             f"Multiscale: {width}x{height}, {frame.samples} samples, {frame.rays} rays, "
             f"{frame.casts} segment casts, {frame.shadow_casts} shadow casts, {seconds:.2f} s "
             f"({', '.join(f'{k} {v:.2f} s' for k, v in frame.seconds.items())})"
         )
+
+    def say(self, diag, reported):
+        """Report the messages ``diag`` has said since the first ``reported``; returns
+        how many it has said in all."""
+        for message in diag.since(reported):
+            level = "ERROR" if message.level == Level.ERROR else "WARNING"
+            if message.level == Level.INFO:
+                level = "INFO"
+            self.report({level}, f"Multiscale: {message.text}")
+        return len(diag.messages)
 
     def write_rows(self, passes, row0, row1, height, width):
         """Write image rows (row 0 at the top) into the Render Result (rows bottom-up)."""
@@ -84,8 +89,6 @@ class MultiscaleRenderEngine(bpy.types.RenderEngine):
         self._viewport().draw(self, context, depsgraph)
 
     def _viewport(self):
-        from . import viewport
-
         if getattr(self, "_view", None) is None:
             self._view = viewport.ViewDraw()
         return self._view
@@ -95,9 +98,10 @@ class MultiscaleRenderEngine(bpy.types.RenderEngine):
             self.register_pass(scene, renderlayer, name, channels, chan_id, kind)
 
 
-def stats_line(frame, row, height, since):
-    """The engine's status text: rows done, rays and segment casts per second."""
-    seconds = max(time.perf_counter() - since, 1e-9)
+def stats_line(frame, row, height, diag):
+    """The engine's status text: rows done, rays and segment casts per second of the
+    tile loop so far (``diag``'s running "render" stage)."""
+    seconds = max(diag.running_seconds("render"), 1e-9)
     return (
         f"Multiscale: {row}/{height} rows | {frame.rays / seconds / 1e6:.2f} M rays/s | "
         f"{frame.casts / seconds / 1e6:.2f} M segment casts/s"

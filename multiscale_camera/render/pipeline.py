@@ -1,20 +1,23 @@
 """Scene -> passes: the steps of a render, each a plain function, shared by the engine,
-the operators and the tests."""
+the operators and the tests. The field comes from the field service (``fields``)."""
 
-import time
+import hashlib
 from dataclasses import dataclass, field
 
 import numpy as np
+from mathutils.bvhtree import BVHTree
 
-from ..adapters.lights import scene_lights, scene_world
-from ..adapters.meshes import scene_geometry
-from ..adapters.scene import field_settings, render_processes_of, rig_from_scene
+from ..adapters.lights import World, scene_lights, scene_world
+from ..adapters.meshes import SceneGeometry, scene_geometry
+from ..adapters.scene import render_processes_of
 from ..core import parallel
-from ..core.methods import field_key, prepare
+from ..core.diagnostics import Diagnostics, Level
+from ..core.geometry import Rig
 from ..core.parallel import worker_count
-from ..core.quality import crossing_messages, empty_mask_messages
+from ..core.quality import obstruction_messages
 from ..core.sampling import DEFAULT_TOLERANCE_PX, Occupancy, RaySampler, sample_offsets
-from ..io import cache
+from .checks import geometry_cast
+from .fields import SERVICE, WORKERS_GIVEN_UP
 from .raycast import march
 from .shade import shade
 from .volume import FrameVolumes, composite_volumes, prepare_volumes
@@ -30,12 +33,6 @@ PASSES = (
 # Depth written where a ray hits nothing, as Blender's own engines do.
 MISS_DEPTH = 1e10
 NO_MESH = "The scene has no visible mesh: only the world is rendered"
-# Worker processes of the field's trace, the simplification or the ray tables gave way.
-WORKERS_GIVEN_UP = (
-    "Worker processes died or stopped making progress (a forked copy of Blender can hang "
-    "on a lock another thread held); their work went on in Blender's process, only "
-    "slower. Render > Performance > Threads: Fixed at 1 keeps it there from the start"
-)
 NO_LIGHTS = "The scene has no lights: surfaces are lit by the world colour alone"
 # Bounds padding, a fraction of the scene's size: float32 BVH boxes round outwards.
 BOUNDS_PAD = 1e-4
@@ -47,31 +44,34 @@ SAMPLE_SEED = 0
 class Frame:
     """Everything a render needs, prepared once per frame.
 
-    rig : Rig. field : RayField. geometry : SceneGeometry. tree : BVHTree or None.
-    lights : list of Light. world : adapters.lights.World.
+    rig : core.geometry.Rig. field : core.methods.RayField (shared with the field
+        cache: read only). geometry : adapters.meshes.SceneGeometry.
+    tree : mathutils.bvhtree.BVHTree or None (no triangles).
+    lights : list of adapters.lights.Light. world : adapters.lights.World.
     transparent : bool, film transparency (misses get alpha 0).
     scale : float, diagonal of the scene's bounds, world units.
-    notices : list of str, for the user. seconds : dict, stage timings.
+    diag : core.diagnostics.Diagnostics, what the frame has to say (``notices``) and
+        its seconds per stage (``seconds``), and the cancel check of the render.
     sampler : core.sampling.RaySampler. bounds : ((3,), (3,)) float64 padded scene box
         or None. samples : int, rays per pixel. filter_width : float, pixels.
     processes : int, worker processes for the tiles, the simplification and the ray
         tables (0: one per core; ``adapters.scene.render_processes_of``).
-    occupancy : core.occupancy.Occupancy of the triangles in ``bounds``, or None.
+    occupancy : core.sampling.Occupancy of the triangles in ``bounds``, or None.
+    volumes : render.volume.FrameVolumes.
     casts, shadow_casts, rays : int, counted as the render goes.
     """
 
-    rig: object
+    rig: Rig
     field: object
-    geometry: object
+    geometry: SceneGeometry
     tree: object
     lights: list
-    world: np.ndarray
+    world: World
     transparent: bool
     scale: float
-    notices: list = field(default_factory=list)
-    seconds: dict = field(default_factory=dict)
-    sampler: object = None
-    bounds: tuple = None
+    diag: Diagnostics = field(default_factory=Diagnostics)
+    sampler: RaySampler | None = None
+    bounds: tuple | None = None
     samples: int = 1
     filter_width: float = 1.5
     processes: int = 0
@@ -79,93 +79,90 @@ class Frame:
     shadow_casts: int = 0
     rays: int = 0
     volumes: FrameVolumes = field(default_factory=FrameVolumes)
-    occupancy: object = None
+    occupancy: Occupancy | None = None
 
     @property
     def size(self):
         return self.rig.size
 
+    @property
+    def notices(self) -> list[str]:
+        """The warnings the frame has said so far, in order."""
+        return self.diag.texts(Level.WARNING)
 
-def build_field(scene, should_stop=None):
-    """The scene's ray field, from the field cache (``io.cache``: memory, then disk) when
-    the rig and settings are unchanged.
+    @property
+    def seconds(self) -> dict[str, float]:
+        """Seconds per stage (field, geometry, simplify, render)."""
+        return self.diag.seconds
 
-    ``scene`` should be an evaluated scene (``depsgraph.scene``), so that object
-    matrices are current.
+
+def build_field(scene, diag=None):
+    """The scene's ray field through the field service (``fields.SERVICE``: cached when
+    the rig and settings are unchanged). ``scene`` should be an evaluated scene
+    (``depsgraph.scene``), so that object matrices are current.
 
     Returns
     -------
     (RayField, built) : the field, and whether it was built now.
     """
-    settings_group = scene.multiscale
-    rig = rig_from_scene(scene)
-    settings = field_settings(scene)
-    key = field_key(rig, settings_group.method, settings)
-    cache.CACHE.limit_mb = float(getattr(settings_group, "cache_limit_mb", cache.DEFAULT_LIMIT_MB))
-    # checks before each build that the methods do not make themselves
-    notices = list(rig.notices) + empty_mask_messages(rig) + crossing_messages(rig)
-    fld = cache.CACHE.get(key, rig)
-    if fld is not None:
-        fld.notices = notices
-        return fld, False
-    fld = prepare(rig, settings_group.method, settings, should_stop)
-    fld.notices = notices
-    failed = cache.CACHE.put(key, fld)
-    if failed:
-        fld.notices.append(failed)
-    return fld, True
+    result = SERVICE.get(SERVICE.request(scene), diag)
+    return result.field, result.built
 
 
 def clear_fields():
     """Forget every cached field (memory and disk)."""
-    cache.CACHE.clear()
+    SERVICE.clear()
 
 
-def prepare_frame(depsgraph, should_stop=None):
+def prepare_frame(depsgraph, diag=None):
     """Build (or reuse) the ray field and the scene's BVH.
+
+    ``diag`` (core.diagnostics.Diagnostics or None) steers the work (Esc) and becomes
+    the frame's: what the frame has to say and its seconds per stage.
 
     Raises
     ------
     RigError, SolverDidNotConverge: the rig cannot be rendered (the message says why).
-    Cancelled: ``should_stop`` said so.
+    Cancelled: ``diag`` said so.
     """
+    diag = diag if diag is not None else Diagnostics()
     scene = depsgraph.scene
     given_up = parallel.given_up()
     # volumes first: a missing or unusable volume file stops the render before the build
     volumes, volume_notices = prepare_volumes(depsgraph)
-    t0 = time.perf_counter()
-    ray_field, built = build_field(scene, should_stop)
+    field_stage = diag.stage("field")
+    with field_stage:
+        result = SERVICE.get(SERVICE.request(scene), diag)
+    if not result.built:  # said as "field (cached)" in the timings
+        diag.seconds["field (cached)"] = diag.seconds.pop("field")
+    ray_field = result.field
     rig = ray_field.rig
-    t1 = time.perf_counter()
-    t2 = t1
-    geometry = scene_geometry(depsgraph)
-    notices = list(ray_field.notices) + list(ray_field.warnings)
-    bounds = occupancy = None
-    if len(geometry):
-        tree, bounds, occupancy, scale = scene_tree(geometry)
-    else:
-        tree, scale = None, 1.0
-    notices += volume_notices
-    if not len(geometry) and not volumes:
-        notices.append(NO_MESH)
-    notices += geometry.notices
-    lights = scene_lights(depsgraph)
-    if not lights and len(geometry):
-        notices.append(NO_LIGHTS)
-    world = scene_world(scene, notices)
-    if built:  # geometry in the bending stretch hides a camera's view: say so once
-        from ..core.quality import obstruction_messages
-        from .checks import geometry_cast
-
-        notices += obstruction_messages(rig, geometry_cast(geometry, tree))
-    t3 = time.perf_counter()
+    with diag.stage("geometry"):
+        geometry = scene_geometry(depsgraph)
+        bounds = occupancy = None
+        if len(geometry):
+            tree, bounds, occupancy, scale = scene_tree(geometry)
+        else:
+            tree, scale = None, 1.0
+        diag.extend(volume_notices)
+        if not len(geometry) and not volumes:
+            diag.warn(NO_MESH)
+        diag.extend(geometry.notices)
+        lights = scene_lights(depsgraph)
+        if not lights and len(geometry):
+            diag.warn(NO_LIGHTS)
+        said = []
+        world = scene_world(scene, said)
+        diag.extend(said)
+        if result.built:  # geometry in the bending stretch hides a camera's view: say so once
+            diag.extend(obstruction_messages(rig, geometry_cast(geometry, tree)))
     settings = scene.multiscale
     tol = getattr(settings, "simplify_px", DEFAULT_TOLERANCE_PX)
     processes = render_processes_of(scene)
-    sampler = sampler_for(ray_field, tol, bounds, should_stop, occupancy, processes)
-    t4 = time.perf_counter()
+    with diag.stage("simplify"):
+        sampler = sampler_for(ray_field, tol, bounds, diag.should_stop, occupancy, processes)
     if parallel.given_up() > given_up:  # the field's trace or the simplification
-        notices.append(WORKERS_GIVEN_UP)
+        diag.warn(WORKERS_GIVEN_UP)
     return Frame(
         rig=rig,
         field=ray_field,
@@ -175,12 +172,7 @@ def prepare_frame(depsgraph, should_stop=None):
         world=world,
         transparent=bool(scene.render.film_transparent),
         scale=max(scale, 1e-6),
-        notices=notices,
-        seconds={
-            "field" if built else "field (cached)": t1 - t0,
-            "geometry": t3 - t2,
-            "simplify": t4 - t3,
-        },
+        diag=diag,
         sampler=sampler,
         bounds=bounds,
         samples=max(1, int(settings.samples)),
@@ -191,28 +183,22 @@ def prepare_frame(depsgraph, should_stop=None):
     )
 
 
-# The last scene_tree result, keyed on a digest of the triangles it was built from.
-_TREE = {}
-
-
 def scene_tree(geometry):
     """The BVH tree, padded bounds, occupancy grid and size of ``geometry``'s triangles,
     reused from the last call when the triangles are the same (building them takes most
-    of a frame's preparation: 0.14 of 0.25 s for 100k triangles).
+    of a frame's preparation: 0.14 of 0.25 s for 100k triangles); the field service
+    keeps the last one (``SERVICE.trees``).
 
     Returns
     -------
     tree : BVHTree. bounds : ((3,), (3,)) float64, world units. occupancy : Occupancy.
     scale : float, the diagonal of the triangles' bounding box, world units.
     """
-    import hashlib
-
-    from mathutils.bvhtree import BVHTree
-
     digest = hashlib.blake2b(np.ascontiguousarray(geometry.vertices).tobytes())
     digest.update(np.ascontiguousarray(geometry.triangles).tobytes())
     key = digest.hexdigest()
-    if key not in _TREE:
+    trees = SERVICE.trees
+    if key not in trees:
         tree = BVHTree.FromPolygons(
             geometry.vertices.tolist(), geometry.triangles.tolist(), all_triangles=True
         )
@@ -221,9 +207,9 @@ def scene_tree(geometry):
         pad = BOUNDS_PAD * max(scale, 1e-6) + 1e-6
         bounds = (lo - pad, hi + pad)
         occupancy = Occupancy(geometry.vertices, geometry.triangles, *bounds, pad=pad)
-        _TREE.clear()
-        _TREE[key] = tree, bounds, occupancy, scale
-    return _TREE[key]
+        trees.clear()
+        trees[key] = tree, bounds, occupancy, scale
+    return trees[key]
 
 
 def sampler_for(ray_field, tol_px, bounds, should_stop=None, occupancy=None, processes=1):

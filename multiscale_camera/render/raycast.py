@@ -19,7 +19,7 @@ from operator import itemgetter
 
 import numpy as np
 
-from ..core.errors import Cancelled
+from ..core.diagnostics import check_stop
 from ..core.geometry import RayBundle, dot3
 from ..core.sampling import greedy_keep, polyline_measures, segments_from_points
 
@@ -291,8 +291,7 @@ def cast_all(cast, origins, directions, lengths, should_stop, pick=None):
     answers = map(pick, map(cast, origins, directions, lengths))
     out = []
     while True:
-        if should_stop is not None and should_stop():
-            raise Cancelled()
+        check_stop(should_stop)
         done = len(out)
         out += islice(answers, CASTS_PER_CHECK)
         if len(out) - done < CASTS_PER_CHECK:

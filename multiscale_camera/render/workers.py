@@ -100,9 +100,9 @@ def render_tiles(frame, tiles, processes, should_stop=None):
         except BrokenProcessPool:
             # a worker died (killed, or a forked copy of a threaded host that could not
             # run): the tiles it left render here, rather than waiting on it forever
-            frame.notices.append(WORKER_DIED)
+            frame.diag.warn(WORKER_DIED)
         except Stalled:
-            frame.notices.append(WORKER_STALLED)
+            frame.diag.warn(WORKER_STALLED)
         finally:
             stop(pool)
             _FRAME = _SHARED = None

@@ -1,10 +1,14 @@
 """The 3D viewport's sidebar tab "Multiscale"."""
 
 import json
+import textwrap
 
 import bpy
 
-from ..core.quality import headline
+from ..adapters.cameras import pinhole_from_object
+from ..core.quality import guard_pairs, headline
+from ..render import cycles
+from . import preview
 from .volume import draw_transfer_function
 
 
@@ -19,9 +23,7 @@ def _report(settings):
 
 def _draw_shading(layout, settings):
     """The shading choice where Cycles can take the rays (Blender 4.5+), else why not."""
-    from ..render.cycles import unsupported_reason
-
-    reason = unsupported_reason()
+    reason = cycles.unsupported_reason()
     if reason is None:
         layout.prop(settings, "shading", expand=True)
     else:
@@ -120,9 +122,7 @@ def draw_headline(layout, report, chars=44):
 
 def shading_option_shown():
     """The Cycles hand-off needs the OSL custom camera of Blender 4.5+: hidden before."""
-    from ..render.cycles import unsupported_reason
-
-    return unsupported_reason() is None
+    return cycles.unsupported_reason() is None
 
 
 def draw_item_buttons(row, item, index):
@@ -138,9 +138,6 @@ def draw_item_buttons(row, item, index):
 def guard_cameras(context):
     """Names of the cameras whose near distance breaks the guide guard (the handle from
     the previous camera would reach behind their eye); empty when the rig cannot tell."""
-    from ..adapters.cameras import pinhole_from_object
-    from ..core.quality import guard_pairs
-
     settings = context.scene.multiscale
     objs = [i.camera for i in settings.cameras]
     if len(objs) < 2 or any(o is None or o.type != "CAMERA" for o in objs):
@@ -207,8 +204,6 @@ class MULTISCALE_PT_validation(bpy.types.Panel):
 
 
 def _wrap(text, width):
-    import textwrap
-
     return textwrap.wrap(text, width) or [""]
 
 
@@ -221,15 +216,13 @@ class MULTISCALE_PT_preview(bpy.types.Panel):
     bl_options = {"DEFAULT_CLOSED"}
 
     def draw(self, context):
-        from . import preview
-
         settings = context.scene.multiscale
         layout = self.layout
         row = layout.row(align=True)
         row.prop(settings, "show_preview", icon="LIGHT_SUN", toggle=True)
         row.prop(settings, "preview_rays", text="Rays")
-        if settings.show_preview and preview.STATE["note"]:
-            layout.label(text=preview.STATE["note"], icon="INFO")
+        if settings.show_preview and preview.note():
+            layout.label(text=preview.note(), icon="INFO")
         row = layout.row(align=True)
         row.prop(settings, "cache_limit_mb", text="Cache (MB)")
         row.operator("multiscale.cache_clear", icon="TRASH")

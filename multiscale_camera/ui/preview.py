@@ -9,188 +9,146 @@
 - In the Image Editor: a camera's guide (its own view) over its mask at half opacity
   while the mask is shown, so the mask can be painted over the picture.
 
-Lines are computed with numpy (``preview_lines``, no bpy); drawing needs a GPU
+Lines are computed with numpy (``preview_lines``, a module without bpy); drawing needs a GPU
 context, which background Blender lacks: there the lines are computed, nothing is
 drawn, nothing fails.
 """
 
-import numpy as np
+import bpy
+import gpu
+from gpu_extras.batch import batch_for_shader
 
-from ..core.quality import bending_active, quad_folds
-
-# Camera colours, first to last (a ray's colour blends them by its membership).
-PALETTE = np.array(
-    [
-        (0.25, 0.55, 1.0),
-        (0.3, 0.85, 0.45),
-        (1.0, 0.6, 0.15),
-        (0.85, 0.35, 0.9),
-        (0.95, 0.9, 0.3),
-    ],
-    dtype=np.float32,
-)
-FOLD_COLOUR = (1.0, 0.1, 0.1, 1.0)
-FRUSTUM_ALPHA = 0.8
-RAY_ALPHA = 0.9
-GUIDE_ALPHA = 0.5
-# Drawn ray vertices per ray at most (every k-th vertex of long rays).
-MAX_VERTICES = 96
-
-
-def camera_colour(membership):
-    """(..., 3) float32 colours for membership values (1-based camera numbers)."""
-    m = np.clip(np.asarray(membership, dtype=np.float64) - 1.0, 0, len(PALETTE) - 1)
-    lo = np.floor(m).astype(int)
-    hi = np.minimum(lo + 1, len(PALETTE) - 1)
-    t = (m - lo)[..., None]
-    return ((1 - t) * PALETTE[lo] + t * PALETTE[hi]).astype(np.float32)
-
-
-def frustum_lines(cameras):
-    """Segments of the chained frusta.
-
-    Returns
-    -------
-    pos : (S*2, 3) float32, world units, segment end points in pairs.
-    colour : (S*2, 4) float32.
-    """
-    pos, col = [], []
-    corners = []
-    for i, cam in enumerate(cameras):
-        w, h = cam.width, cam.height
-        d = cam.directions(np.array([0.0, w, w, 0.0]), np.array([0.0, 0.0, h, h]))
-        near = cam.near_points(d)
-        corners.append(near)
-        c = (*PALETTE[min(i, len(PALETTE) - 1)], FRUSTUM_ALPHA)
-        for k in range(4):
-            pos += [cam.eye, near[k], near[k], near[(k + 1) % 4]]
-            col += [c] * 4
-    for i in range(len(cameras) - 1):
-        a, b = corners[i], corners[i + 1]
-        ca = (*PALETTE[min(i, len(PALETTE) - 1)], 0.5 * FRUSTUM_ALPHA)
-        cb = (*PALETTE[min(i + 1, len(PALETTE) - 1)], 0.5 * FRUSTUM_ALPHA)
-        for k in range(4):
-            pos += [a[k], b[k]]
-            col += [ca, cb]
-    return np.asarray(pos, dtype=np.float32).reshape(-1, 3), np.asarray(col, np.float32)
-
-
-def preview_lines(fld, per_side=12):
-    """Ray segments, their colours and fold marks for a sparse pixel grid of ``fld``.
-
-    Parameters
-    ----------
-    fld : RayField. per_side : int, rays per image side.
-
-    Returns
-    -------
-    dict with "rays" ((S*2, 3) float32 segment end points, world units), "ray_colours"
-    ((S*2, 4) float32), "folds" ((F, 3) float32 points), "frusta" and
-    "frustum_colours" (``frustum_lines``), "count" (rays drawn).
-    """
-    rig = fld.rig
-    w, h = rig.size
-    xs = np.unique(np.linspace(0, w - 1, per_side).round().astype(int))
-    ys = np.unique(np.linspace(0, h - 1, max(2, round(per_side * h / w))).round().astype(int))
-    iy, ix = np.meshgrid(ys, xs, indexing="ij")
-    bundle = fld.rays(ix.ravel(), iy.ravel())
-    verts, mem = bundle.vertices, bundle.membership
-    r, k = verts.shape[:2]
-    exit_index = fld.exit_index(ix.ravel(), iy.ravel())
-    last = np.full(r, k - 1) if exit_index is None else np.clip(exit_index, 1, k - 1)
-    step = max(1, int(np.ceil(k / MAX_VERTICES)))
-    keep = np.arange(0, k, step)
-    idx = np.arange(k - 1)
-    seg = idx[None, :] < last[:, None]  # segments up to the exit vertex
-    seg &= np.isin(idx, keep)[None, :] | (idx[None, :] == (last - 1)[:, None])
-    rows, cols = np.nonzero(seg)
-    nxt = np.minimum(cols + step, last[rows])
-    a, b = verts[rows, cols], verts[rows, nxt]
-    ca, cb = camera_colour(mem[rows, cols]), camera_colour(mem[rows, nxt])
-    pos = np.stack([a, b], axis=1).reshape(-1, 3)
-    col = np.concatenate(
-        [np.stack([ca, cb], axis=1).reshape(-1, 3), np.full((len(pos), 1), RAY_ALPHA)], axis=1
-    )
-    grid_verts = verts.reshape(len(ys), len(xs), k, 3)
-    counts = (last + 1).reshape(len(ys), len(xs))
-    folds = np.zeros((0, 3), dtype=np.float32)
-    if len(xs) > 1 and len(ys) > 1:
-        folded = quad_folds(grid_verts, bending_active(grid_verts, rig.cameras[-1], counts))
-        fy, fx = np.nonzero(folded)
-        if len(fy):
-            mid = (counts[fy, fx] // 2).clip(0, k - 1)
-            folds = grid_verts[fy, fx, mid].astype(np.float32)
-    frusta, frustum_colours = frustum_lines(rig.cameras)
-    return {
-        "rays": pos.astype(np.float32),
-        "ray_colours": col.astype(np.float32),
-        "folds": folds,
-        "frusta": frusta,
-        "frustum_colours": frustum_colours,
-        "count": r,
-    }
-
+from ..adapters.scene import rig_from_scene
+from ..render.fields import SERVICE
+from .preview_lines import FOLD_COLOUR, GUIDE_ALPHA, frustum_lines, preview_lines
 
 # --- Blender side ------------------------------------------------------------------------
 
-# What the 3D viewport draws: preview_lines' dict (or frusta only), None when off.
-# ``_on_load`` (a load_post handler) resets it for each file opened.
-STATE = {"lines": None, "handler": None, "image_handler": None, "note": ""}
+
+class RayPreview:
+    """What the 3D viewport's ray preview draws, and the draw handlers that draw it and
+    the guide under a mask; one is made in ``register()``.
+
+    Attributes
+    ----------
+    lines : dict of ``preview_lines`` (or frusta only), or None when off.
+    note : str, a short note for the panel ("" when the rays are shown).
+    """
+
+    def __init__(self):
+        self.lines = None
+        self.note = ""
+        self.view_handler = None
+        self.image_handler = None
+
+    def update(self, scene, fld=None):
+        """Recompute what the preview draws for ``scene`` (from ``fld``, else the newest
+        field of the scene's rig in memory) and add or remove the draw handler.
+
+        Returns a short note for the user ("" when the rays are shown)."""
+        settings = scene.multiscale
+        if not settings.show_preview:
+            self.lines = None
+            self._remove_view_handler()
+            _redraw()
+            return ""
+        note = ""
+        try:
+            if fld is None:
+                fld = SERVICE.cached(SERVICE.request(scene), memory_only=True)
+            if fld is not None:
+                self.lines = preview_lines(fld, settings.preview_rays)
+            else:
+                rig = rig_from_scene(scene)
+                pos, col = frustum_lines(rig.cameras)
+                self.lines = {"frusta": pos, "frustum_colours": col, "count": 0}
+                note = "Compute the field to see the rays; the frusta are shown"
+        except Exception as err:  # a rig that cannot build: say so, draw nothing
+            self.lines = None
+            note = f"No preview: {err}"
+        self.note = note
+        self._add_view_handler()
+        _redraw()
+        return note
+
+    def forget(self):
+        """After a file loads: the old file's lines go; redraw for the new one if its
+        preview is on."""
+        self.lines, self.note = None, ""
+        scene = bpy.context.scene
+        if scene is not None and hasattr(scene, "multiscale") and scene.multiscale.show_preview:
+            self.update(scene)
+        else:
+            self._remove_view_handler()
+
+    def start(self):
+        """Add the Image Editor's guide handler (where a GPU context exists)."""
+        if _gpu_available() and self.image_handler is None:
+            self.image_handler = bpy.types.SpaceImageEditor.draw_handler_add(
+                _draw_image_guide, (), "WINDOW", "POST_PIXEL"
+            )
+
+    def stop(self):
+        """Remove every draw handler; nothing is drawn any more."""
+        self._remove_view_handler()
+        if self.image_handler is not None:
+            bpy.types.SpaceImageEditor.draw_handler_remove(self.image_handler, "WINDOW")
+            self.image_handler = None
+        self.lines = None
+
+    def _add_view_handler(self):
+        if self.view_handler is None and _gpu_available():
+            self.view_handler = bpy.types.SpaceView3D.draw_handler_add(
+                self.draw_view3d, (), "WINDOW", "POST_VIEW"
+            )
+
+    def _remove_view_handler(self):
+        if self.view_handler is not None:
+            bpy.types.SpaceView3D.draw_handler_remove(self.view_handler, "WINDOW")
+            self.view_handler = None
+
+    def draw_view3d(self):
+        lines = self.lines
+        if not lines:
+            return
+        gpu.state.blend_set("ALPHA")
+        gpu.state.depth_test_set("LESS_EQUAL")
+        _draw_lines(lines.get("frusta"), lines.get("frustum_colours"), 1.5)
+        _draw_lines(lines.get("rays"), lines.get("ray_colours"), 1.5)
+        folds = lines.get("folds")
+        if folds is not None and len(folds):
+            shader = gpu.shader.from_builtin(
+                "POINT_UNIFORM_COLOR" if _has_shader("POINT_UNIFORM_COLOR") else "UNIFORM_COLOR"
+            )
+            batch = batch_for_shader(shader, "POINTS", {"pos": folds.tolist()})
+            gpu.state.point_size_set(8.0)
+            shader.bind()
+            shader.uniform_float("color", FOLD_COLOUR)
+            batch.draw(shader)
+        gpu.state.depth_test_set("NONE")
+        gpu.state.blend_set("NONE")
 
 
-def _gpu_available():
-    import bpy
-
-    return not bpy.app.background
+# The preview of this session: made in register(), None while unregistered.
+PREVIEW = None
 
 
 def update(scene, fld=None):
-    """Recompute what the preview draws for ``scene`` (from ``fld``, else the newest
-    cached field of the scene's rig) and add or remove the draw handler.
-
-    Returns a short note for the user ("" when the rays are shown)."""
-    settings = scene.multiscale
-    if not settings.show_preview:
-        STATE["lines"] = None
-        _remove_handler()
-        _redraw()
-        return ""
-    note = ""
-    try:
-        if fld is None:
-            fld = _cached_field(scene)
-        if fld is not None:
-            STATE["lines"] = preview_lines(fld, settings.preview_rays)
-        else:
-            from ..adapters.scene import rig_from_scene
-
-            rig = rig_from_scene(scene)
-            pos, col = frustum_lines(rig.cameras)
-            STATE["lines"] = {"frusta": pos, "frustum_colours": col, "count": 0}
-            note = "Compute the field to see the rays; the frusta are shown"
-    except Exception as err:  # a rig that cannot build: say so, draw nothing
-        STATE["lines"] = None
-        note = f"No preview: {err}"
-    STATE["note"] = note
-    _add_handler()
-    _redraw()
-    return note
+    """``RayPreview.update`` of the registered preview ("" when there is none); the
+    field service calls it when a background build has stored a field."""
+    return PREVIEW.update(scene, fld) if PREVIEW is not None else ""
 
 
-def _cached_field(scene):
-    from ..adapters.scene import field_settings, rig_from_scene
-    from ..core.methods import field_key
-    from ..io import cache
+def note():
+    """The preview's note for the panel ("" when there is none)."""
+    return PREVIEW.note if PREVIEW is not None else ""
 
-    s = scene.multiscale
-    rig = rig_from_scene(scene)
-    key = field_key(rig, s.method, field_settings(scene))
-    return cache.CACHE.memory.get(key)
+
+def _gpu_available():
+    return not bpy.app.background
 
 
 def _redraw():
-    import bpy
-
     wm = getattr(bpy.context, "window_manager", None)
     for window in getattr(wm, "windows", []):
         for area in window.screen.areas:
@@ -198,26 +156,7 @@ def _redraw():
                 area.tag_redraw()
 
 
-def _add_handler():
-    import bpy
-
-    if STATE["handler"] is None and _gpu_available():
-        STATE["handler"] = bpy.types.SpaceView3D.draw_handler_add(
-            _draw_view3d, (), "WINDOW", "POST_VIEW"
-        )
-
-
-def _remove_handler():
-    import bpy
-
-    if STATE["handler"] is not None:
-        bpy.types.SpaceView3D.draw_handler_remove(STATE["handler"], "WINDOW")
-        STATE["handler"] = None
-
-
 def _line_shader():
-    import gpu
-
     try:
         return gpu.shader.from_builtin("POLYLINE_SMOOTH_COLOR"), True
     except (ValueError, SystemError):
@@ -225,9 +164,6 @@ def _line_shader():
 
 
 def _draw_lines(pos, col, width):
-    import bpy
-    from gpu_extras.batch import batch_for_shader
-
     if pos is None or len(pos) == 0:
         return
     shader, poly = _line_shader()
@@ -240,34 +176,7 @@ def _draw_lines(pos, col, width):
     batch.draw(shader)
 
 
-def _draw_view3d():
-    import gpu
-    from gpu_extras.batch import batch_for_shader
-
-    lines = STATE["lines"]
-    if not lines:
-        return
-    gpu.state.blend_set("ALPHA")
-    gpu.state.depth_test_set("LESS_EQUAL")
-    _draw_lines(lines.get("frusta"), lines.get("frustum_colours"), 1.5)
-    _draw_lines(lines.get("rays"), lines.get("ray_colours"), 1.5)
-    folds = lines.get("folds")
-    if folds is not None and len(folds):
-        shader = gpu.shader.from_builtin(
-            "POINT_UNIFORM_COLOR" if _has_shader("POINT_UNIFORM_COLOR") else "UNIFORM_COLOR"
-        )
-        batch = batch_for_shader(shader, "POINTS", {"pos": folds.tolist()})
-        gpu.state.point_size_set(8.0)
-        shader.bind()
-        shader.uniform_float("color", FOLD_COLOUR)
-        batch.draw(shader)
-    gpu.state.depth_test_set("NONE")
-    gpu.state.blend_set("NONE")
-
-
 def _has_shader(name):
-    import gpu
-
     try:
         gpu.shader.from_builtin(name)
         return True
@@ -286,10 +195,6 @@ def _guide_for(image, scene):
 
 
 def _draw_image_guide():
-    import bpy
-    import gpu
-    from gpu_extras.batch import batch_for_shader
-
     space, region = bpy.context.space_data, bpy.context.region
     scene = bpy.context.scene
     image = getattr(space, "image", None)
@@ -320,38 +225,26 @@ def _draw_image_guide():
     gpu.state.blend_set("NONE")
 
 
+@bpy.app.handlers.persistent  # kept across file loads: it is what runs after them
 def _on_load(*_args):
-    """After a file loads: forget the old file's lines; redraw for the new one if its
-    preview is on."""
-    import bpy
-
-    STATE["lines"], STATE["note"] = None, ""
-    scene = bpy.context.scene
-    if scene is not None and hasattr(scene, "multiscale") and scene.multiscale.show_preview:
-        update(scene)
-    else:
-        _remove_handler()
+    if PREVIEW is not None:
+        PREVIEW.forget()
 
 
 def register():
-    import bpy
-
+    global PREVIEW
+    PREVIEW = RayPreview()
+    PREVIEW.start()
     if _on_load not in bpy.app.handlers.load_post:
-        # persistent: kept across file loads (it is what runs after them)
-        bpy.app.handlers.load_post.append(bpy.app.handlers.persistent(_on_load))
-    if _gpu_available() and STATE["image_handler"] is None:
-        STATE["image_handler"] = bpy.types.SpaceImageEditor.draw_handler_add(
-            _draw_image_guide, (), "WINDOW", "POST_PIXEL"
-        )
+        bpy.app.handlers.load_post.append(_on_load)
+    SERVICE.add_listener(update)
 
 
 def unregister():
-    import bpy
-
+    global PREVIEW
+    SERVICE.remove_listener(update)
     if _on_load in bpy.app.handlers.load_post:
         bpy.app.handlers.load_post.remove(_on_load)
-    _remove_handler()
-    if STATE["image_handler"] is not None:
-        bpy.types.SpaceImageEditor.draw_handler_remove(STATE["image_handler"], "WINDOW")
-        STATE["image_handler"] = None
-    STATE["lines"] = None
+    if PREVIEW is not None:
+        PREVIEW.stop()
+    PREVIEW = None

@@ -1,6 +1,6 @@
 """Scene settings: ``bpy.types.Scene.multiscale`` and its camera list.
 
-The names here are a public contract (DESIGN.md): users' scripts and tests set
+The names here are a public contract (docs/architecture.md): users' scripts and tests set
 ``scene.multiscale.cameras``, ``method``, ``quality`` and friends directly.
 """
 
@@ -14,6 +14,8 @@ from bpy.props import (
     PointerProperty,
     StringProperty,
 )
+
+from . import preview
 
 METHOD_ITEMS = [
     ("AUTO", "Auto", "The cheapest method that meets the accuracy target on this rig"),
@@ -44,8 +46,6 @@ SHADING_ITEMS = [
 
 
 def _preview_toggled(self, context):
-    from . import preview
-
     preview.update(context.scene)
 
 

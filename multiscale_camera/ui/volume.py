@@ -10,6 +10,7 @@
 import bpy
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntVectorProperty, StringProperty
 
+from ..adapters.volumes import openvdb_module
 from ..core.volume import DEFAULT_POINTS
 
 VALUE_TYPES = [
@@ -121,8 +122,6 @@ class MULTISCALE_PT_object_volume(bpy.types.Panel):
         return context.object is not None and context.object.type != "CAMERA"
 
     def draw(self, context):
-        from ..adapters.volumes import openvdb_module
-
         layout = self.layout
         obj = context.object
         settings = obj.multiscale_volume

@@ -9,10 +9,11 @@ import bpy
 import numpy as np
 import pytest
 
+from multiscale_camera.core.diagnostics import Diagnostics
 from multiscale_camera.io import cache
-from multiscale_camera.render import pipeline
+from multiscale_camera.render import fields, pipeline
 from multiscale_camera.ui import preview
-from multiscale_camera.ui.operators import BuildJob, FieldRequest
+from multiscale_camera.ui.mask_ops import _white
 
 from .scenes import disk, mask_image, two_camera_scene
 
@@ -27,7 +28,7 @@ def operator_error(op, **kw):
 def cache_dir(tmp_path, monkeypatch):
     """A fresh disk cache for the test."""
     folder = tmp_path / "cache"
-    monkeypatch.setattr(cache, "CACHE", cache.FieldCache(str(folder)))
+    monkeypatch.setattr(fields.SERVICE, "cache", cache.FieldCache(str(folder)))
     return folder
 
 
@@ -204,7 +205,7 @@ def test_full_report_is_written_to_a_text(empty_scene, cache_dir):
 def test_disk_cache_hit_on_light_and_material_miss_on_mask_and_camera(empty_scene, cache_dir):
     scene = empty_scene
     c1, _c2 = two_camera_scene(scene)
-    c = cache.CACHE
+    c = fields.SERVICE.cache
     assert pipeline.build_field(scene)[1] and (c.hits, c.misses) == (0, 1)
     assert len(list(cache_dir.glob("*.npz"))) == 1
     c.memory.clear()  # as after a restart: only the disk has it
@@ -231,7 +232,7 @@ def test_cache_folder_limit_comes_from_the_scene(empty_scene, cache_dir):
     two_camera_scene(scene)
     scene.multiscale.cache_limit_mb = 16
     pipeline.build_field(scene)
-    assert cache.CACHE.limit_mb == 16.0
+    assert fields.SERVICE.cache.limit_mb == 16.0
 
 
 # --- preview and background build ----------------------------------------------------------
@@ -241,37 +242,62 @@ def test_preview_toggle_headless_computes_lines_without_drawing(empty_scene, cac
     scene = empty_scene
     two_camera_scene(scene)
     scene.multiscale.show_preview = True
-    assert preview.STATE["lines"]["count"] == 0  # no field yet: frusta only
-    assert preview.STATE["note"] == "Compute the field to see the rays; the frusta are shown"
-    assert len(preview.STATE["lines"]["frusta"]) == 2 * (2 * 8 + 4)
+    shown = preview.PREVIEW
+    assert shown.lines["count"] == 0  # no field yet: frusta only
+    assert preview.note() == "Compute the field to see the rays; the frusta are shown"
+    assert len(shown.lines["frusta"]) == 2 * (2 * 8 + 4)
     bpy.ops.multiscale.compute_field()  # the preview updates after the build
-    lines = preview.STATE["lines"]
+    lines = shown.lines
     assert lines["count"] == 12 * 9 and len(lines["rays"]) > 2 * lines["count"]
-    assert preview.STATE["handler"] is None  # no GPU in background: nothing drawn
+    assert shown.view_handler is None  # no GPU in background: nothing drawn
     scene.multiscale.show_preview = False
-    assert preview.STATE["lines"] is None
+    assert shown.lines is None
 
 
-def test_build_job_hands_the_field_back_and_cancels(empty_scene, cache_dir):
+def test_background_build_hands_the_field_back_and_cancels(empty_scene, cache_dir):
     scene = empty_scene
     two_camera_scene(scene)
-    from multiscale_camera.adapters.scene import rig_from_scene
+    service = fields.SERVICE
+    request = service.request(scene)
+    told = []
+    service.add_listener(lambda _scene, fld: told.append(fld))
+    try:
+        job = fields.FieldBuild(request, measure=True)
+        job.cancel()  # Esc before the first check: the build stops, nothing is stored
+        job._thread.start()
+        job._thread.join(60)
+        assert job.cancelled and job.field is None
+        assert service.finish(job) is None and told == []
+        assert list(cache_dir.glob("*.npz")) == []
+        job = service.start(request, measure=True)
+        assert service.start(request) is job  # the same field: joined, not built twice
+        job._thread.join(120)
+        assert not job.cancelled and job.error is None
+        result = service.finish(job)
+        assert result.built and result.report["cameras"][1]["name"] == "C2"
+        assert service.finish(job) is result and told == [result.field]  # once
+        assert len(list(cache_dir.glob("*.npz"))) == 1 and service.running() is None
+        again = service.get(service.request(scene))
+        assert again.field is result.field and not again.built  # a cache hit needs no job
+    finally:
+        service._listeners.clear()
+        service._listeners.append(preview.update)
 
-    rig = rig_from_scene(scene)
-    job = BuildJob(FieldRequest(scene.multiscale, rig))
-    job.cancel()  # Esc before the first check: the build stops, nothing is stored
-    job.start()
-    job._thread.join(60)
-    assert job.cancelled and job.request.field is None
-    assert list(cache_dir.glob("*.npz")) == []
-    job = BuildJob(FieldRequest(scene.multiscale, rig))
-    job.start()
-    job._thread.join(120)
-    assert not job.cancelled and job.error is None
-    assert job.request.built and job.request.report["cameras"][1]["name"] == "C2"
-    assert job.request.store() is None and len(list(cache_dir.glob("*.npz"))) == 1
-    again = FieldRequest(scene.multiscale, rig)
-    assert again.field is not None and not again.built  # a cache hit needs no job
+
+def test_two_callers_of_one_cached_field_keep_their_own_notices(empty_scene, cache_dir):
+    """A cached field is shared: what one caller is told never reaches another, and
+    nothing is written onto the field."""
+    scene = empty_scene
+    two_camera_scene(scene)
+    service = fields.SERVICE
+    first, second = Diagnostics(), Diagnostics()
+    first.warn("only the first caller's")
+    a = service.get(service.request(scene), first)
+    b = service.get(service.request(scene), second)
+    assert a.field is b.field and b.built is False
+    assert "only the first caller's" in first.texts()
+    assert "only the first caller's" not in second.texts()
+    assert not hasattr(a.field, "notices")
 
 
 def test_compute_field_checks_the_rig_first(empty_scene, cache_dir):
@@ -293,12 +319,12 @@ def test_viewport_picture_is_the_render_at_sampled_pixels(empty_scene, cache_dir
     scene = empty_scene
     two_camera_scene(scene)
     depsgraph = bpy.context.evaluated_depsgraph_get()
-    assert viewport.frame_for_view(depsgraph) is None  # not cached: built in the background
-    assert viewport.STATE["message"] == "Multiscale: building the ray field..."
-    job = viewport.STATE["build"]
-    job.thread.join(120)
-    assert viewport._poll_build() is None and viewport.STATE["build"] is None
-    frame = viewport.frame_for_view(depsgraph)
+    view = viewport.ViewDraw()
+    assert viewport.frame_for_view(depsgraph, view) is None  # not cached: built in the background
+    assert view.message == "Multiscale: building the ray field..."
+    view.build._thread.join(120)
+    assert fields.SERVICE._poll() is None and fields.SERVICE.running() is None
+    frame = viewport.frame_for_view(depsgraph, view)
     assert frame is not None and "field (cached)" in frame.seconds
     small = viewport.preview_image(frame, max_width=20)
     ix, iy = viewport.preview_pixels(frame.size, 20)
@@ -308,27 +334,23 @@ def test_viewport_picture_is_the_render_at_sampled_pixels(empty_scene, cache_dir
 
 
 def test_a_cached_field_brings_its_report_back_from_disk(empty_scene, cache_dir, monkeypatch):
-    from multiscale_camera.ui import operators
-
     scene = empty_scene
     two_camera_scene(scene)
     bpy.ops.multiscale.compute_field()
     first = json.loads(scene.multiscale.report)
-    cache.CACHE.memory.clear()  # a new session: only the disk has the field
+    fields.SERVICE.cache.memory.clear()  # a new session: only the disk has the field
 
     def measure_again(*args, **kw):
         raise AssertionError("a cached field with its report is not measured again")
 
-    monkeypatch.setattr(operators, "build_report", measure_again)
+    monkeypatch.setattr(fields, "build_report", measure_again)
     bpy.ops.multiscale.compute_field()
     again = json.loads(scene.multiscale.report)
-    assert cache.CACHE.disk_hits == 1 and again["cached"] is True
+    assert fields.SERVICE.cache.disk_hits == 1 and again["cached"] is True
     assert again["cameras"] == first["cameras"] and again["folds"] == first["folds"]
 
 
 def test_paint_colour_is_white_where_blender_5_keeps_it_per_paint_mode(empty_scene):
-    from multiscale_camera.ui.operators import _white
-
     ts = bpy.context.tool_settings
     holders = [
         h
@@ -374,14 +396,14 @@ def test_preview_forgets_the_old_files_lines_on_load(empty_scene, cache_dir, tmp
     scene = empty_scene
     two_camera_scene(scene)
     scene.multiscale.show_preview = True
-    assert preview.STATE["lines"] is not None
+    assert preview.PREVIEW.lines is not None
     scene.multiscale.show_preview = False
     bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "off.blend"))
     scene.multiscale.show_preview = True
     bpy.ops.wm.open_mainfile(filepath=str(tmp_path / "off.blend"))  # its preview is off
-    assert preview.STATE["lines"] is None
+    assert preview.PREVIEW.lines is None
     bpy.context.scene.multiscale.show_preview = True
     bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "on.blend"))
-    preview.STATE["lines"] = None
+    preview.PREVIEW.lines = None
     bpy.ops.wm.open_mainfile(filepath=str(tmp_path / "on.blend"))  # on: drawn again
-    assert preview.STATE["lines"]["count"] == 0 and len(preview.STATE["lines"]["frusta"])
+    assert preview.PREVIEW.lines["count"] == 0 and len(preview.PREVIEW.lines["frusta"])

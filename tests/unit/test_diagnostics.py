@@ -57,3 +57,21 @@ def test_progress_is_clipped_and_children_share_steering_not_messages():
     assert parent.messages == ()
     parent.merge(child)
     assert parent.texts() == ["only the child's"] and "trace" in parent.seconds
+
+
+def test_running_seconds_count_the_stage_under_way():
+    diag = Diagnostics()
+    assert diag.running_seconds("render") == 0.0
+    with diag.stage("render"):
+        time.sleep(0.02)
+        assert diag.running_seconds("render") >= 0.02 and "render" not in diag.seconds
+    assert diag.running_seconds("render") == diag.seconds["render"]
+
+
+def test_a_stage_run_inside_itself_counts_once():
+    diag = Diagnostics()
+    with diag.stage("field"):
+        with diag.stage("field"):
+            time.sleep(0.02)
+        assert "field" not in diag.seconds
+    assert 0.02 <= diag.seconds["field"] < 0.5

@@ -6,7 +6,7 @@ import numpy as np
 
 from multiscale_camera.core.geometry import RayBundle, Rig
 from multiscale_camera.core.methods import RayField
-from multiscale_camera.ui.preview import PALETTE, camera_colour, frustum_lines, preview_lines
+from multiscale_camera.ui.preview_lines import PALETTE, camera_colour, frustum_lines, preview_lines
 
 from .rigs import two_camera_rig
 

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import Cancelled
+from ..diagnostics import check_stop
 from ..geometry import DEFAULT_SEGMENTS, build_guides, curved_rays
 from .grid import Grid
 
@@ -158,8 +158,7 @@ def splat_camera(grid, family, mask, chunk=200_000, should_stop=None):
         lu, lv = lu[inside], lv[inside]
         per_chunk = max(1, chunk // n_tau)
         for s in range(0, len(lu), per_chunk):
-            if should_stop is not None and should_stop():
-                raise Cancelled()
+            check_stop(should_stop)
             cu = np.repeat(lu[s : s + per_chunk], n_tau)
             cv = np.repeat(lv[s : s + per_chunk], n_tau)
             ct = np.tile(taus, len(lu[s : s + per_chunk]))

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import parallel
-from ..errors import Cancelled
+from ..diagnostics import check_stop
 from ..geometry import DEFAULT_SEGMENTS, build_guides, curved_rays
 from .grid import FieldSampler, Grid
 from .solvers import solve_membership
@@ -396,14 +396,12 @@ def solve_levels(rig, grids, families, fill_membership, should_stop=None, proces
         )
     fields, fills, its, res, ok = [], [], 0, 0.0, True
     for lev, grid in enumerate(grids):
-        if should_stop is not None and should_stop():
-            raise Cancelled()
+        check_stop(should_stop)
         if shared is not None:
             fill, shared[lev] = shared[lev], None
         else:
             fill = fill_membership(rig, grid, families, should_stop=should_stop)
-        if should_stop is not None and should_stop():
-            raise Cancelled()
+        check_stop(should_stop)
         values, constrained, x0 = fill.values, fill.constrained, None
         if lev:
             parent = FieldSampler(grids[lev - 1], fields[-1])

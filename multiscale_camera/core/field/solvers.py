@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import Cancelled
+from ..diagnostics import check_stop
 
 # Stop at this relative residual ||b - A x|| / ||b||: N then errs by ~1e-5 (values
 # 1..N), far below what bends a ray visibly.
@@ -161,8 +161,7 @@ def solve_membership(
         return SolveResult(x.astype(dtype), True, 0, ())
 
     hierarchy = _Hierarchy(free, dtype)
-    if should_stop is not None and should_stop():
-        raise Cancelled()
+    check_stop(should_stop)
     fine = hierarchy.levels[0]
     work = np.empty(x.shape)  # float64 scratch for the outer products A p
     r = b if x0 is None else fine.apply(-x, work=work)  # b - A_FF x_F = -(A x)_F
@@ -175,8 +174,7 @@ def solve_membership(
     ap = np.empty_like(p)
     rz = _dot(r, z)
     for it in range(1, max_iterations + 1):
-        if should_stop is not None and should_stop():
-            raise Cancelled()
+        check_stop(should_stop)
         fine.apply(p, out=ap, work=work)
         pap = _dot(p, ap)
         if not pap > 0.0:

@@ -54,9 +54,20 @@ def settings_for(quality, accuracy_px=0.5):
     return Settings(float(accuracy_px), budget)
 
 
+# The build stages a field's ``seconds`` (and the report's) hold.
+STAGES = ("fill", "solve", "tangents", "trace")
+
+
+def record_seconds(fld, seconds):
+    """Set ``fld.seconds`` to a build's seconds per stage (dict of str to float; the
+    stages of ``STAGES`` a method has not run count 0)."""
+    fld.seconds.update({k: float(seconds.get(k, 0.0)) for k in STAGES})
+
+
 @dataclass
 class RayField(abc.ABC):
-    """A prepared ray generator (base of every method's field).
+    """A prepared ray generator (base of every method's field). Built once by its
+    method; after that the field cache shares it among callers, so it is read only.
 
     Attributes
     ----------
@@ -66,7 +77,6 @@ class RayField(abc.ABC):
     warnings : list of str, for the report and the user.
     grids : list of [nx, ny, nz].
     stats : dict of counts ("conflicts", "stalled", ...).
-    notices : list of str, what the scene adapters adjusted (resampled masks, ...).
     """
 
     rig: object
@@ -78,7 +88,6 @@ class RayField(abc.ABC):
     warnings: list = field(default_factory=list)
     grids: list = field(default_factory=list)
     stats: dict = field(default_factory=dict)
-    notices: list = field(default_factory=list)
 
     @abc.abstractmethod
     def rays(self, ix, iy):

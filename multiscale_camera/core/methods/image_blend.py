@@ -8,7 +8,7 @@ import numpy as np
 from ..field import mask_weights
 from ..geometry import DEFAULT_SEGMENTS, build_guides, curved_rays
 from ..quality import check_rig
-from .base import RayField, guard_warnings
+from .base import RayField, guard_warnings, record_seconds
 
 
 @dataclass
@@ -32,7 +32,7 @@ class CurveBlendField(RayField):
         return self._bundle(ix, iy, verts, np.repeat(m[:, None], verts.shape[1], axis=1))
 
 
-def prepare_image_blend(rig, settings=None, should_stop=None):
+def prepare_image_blend(rig, settings=None, diag=None):
     """IMAGE_BLEND: each pixel's ray is its curves R_i blended by harmonic mask weights.
 
     Exact where it matters: a pixel inside camera i's mask gets R_i itself, so beyond
@@ -40,10 +40,10 @@ def prepare_image_blend(rig, settings=None, should_stop=None):
     in the transitions (folds), since nothing ties them together.
     """
     warnings = check_rig(rig)
-    t0 = time.perf_counter()
+    start = time.perf_counter()
     solve = mask_weights(rig.masks)
     fld = CurveBlendField(rig=rig, method="IMAGE_BLEND", weights=solve.x, warnings=warnings)
-    fld.seconds.update(fill=0.0, solve=time.perf_counter() - t0, tangents=0.0, trace=0.0)
+    record_seconds(fld, {"solve": time.perf_counter() - start})
     fld.solver.update(
         iterations=solve.iterations,
         residual=solve.residuals[-1] if solve.residuals else 0.0,

@@ -14,10 +14,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import Cancelled
+from ..diagnostics import diagnostics_of
 from ..geometry import DEFAULT_SEGMENTS, build_guides, curved_rays
 from ..quality import check_rig
-from .base import RayField, guard_warnings
+from .base import RayField, guard_warnings, record_seconds
 
 _FAR = np.iinfo(np.int32).max  # squared pixel distance standing for "no mask pixel yet"
 
@@ -110,7 +110,7 @@ class LinearField(RayField):
         return self._bundle(ix, iy, verts, np.repeat(m[:, None], verts.shape[1], axis=1))
 
 
-def prepare_linear(rig, settings=None, should_stop=None):
+def prepare_linear(rig, settings=None, diag=None):
     """LINEAR: a transition pixel p takes the curves R_a(q_a) and R_b(q_b) of q_a and q_b,
     its nearest preserved pixels in the two nearest masks (cameras a and b), blended
     vertex by vertex with weight lambda = d_a / (d_a + d_b) on R_b (d: distances to the
@@ -119,16 +119,17 @@ def prepare_linear(rig, settings=None, should_stop=None):
     band or ring of transition) the blend starts there anyway, up to the rounding of q_a
     and q_b to pixels. Its membership is (1 - lambda) a + lambda b. Where only one mask is
     painted, transition pixels take the curve of its nearest pixel. No grid is built.
+    ``diag`` (core.diagnostics.Diagnostics or None) steers the build.
     """
+    diag = diagnostics_of(diag)
+    start = time.perf_counter()
     fld = LinearField(rig=rig, method="LINEAR")
     fld.warnings += check_rig(rig)
-    t0 = time.perf_counter()
     n = len(rig.cameras)
     near = np.empty((n, 2, *rig.masks.shape[1:]), dtype=np.int32)
     dist = np.empty(rig.masks.shape)
     for i, mask in enumerate(rig.masks):
-        if should_stop is not None and should_stop():
-            raise Cancelled()
+        diag.check()
         near[i], dist[i] = nearest_mask_pixels(mask)
     order = np.argsort(dist, axis=0, kind="stable")[:2]
     if n == 1 or not np.isfinite(np.take_along_axis(dist, order[1:], axis=0)).any():
@@ -138,7 +139,7 @@ def prepare_linear(rig, settings=None, should_stop=None):
         lam = np.where((d_a > 0) & (order[1] != order[0]), d_a / (d_a + d_b), 0.0)
     fld.near = np.stack([np.take_along_axis(near, o[None, None], axis=0)[0] for o in order])
     fld.camera, fld.lam = order.astype(np.int8), lam.astype(np.float32)
-    fld.seconds.update(fill=time.perf_counter() - t0, solve=0.0, tangents=0.0, trace=0.0)
+    record_seconds(fld, {"fill": time.perf_counter() - start})
     fld.stats.update(conflicts=0, stalled=0)
     fld.warnings += guard_warnings(rig)
     return fld

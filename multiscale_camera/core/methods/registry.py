@@ -7,11 +7,13 @@ accuracy target on a rig.
 - VECTOR_FIELD: eq. 3, the tangents of preserved rays smoothed directly into a field.
 - SCALAR_FIELD: eq. 4 to 6, a smoothed membership blends exact tangent fields.
 
-Each method is one function ``prepare_<method>(rig, settings, should_stop=None)`` that
-builds a ``RayField`` once.
+Each method is one function ``prepare_<method>(rig, settings, diag=None)`` that builds
+a ``RayField`` once; ``diag`` (core.diagnostics.Diagnostics) steers it (cancel) and
+gets its seconds per stage.
 """
 
-from ..errors import Cancelled, RigError
+from ..diagnostics import diagnostics_of
+from ..errors import RigError
 from ..quality import fold_map
 from .base import Settings
 from .image_blend import prepare_image_blend
@@ -27,7 +29,7 @@ METHODS = {
 }
 
 
-def prepare_auto(rig, settings=None, should_stop=None):
+def prepare_auto(rig, settings=None, diag=None):
     """AUTO: the cheapest method that meets the accuracy target on this rig.
 
     IMAGE_BLEND is the cheapest (no 3D grid) and its preserved rays are exact by
@@ -38,14 +40,14 @@ def prepare_auto(rig, settings=None, should_stop=None):
     and VECTOR_FIELD's preserved rays drift (docs/methods.md), so neither is a candidate.
     The choice and why are in ``stats["auto"]``.
     """
-    fld = prepare_image_blend(rig, settings, should_stop)
+    diag = diagnostics_of(diag)
+    fld = prepare_image_blend(rig, settings, diag)
     folds = int(fold_map(fld)[0].sum())
     if folds == 0:
         fld.stats["auto"] = "IMAGE_BLEND: its rays do not fold on this rig"
         return fld
-    if should_stop is not None and should_stop():
-        raise Cancelled()
-    out = prepare_scalar_field(rig, settings, should_stop)
+    diag.check()
+    out = prepare_scalar_field(rig, settings, diag)
     out.stats["auto"] = f"SCALAR_FIELD: IMAGE_BLEND would fold {folds} quads on this rig"
     return out
 
@@ -53,12 +55,13 @@ def prepare_auto(rig, settings=None, should_stop=None):
 METHODS["AUTO"] = prepare_auto
 
 
-def prepare(rig, method, settings=None, should_stop=None):
-    """Prepare the ray field of ``method`` (an enum name of DESIGN.md) for ``rig``."""
+def prepare(rig, method, settings=None, diag=None):
+    """Prepare the ray field of ``method`` (the enum name of ``scene.multiscale.method``)
+    for ``rig``, steered by ``diag`` (core.diagnostics.Diagnostics or None)."""
     try:
         builder = METHODS[method]
     except KeyError:
         raise RigError(
             f"Method '{method}' is not available in this version; use one of: " + ", ".join(METHODS)
         ) from None
-    return builder(rig, settings or Settings(), should_stop)
+    return builder(rig, settings or Settings(), diag)

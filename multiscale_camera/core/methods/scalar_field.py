@@ -3,12 +3,12 @@ grids that refine toward the smaller cameras, blends exact per-camera tangent fi
 rays are its RK4 streamlines, traced on the adaptive lattice of ``traced``.
 """
 
-import time
 from types import SimpleNamespace
 
 import numpy as np
 
-from ..errors import Cancelled, SolverDidNotConverge
+from ..diagnostics import diagnostics_of
+from ..errors import SolverDidNotConverge
 from ..field import (
     CELLS_ACROSS_NEAR_PER_PX,
     MIN_CELLS_ACROSS_NEAR,
@@ -24,95 +24,102 @@ from ..field import (
 from ..geometry import Family
 from ..parallel import worker_count
 from ..quality import check_rig
-from .base import Settings
+from .base import Settings, record_seconds
 from .traced import TracedField, capped_message, field_grid, trace_field
 
 
-def prepare_scalar_field(rig, settings=None, should_stop=None):
+def prepare_scalar_field(rig, settings=None, diag=None):
     """SCALAR_FIELD (paper eq. 4 to 6): a membership field solved on a grid blends
-    exact per-camera tangent fields; rays are its RK4 streamlines."""
+    exact per-camera tangent fields; rays are its RK4 streamlines. ``diag``
+    (core.diagnostics.Diagnostics or None) steers the build and gets its seconds."""
     settings = settings or Settings()
+    diag = diagnostics_of(diag)
     nested = settings.nested
     if nested is None:
         nested = choose_grid(rig, settings.accuracy_px, settings.max_voxels).capped
     if nested and len(rig.cameras) > 1:
-        return _prepare_nested(rig, settings, should_stop)
+        return _prepare_nested(rig, settings, diag)
+    run = diag.child()
     fld = TracedField(rig=rig, method="SCALAR_FIELD")
     fld.warnings += check_rig(rig)
-    t0 = time.perf_counter()
-    fld.grid = field_grid(fld, settings)
-    families = [Family(rig.cameras, i, rig.beta) for i in range(len(rig.cameras))]
-    fill = fill_membership(rig, fld.grid, families, should_stop=should_stop)
-    t1 = time.perf_counter()
-    if should_stop is not None and should_stop():
-        raise Cancelled()
-    solve = solve_membership(fill.values, fill.constrained, should_stop=should_stop)
-    t2 = time.perf_counter()
+    with run.stage("fill"):
+        fld.grid = field_grid(fld, settings)
+        families = [Family(rig.cameras, i, rig.beta) for i in range(len(rig.cameras))]
+        fill = fill_membership(rig, fld.grid, families, should_stop=run.should_stop)
+    run.check()
+    with run.stage("solve"):
+        solve = solve_membership(fill.values, fill.constrained, should_stop=run.should_stop)
     if not solve.converged:
         raise SolverDidNotConverge(
             f"The membership solve stopped at relative residual {solve.residuals[-1]:.2e} after "
             f"{solve.iterations} iterations; simplify the masks or lower the quality"
         )
     fld.membership = solve.x
-    tracer = FieldTracer(rig, fld.grid, solve.x, cubic=settings.cubic, processes=settings.processes)
-    trace_field(fld, tracer, fill, settings, should_stop)
-    t3 = time.perf_counter()
-    fld.seconds.update(
-        fill=t1 - t0,
-        solve=t2 - t1,
-        tangents=tracer.tangent_seconds,
-        trace=t3 - t2 - tracer.tangent_seconds,
-    )
+    with run.stage("trace"):
+        tracer = FieldTracer(
+            rig, fld.grid, solve.x, cubic=settings.cubic, processes=settings.processes
+        )
+        trace_field(fld, tracer, fill, settings, run)
+    _record_trace_seconds(fld, run, tracer)
     fld.solver.update(
         iterations=solve.iterations,
         residual=float(solve.residuals[-1]) if solve.residuals else 0.0,
         converged=bool(solve.converged),
     )
+    diag.merge(run)
     return fld
 
 
-def _prepare_nested(rig, settings, should_stop):
+def _record_trace_seconds(fld, run, tracer):
+    """The build's seconds on ``fld``: the tracer's tangent evaluations apart from the
+    rest of the trace."""
+    tangents = tracer.tangent_seconds
+    record_seconds(fld, dict(run.seconds, tangents=tangents, trace=run.seconds["trace"] - tangents))
+
+
+def _prepare_nested(rig, settings, diag):
     """SCALAR_FIELD on nested grids (``nested``): the same equations, with cells that
-    shrink with the bundle toward the smaller cameras."""
+    shrink with the bundle toward the smaller cameras. Fill and solve interleave level
+    by level: both count as "fill", and "solve" holds none."""
+    run = diag.child()
     fld = TracedField(rig=rig, method="SCALAR_FIELD")
     fld.warnings += check_rig(rig)
-    t0 = time.perf_counter()
-    outer = choose_grid(rig, settings.accuracy_px, 1 << 62).grid
-    across = max(MIN_CELLS_ACROSS_NEAR, CELLS_ACROSS_NEAR_PER_PX / settings.accuracy_px)
-    levels = choose_levels(rig, settings.accuracy_px, settings.max_voxels, across, outer.bounds)
-    if levels.capped:
-        fld.warnings.append(capped_message(settings, levels.wanted_cell, levels.grids[-1].cell))
-    families = [Family(rig.cameras, i, rig.beta) for i in range(len(rig.cameras))]
-    workers = worker_count(settings.processes)
-    solved = solve_levels(rig, levels.grids, families, fill_membership, should_stop, workers)
-    t1 = time.perf_counter()
+    with run.stage("fill"):
+        outer = choose_grid(rig, settings.accuracy_px, 1 << 62).grid
+        across = max(MIN_CELLS_ACROSS_NEAR, CELLS_ACROSS_NEAR_PER_PX / settings.accuracy_px)
+        levels = choose_levels(rig, settings.accuracy_px, settings.max_voxels, across, outer.bounds)
+        if levels.capped:
+            fld.warnings.append(capped_message(settings, levels.wanted_cell, levels.grids[-1].cell))
+        families = [Family(rig.cameras, i, rig.beta) for i in range(len(rig.cameras))]
+        workers = worker_count(settings.processes)
+        solved = solve_levels(
+            rig, levels.grids, families, fill_membership, run.should_stop, workers
+        )
     if not solved.converged:
         raise SolverDidNotConverge(
             f"The membership solve stopped at relative residual {solved.residual:.2e} after "
             f"{solved.iterations} iterations; simplify the masks or lower the quality"
         )
     fld.grid, fld.membership = levels.grids[0], solved.fields[0]
-    domain = fld.domain = NestedDomain(levels.grids, solved.fields, ScaleField(rig.cameras), across)
-    tracer = FieldTracer(
-        rig,
-        fld.grid,
-        fld.membership,
-        cubic=settings.cubic,
-        domain=domain,
-        processes=settings.processes,
-    )
-    fill = _composite_fill(levels.grids, solved.fills)
-    trace_field(fld, tracer, fill, settings, should_stop, levels=levels.grids)
-    t2 = time.perf_counter()
-    fld.seconds.update(
-        fill=t1 - t0,  # fill and solve interleave level by level; "solve" holds none
-        solve=0.0,
-        tangents=tracer.tangent_seconds,
-        trace=t2 - t1 - tracer.tangent_seconds,
-    )
+    with run.stage("trace"):
+        domain = fld.domain = NestedDomain(
+            levels.grids, solved.fields, ScaleField(rig.cameras), across
+        )
+        tracer = FieldTracer(
+            rig,
+            fld.grid,
+            fld.membership,
+            cubic=settings.cubic,
+            domain=domain,
+            processes=settings.processes,
+        )
+        fill = _composite_fill(levels.grids, solved.fills)
+        trace_field(fld, tracer, fill, settings, run, levels=levels.grids)
+    _record_trace_seconds(fld, run, tracer)
     fld.solver.update(
         iterations=solved.iterations, residual=solved.residual, converged=solved.converged
     )
+    diag.merge(run)
     return fld
 
 

@@ -7,7 +7,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import Cancelled
 from ..field import (
     FieldTracer,
     StopReason,
@@ -129,9 +128,9 @@ class _AdaptiveLattice:
     tolerance are split in four and their midpoints traced, down to single pixels.
     """
 
-    def __init__(self, tracer, rig, step, max_steps, tol_px, should_stop):
+    def __init__(self, tracer, rig, step, max_steps, tol_px, diag):
         self.tracer, self.rig, self.step = tracer, rig, step
-        self.max_steps, self.tol, self.should_stop = max_steps, tol_px, should_stop
+        self.max_steps, self.tol, self.diag = max_steps, tol_px, diag
         w, h = rig.size
         self.index = np.full((h, w), -1, dtype=np.int32)
         self.parts, self.order, self.count = [], [], 0
@@ -144,10 +143,9 @@ class _AdaptiveLattice:
         px, py = px[new], py[new]
         if len(px) == 0:
             return
-        if self.should_stop is not None and self.should_stop():
-            raise Cancelled()
+        self.diag.check()
         self.parts.append(
-            self.tracer.trace_pixels(px, py, self.step, self.max_steps, self.should_stop)
+            self.tracer.trace_pixels(px, py, self.step, self.max_steps, self.diag.should_stop)
         )
         self.order.append(np.arange(self.count, self.count + len(px)))
         self.index[py, px] = np.arange(self.count, self.count + len(px))
@@ -306,9 +304,10 @@ def capped_message(settings, wanted, cell):
     )
 
 
-def trace_field(fld, tracer, fill, settings, should_stop, levels=None):
+def trace_field(fld, tracer, fill, settings, diag, levels=None):
     """Trace a field method's rays on the adaptive lattice into ``fld`` (a TracedField
-    whose ``grid`` and ``membership`` are set) and record the stats and warnings.
+    whose ``grid`` and ``membership`` are set) and record the stats and warnings;
+    ``diag`` (core.diagnostics.Diagnostics) is asked whether to stop.
 
     ``levels``: the tuple of nested grids (coarsest first) when ``tracer`` reads N from
     them; the step then follows the local cell (``NestedDomain.cell_at``)."""
@@ -323,7 +322,7 @@ def trace_field(fld, tracer, fill, settings, should_stop, levels=None):
     else:
         step = cells * grid.cell
     fld.step = step
-    lattice = _AdaptiveLattice(tracer, rig, step, max_steps, settings.accuracy_px, should_stop)
+    lattice = _AdaptiveLattice(tracer, rig, step, max_steps, settings.accuracy_px, diag)
     traced, fld.index, fld.leaves, fld.leaf_of = lattice.run(stride)
     fld.traced = traced
     fld.grids.extend(list(g.shape) for g in grids)

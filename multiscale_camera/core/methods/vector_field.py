@@ -6,11 +6,10 @@ boundary, so rays there leave the cameras' perspective projections (the paper's
 Figure 7).
 """
 
-import time
-
 import numpy as np
 
-from ..errors import Cancelled, SolverDidNotConverge
+from ..diagnostics import diagnostics_of
+from ..errors import SolverDidNotConverge
 from ..field import (
     FieldSampler,
     FieldTracer,
@@ -20,7 +19,7 @@ from ..field import (
 )
 from ..geometry import Family, dot3
 from ..quality import check_rig
-from .base import Settings
+from .base import Settings, record_seconds
 from .traced import TracedField, field_grid, trace_field
 
 # Newton iterations to invert R_i at a voxel centre from a first guess.
@@ -114,32 +113,33 @@ class VectorFieldTracer(FieldTracer):
         return np.zeros(len(u), dtype=bool), empty
 
 
-def prepare_vector_field(rig, settings=None, should_stop=None):
+def prepare_vector_field(rig, settings=None, diag=None):
     """VECTOR_FIELD (paper eq. 3): the unit tangents X of the preserved rays, fixed on the
     voxels they pass (the hard-constraint limit of eq. 3's |X|^2 weights), are smoothed
     component by component into Y (``solve_membership``); rays are Y's RK4 streamlines
     from camera 1's near-plane pixels, traced on SCALAR_FIELD's grid and adaptive lattice.
 
     The Membership pass samples the scalar membership N of SCALAR_FIELD, solved on the
-    same constraints (one more solve): Y itself carries no camera numbers.
+    same constraints (one more solve): Y itself carries no camera numbers. ``diag``
+    (core.diagnostics.Diagnostics or None) steers the build and gets its seconds.
     """
     settings = settings or Settings()
+    diag = diagnostics_of(diag)
+    run = diag.child()
     fld = TracedField(rig=rig, method="VECTOR_FIELD")
     fld.warnings += check_rig(rig)
-    t0 = time.perf_counter()
-    grid = fld.grid = field_grid(fld, settings)
-    families = [Family(rig.cameras, i, rig.beta) for i in range(len(rig.cameras))]
-    fill = fill_membership(rig, grid, families)
-    t1 = time.perf_counter()
-    tangents = constraint_tangents(grid, families, fill)
-    t2 = time.perf_counter()
+    with run.stage("fill"):
+        grid = fld.grid = field_grid(fld, settings)
+        families = [Family(rig.cameras, i, rig.beta) for i in range(len(rig.cameras))]
+        fill = fill_membership(rig, grid, families)
+    with run.stage("tangents"):
+        tangents = constraint_tangents(grid, families, fill)
     solves = []
-    for values in (fill.values, tangents[..., 0], tangents[..., 1], tangents[..., 2]):
-        if should_stop is not None and should_stop():
-            raise Cancelled()
-        solves.append(solve_membership(values, fill.constrained, should_stop=should_stop))
+    with run.stage("solve"):
+        for values in (fill.values, tangents[..., 0], tangents[..., 1], tangents[..., 2]):
+            run.check()
+            solves.append(solve_membership(values, fill.constrained, should_stop=run.should_stop))
     del tangents
-    t3 = time.perf_counter()
     for s in solves:
         if not s.converged:
             raise SolverDidNotConverge(
@@ -149,12 +149,13 @@ def prepare_vector_field(rig, settings=None, should_stop=None):
     fld.membership = solves[0].x
     field = np.stack([s.x for s in solves[1:]], axis=-1)
     tracer = VectorFieldTracer(rig, grid, solves[0].x, field, settings.processes)
-    trace_field(fld, tracer, fill, settings, should_stop)
-    t4 = time.perf_counter()
-    fld.seconds.update(fill=t1 - t0, tangents=t2 - t1, solve=t3 - t2, trace=t4 - t3)
+    with run.stage("trace"):
+        trace_field(fld, tracer, fill, settings, run)
+    record_seconds(fld, run.seconds)
     fld.solver.update(
         iterations=max(s.iterations for s in solves),
         residual=max((s.residuals[-1] for s in solves if s.residuals), default=0.0),
         converged=True,
     )
+    diag.merge(run)
     return fld

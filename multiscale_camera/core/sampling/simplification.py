@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import Cancelled
+from ..diagnostics import check_stop
 from ..geometry import dot3
 from ..parallel import STALL_SECONDS, beat, forked_map, shared_array
 
@@ -130,7 +130,7 @@ def polyline_measures(
 
     def measure(rows, stop):
         for a in range(rows[0], rows[1], step):
-            _check(stop)
+            check_stop(stop)
             b = min(a + step, rows[1])
             v = np.asarray(vertices[a:b], dtype=np.float64)
             d = v[:, 1:] - v[:, :-1]
@@ -168,7 +168,7 @@ def in_chunks(fill, n, processes=1, should_stop=None):
         if shared is not None:
             return
     for part in parts:
-        _check(should_stop)
+        check_stop(should_stop)
         fill(part, should_stop)
 
 
@@ -210,7 +210,7 @@ def greedy_keep(seglen, turn, tol, last, should_stop=None):
         allowed = np.minimum(tol[:, 0], tol[:, 1]).astype(np.float64)
         for j in range(1, k - 1):
             if j % 16 == 0:
-                _check(should_stop)
+                check_stop(should_stop)
             # the chord from the anchor would now run past vertex j to j + 1
             length2 = length + seglen[:, j]
             theta2 = theta + turn[:, j - 1]
@@ -222,11 +222,6 @@ def greedy_keep(seglen, turn, tol, last, should_stop=None):
             allowed = np.where(cut, np.minimum(tol[:, j], tol[:, j + 1]), allowed2)
     keep &= np.arange(k)[None, :] <= last[:, None]
     return keep
-
-
-def _check(should_stop):
-    if should_stop is not None and should_stop():
-        raise Cancelled()
 
 
 def simplify(vertices, last, eyes, angles, tol_px, bounds=None, clearance=None):

@@ -1,0 +1,338 @@
+"""The field service: the one way to a scene's ray field, for every caller.
+
+The render, Compute Field, the viewport's Rendered shading and the ray preview all get
+their field here: the request is read from the scene (``request``, main thread), looked
+up in the field cache (memory, then disk: ``io.cache``), built when missing (here, or on
+a worker thread with ``start``), stored, and measured once when a report is asked for.
+What a build has to say reaches the caller's ``Diagnostics`` by one policy (``_say``);
+nothing a caller says is written onto the field, which the cache shares among callers.
+When a build started with ``start`` ends, the service stores it and tells its listeners
+(the ray preview registers one), on the main thread.
+
+``SERVICE`` is the one instance; it owns the field cache and the frame's BVH tree cache
+(``trees``, see ``pipeline.scene_tree``).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import bpy
+
+from ..adapters.scene import field_settings, rig_from_scene
+from ..core import parallel
+from ..core.diagnostics import Diagnostics, Level
+from ..core.errors import Cancelled
+from ..core.geometry import Rig
+from ..core.methods import Settings, field_key, prepare
+from ..core.quality import build_report, crossing_messages, empty_mask_messages
+from ..io.cache import DEFAULT_LIMIT_MB, FieldCache
+
+# Worker processes of a build, the simplification or the ray tables gave way.
+WORKERS_GIVEN_UP = (
+    "Worker processes died or stopped making progress (a forked copy of Blender can hang "
+    "on a lock another thread held); their work went on in Blender's process, only "
+    "slower. Render > Performance > Threads: Fixed at 1 keeps it there from the start"
+)
+# How often a background build is polled from the main thread, seconds.
+POLL_SECONDS = 0.25
+
+
+@dataclass(frozen=True)
+class FieldRequest:
+    """What a field depends on, read from the scene on the main thread.
+
+    rig : core.geometry.Rig. method, quality : str, the scene's enum names.
+    settings : core.methods.Settings. key : str, the cache key (``field_key``).
+    notices : tuple of str, what reading the scene adjusted (resampled masks, shared
+        pixels) and the checks every build gets (empty masks, crossing frusta).
+    limit_mb : float, the disk cache's size limit.
+    """
+
+    rig: Rig
+    method: str
+    quality: str
+    settings: Settings
+    key: str
+    notices: tuple[str, ...]
+    limit_mb: float = DEFAULT_LIMIT_MB
+
+
+@dataclass(frozen=True)
+class FieldResult:
+    """A field and how it was had.
+
+    field : RayField (shared with the cache: read it, never write to it).
+    built : bool, built for this request (False: from the cache).
+    report : dict or None, the build report (schema of docs/report.md) with "cached"
+        set, when one was asked for.
+    seconds : float, wall time from the request to the result.
+    """
+
+    field: object
+    built: bool
+    report: dict | None = None
+    seconds: float = 0.0
+
+
+class FieldBuild:
+    """A field build on a worker thread: numpy only, no bpy. The main thread polls
+    ``alive`` and ends it with ``FieldService.finish``.
+
+    Attributes
+    ----------
+    request : FieldRequest. field : RayField or None (None until built).
+    error : Exception or None (the build failed; shown by the caller).
+    cancelled : bool. diagnostics : Diagnostics of the build (its cancel check counts
+        ``checks``, a rough progress).
+    """
+
+    def __init__(self, request: FieldRequest, measure: bool):
+        self.request = request
+        self.measure = measure
+        self.start = time.perf_counter()
+        self.field = None
+        self.report = None
+        self.error = None
+        self.cancelled = False
+        self.gave_up = False
+        self.result = None  # the FieldResult, once finished
+        self._stop = threading.Event()
+        self.diagnostics = Diagnostics(should_stop=self._stop.is_set)
+        self._thread = threading.Thread(target=self._run, name="multiscale-field", daemon=True)
+
+    def _run(self):
+        try:
+            self.field, self.gave_up = _build(self.request, self.diagnostics)
+            if self.measure:
+                self.report = _measure(self.field, self.request, self.start)
+        except Cancelled:
+            self.cancelled = True
+        except Exception as err:  # handed to the main thread, reported there
+            self.error = err
+
+    def alive(self) -> bool:
+        return self._thread.is_alive()
+
+    def cancel(self) -> None:
+        self._stop.set()
+
+    def progress(self) -> int:
+        """0..99: a rough measure (the build's checks for cancellation so far)."""
+        return min(99, int(100 * (1 - 1 / (1 + self.diagnostics.checks / 40))))
+
+
+class FieldService:
+    """Ray fields for scenes: cache lookup, build, notices, background builds.
+
+    Parameters
+    ----------
+    cache : io.cache.FieldCache, or None for one in the extension's user folder.
+    """
+
+    def __init__(self, cache: FieldCache | None = None):
+        self.cache = cache if cache is not None else FieldCache(lazy_folder=True)
+        self.trees = {}  # pipeline.scene_tree's last result, keyed on its triangles
+        self._listeners: list[Callable] = []
+        self._build: FieldBuild | None = None
+
+    # --- requests ------------------------------------------------------------------
+
+    def request(self, scene, rig: Rig | None = None) -> FieldRequest:
+        """The field request of ``scene`` (main thread; an evaluated scene, so that
+        object matrices are current), for ``rig`` when the caller has read it already.
+        Raises RigError when the rig cannot render."""
+        group = scene.multiscale
+        rig = rig if rig is not None else rig_from_scene(scene)
+        settings = field_settings(scene)
+        notices = tuple(rig.notices) + tuple(empty_mask_messages(rig))
+        notices += tuple(crossing_messages(rig))
+        _ = self.cache.folder  # found on the main thread (it asks bpy)
+        return FieldRequest(
+            rig=rig,
+            method=group.method,
+            quality=group.quality,
+            settings=settings,
+            key=field_key(rig, group.method, settings),
+            notices=notices,
+            limit_mb=float(getattr(group, "cache_limit_mb", DEFAULT_LIMIT_MB)),
+        )
+
+    def cached(self, request: FieldRequest, memory_only: bool = False):
+        """The cached field of ``request`` (memory, then disk unless ``memory_only``),
+        or None."""
+        if memory_only:
+            return self.cache.memory.get(request.key)
+        self.cache.limit_mb = request.limit_mb
+        return self.cache.get(request.key, request.rig)
+
+    # --- getting a field -------------------------------------------------------------
+
+    def get(
+        self,
+        request: FieldRequest,
+        diag: Diagnostics | None = None,
+        measure: bool = False,
+        announce: bool = False,
+    ) -> FieldResult:
+        """The field of ``request``: cached, or built here (steered by ``diag``).
+
+        ``diag`` receives what the build has to say (``_say``). With ``measure`` the
+        result carries the build report (measured once per field). With ``announce``
+        (main thread only) the listeners are told of the field, as after a background
+        build.
+
+        Returns
+        -------
+        FieldResult.
+
+        Raises
+        ------
+        RigError, SolverDidNotConverge: the rig cannot be built. Cancelled.
+        """
+        diag = diag if diag is not None else Diagnostics()
+        start = time.perf_counter()
+        fld = self.cached(request)
+        if fld is not None:
+            _say(request, fld, diag)
+            built = gave_up = False
+        else:
+            fld, gave_up = _build(request, diag)
+            built = True
+        report = _measure(fld, request, start) if measure else None
+        if built:
+            _say(request, fld, diag, gave_up=gave_up, store_failed=self._store(request, fld))
+        if announce:
+            self._tell(fld)
+        return _result(fld, built, report, start)
+
+    def start(self, request: FieldRequest, measure=False) -> FieldBuild:
+        """Build ``request``'s field on a worker thread, or join the build of the same
+        field already running; a running build of another field is cancelled (its
+        result is no longer wanted). When it ends, the main thread stores it and tells
+        the listeners (``finish``)."""
+        running = self._build
+        if running is not None and running.alive():
+            if running.request.key == request.key and (running.measure or not measure):
+                return running
+            running.cancel()
+        build = self._build = FieldBuild(request, measure)
+        build._thread.start()
+        bpy.app.timers.register(self._poll, first_interval=POLL_SECONDS)
+        return build
+
+    def running(self) -> FieldBuild | None:
+        """The background build under way, or None."""
+        build = self._build
+        return build if build is not None and build.alive() else None
+
+    def finish(self, build: FieldBuild, diag: Diagnostics | None = None):
+        """End a background build that is no longer alive (main thread): store its
+        field and tell the listeners once, say its notices into ``diag``.
+
+        Returns
+        -------
+        FieldResult, or None when the build was cancelled or failed (``build.error``).
+        """
+        if build.result is None and build.field is not None:
+            failed = self._store(build.request, build.field)
+            if failed:
+                build.diagnostics.warn(failed)
+            build.result = _result(build.field, True, build.report, build.start)
+            self._tell(build.field)
+        if diag is not None and build.field is not None:
+            diag.merge(build.diagnostics)
+            _say(build.request, build.field, diag, gave_up=build.gave_up)
+        if self._build is build:
+            self._build = None
+        return build.result
+
+    def _poll(self):
+        """Timer callback (main thread): finish the background build once it ends."""
+        build = self._build
+        if build is None:
+            return None
+        if build.alive():
+            return POLL_SECONDS
+        self.finish(build)
+        _redraw_views()
+        return None
+
+    # --- listeners and the cache -------------------------------------------------------
+
+    def add_listener(self, listener: Callable) -> None:
+        """Call ``listener(scene, field)`` on the main thread when a background build
+        has stored a field."""
+        if listener not in self._listeners:
+            self._listeners.append(listener)
+
+    def remove_listener(self, listener: Callable) -> None:
+        if listener in self._listeners:
+            self._listeners.remove(listener)
+
+    def _tell(self, fld) -> None:
+        scene = bpy.context.scene
+        for listener in list(self._listeners):
+            listener(scene, fld)
+
+    def _store(self, request: FieldRequest, fld) -> str | None:
+        """Keep ``fld`` in the cache; a message when the disk refused it."""
+        self.cache.limit_mb = request.limit_mb
+        return self.cache.put(request.key, fld)
+
+    def clear(self) -> int:
+        """Forget every field (memory and disk), cancel a background build. Returns the
+        files removed."""
+        if self._build is not None:
+            self._build.cancel()
+        return self.cache.clear()
+
+
+def _build(request: FieldRequest, diag: Diagnostics):
+    """(RayField, whether worker processes were given up) for ``request``."""
+    given_up = parallel.given_up()
+    with diag.stage("field"):
+        fld = prepare(request.rig, request.method, request.settings, diag)
+    return fld, parallel.given_up() > given_up
+
+
+def _measure(fld, request: FieldRequest, start: float) -> dict:
+    """The build report of ``fld`` (measured once, kept with the field), a copy."""
+    report = getattr(fld, "report", None)
+    if report is None:
+        report = build_report(fld, request.quality, time.perf_counter() - start)
+        fld.report = report  # derived from the field alone: the same for every caller
+    return dict(report)
+
+
+def _result(fld, built: bool, report: dict | None, start: float) -> FieldResult:
+    if report is not None:
+        report = dict(report, cached=not built)
+    return FieldResult(fld, built, report, time.perf_counter() - start)
+
+
+def _say(request: FieldRequest, fld, diag: Diagnostics, gave_up=False, store_failed=None):
+    """The notice policy, the same for every caller: what reading the scene adjusted and
+    the checks of every build, the field's own build warnings, a cache that could not
+    be written, workers that gave way. Messages already said are not repeated."""
+    diag.extend(request.notices, Level.WARNING)
+    diag.extend(fld.warnings, Level.WARNING)
+    if store_failed:
+        diag.warn(store_failed)
+    if gave_up:
+        diag.warn(WORKERS_GIVEN_UP)
+
+
+def _redraw_views() -> None:
+    wm = getattr(bpy.context, "window_manager", None)
+    for window in getattr(wm, "windows", []):
+        for area in window.screen.areas:
+            if area.type in {"VIEW_3D", "IMAGE_EDITOR"}:
+                area.tag_redraw()
+
+
+# The one field service: every caller goes through it.
+SERVICE = FieldService()

@@ -1,0 +1,294 @@
+"""Operators that check the rig, build and measure its field, render, export the rays,
+and show or clear what was built. Fields come from the field service
+(``render.fields.SERVICE``)."""
+
+import json
+
+import bpy
+from bpy.props import BoolProperty, StringProperty
+
+from ..adapters.scene import rig_from_scene
+from ..core.diagnostics import Diagnostics
+from ..core.errors import RigError, SolverDidNotConverge
+from ..core.quality import headline, readable, to_json
+from ..io.exr import ExrError
+from ..io.rays import export_rays
+from ..render import pipeline
+from ..render.checks import validate_scene
+from ..render.fields import SERVICE
+from ..render.volume import prepare_volumes
+from .context import evaluated_scene, settings_of
+
+
+class MULTISCALE_OT_validate(bpy.types.Operator):
+    """Check the camera list and masks and say what would stop or spoil a render"""
+
+    bl_idname = "multiscale.validate"
+    bl_label = "Check Rig"
+
+    def execute(self, context):
+        ok, _rig, _messages = run_validation(self, context)
+        return {"FINISHED"} if ok else {"CANCELLED"}
+
+
+def store_validation(settings, errors, warnings):
+    """Keep a check's messages in ``scene.multiscale.validation`` for the panel."""
+    settings.validation = json.dumps(
+        [{"level": "ERROR", "text": t} for t in errors]
+        + [{"level": "WARNING", "text": t} for t in warnings]
+    )
+
+
+def run_validation(op, context):
+    """Every check of the rig (``render.checks.validate_scene``), reported through the
+    operator ``op`` and kept for the panel. Returns (ok, rig or None, warnings)."""
+    settings = settings_of(context)
+    try:
+        rig, messages = validate_scene(context.evaluated_depsgraph_get())
+        # volume sources and transfer functions too: a missing file shows here
+        _volumes, said = prepare_volumes(context.evaluated_depsgraph_get())
+        messages = list(messages) + list(said)
+    except RigError as err:
+        store_validation(settings, [str(err)], [])
+        op.report({"ERROR"}, str(err))
+        return False, None, []
+    store_validation(settings, [], messages)
+    for notice in messages:
+        op.report({"WARNING"}, notice)
+    if not messages:
+        op.report({"INFO"}, f"The rig of {len(rig.cameras)} cameras is ready to render")
+    return True, rig, messages
+
+
+
+class MULTISCALE_OT_compute_field(bpy.types.Operator):
+    """Build the ray field of the camera list (or reuse the cached one) and measure it:
+    preserved-ray error per camera, folds, timings. The report is kept in the scene.
+    Checks the rig first; in a window the build runs in the background (Esc cancels)"""
+
+    bl_idname = "multiscale.compute_field"
+    bl_label = "Compute Field"
+
+    _build = None
+    _diag = None
+    _timer = None
+    _checked = 0  # the rig check's messages at the start of ``_diag``
+
+    def execute(self, context):
+        request, diag = self._request(context)
+        if request is None:
+            return {"CANCELLED"}
+        try:
+            result = SERVICE.get(request, diag, measure=True, announce=True)
+        except (RigError, SolverDidNotConverge) as err:
+            self.report({"ERROR"}, str(err))
+            return {"CANCELLED"}
+        return self._finish(context, result, diag)
+
+    def invoke(self, context, event):
+        if bpy.app.background or context.window is None:
+            return self.execute(context)
+        request, diag = self._request(context)
+        if request is None:
+            return {"CANCELLED"}
+        if SERVICE.cached(request) is not None:
+            return self._finish(context, SERVICE.get(request, diag, True, True), diag)
+        self._build, self._diag = SERVICE.start(request, measure=True), diag
+        wm = context.window_manager
+        self._timer = wm.event_timer_add(0.2, window=context.window)
+        wm.progress_begin(0, 100)
+        wm.modal_handler_add(self)
+        context.workspace.status_text_set("Multiscale: building the ray field (Esc cancels)")
+        return {"RUNNING_MODAL"}
+
+    def modal(self, context, event):
+        build = self._build
+        if event.type == "ESC" and event.value == "PRESS":
+            build.cancel()
+            return {"RUNNING_MODAL"}
+        if event.type != "TIMER":
+            # everything else goes on to Blender: the build must not block the interface
+            return {"PASS_THROUGH"}
+        context.window_manager.progress_update(build.progress())
+        if build.alive():
+            return {"RUNNING_MODAL"}
+        return self._done(context)
+
+    def _done(self, context):
+        wm = context.window_manager
+        wm.event_timer_remove(self._timer)
+        wm.progress_end()
+        context.workspace.status_text_set(None)
+        build = self._build
+        result = SERVICE.finish(build, self._diag)
+        if build.cancelled:
+            self.report({"WARNING"}, "Field build cancelled; nothing was changed")
+            return {"CANCELLED"}
+        if build.error is not None:
+            self.report({"ERROR"}, str(build.error))
+            return {"CANCELLED"}
+        return self._finish(context, result, self._diag)
+
+    def _request(self, context):
+        """(FieldRequest, Diagnostics) after the rig check, or (None, None). The check's
+        warnings, reported already, start the Diagnostics so none is said twice."""
+        ok, rig, messages = run_validation(self, context)
+        if not ok:
+            return None, None
+        diag = Diagnostics()
+        diag.extend(messages)
+        self._checked = len(diag.messages)
+        return SERVICE.request(evaluated_scene(context), rig), diag
+
+    def _finish(self, context, result, diag):
+        report = result.report
+        context.scene.multiscale.report = to_json(report)
+        for message in diag.since(self._checked):
+            self.report({"WARNING"}, message.text)
+        self.report(
+            {"INFO"},
+            f"{headline(report)} ({'built' if result.built else 'cached'}, "
+            f"{result.seconds:.1f} s)",
+        )
+        return {"FINISHED"}
+
+
+class MULTISCALE_OT_render(bpy.types.Operator):
+    """Render the multiscale image into Render Result with the Multiscale engine"""
+
+    bl_idname = "multiscale.render"
+    bl_label = "Render Multiscale"
+
+    write_still: BoolProperty(
+        name="Write Image", default=False, description="Save the image to the output path"
+    )
+
+    def execute(self, context):
+        scene = context.scene
+        try:
+            rig_from_scene(evaluated_scene(context))
+        except RigError as err:
+            self.report({"ERROR"}, str(err))
+            return {"CANCELLED"}
+        if scene.render.engine != "MULTISCALE":
+            scene.render.engine = "MULTISCALE"
+            self.report({"INFO"}, "Render engine set to Multiscale")
+        if scene.camera is None:
+            # Blender refuses to render a scene without an active camera
+            scene.camera = scene.multiscale.cameras[0].camera
+            self.report({"INFO"}, f"Scene camera set to '{scene.camera.name}'")
+        if bpy.app.background:
+            bpy.ops.render.render(write_still=self.write_still)
+        else:
+            bpy.ops.render.render("INVOKE_DEFAULT", write_still=self.write_still)
+        return {"FINISHED"}
+
+
+class MULTISCALE_OT_export_rays(bpy.types.Operator):
+    """Write every pixel's first-hit ray (origin, direction, hit distance, membership) as a
+    multi-channel EXR, and the bent rays' polylines beside it as .npz"""
+
+    bl_idname = "multiscale.export_rays"
+    bl_label = "Export Rays"
+
+    filepath: StringProperty(
+        name="File Path",
+        subtype="FILE_PATH",
+        default="",
+        description="The EXR to write; the polylines go to the same name with .npz",
+    )
+    filter_glob: StringProperty(default="*.exr", options={"HIDDEN"})
+
+    @classmethod
+    def poll(cls, context):
+        scene = getattr(context, "scene", None)
+        if scene is None or len(scene.multiscale.cameras) == 0:
+            cls.poll_message_set("Add cameras to the Multiscale camera list first")
+            return False
+        return True
+
+    def invoke(self, context, _event):
+        if not self.filepath:
+            self.filepath = bpy.path.ensure_ext(bpy.path.abspath("//rays") or "rays", ".exr")
+        context.window_manager.fileselect_add(self)
+        return {"RUNNING_MODAL"}
+
+    def execute(self, context):
+        if not self.filepath:
+            self.report({"ERROR"}, "Export Rays needs a file path")
+            return {"CANCELLED"}
+        path = bpy.path.ensure_ext(bpy.path.abspath(self.filepath), ".exr")
+        try:
+            frame = pipeline.prepare_frame(context.evaluated_depsgraph_get())
+            exr_path, npz_path = export_rays(frame, path)
+        except (RigError, SolverDidNotConverge, ExrError, OSError) as err:
+            self.report({"ERROR"}, str(err))
+            return {"CANCELLED"}
+        for notice in frame.notices:
+            self.report({"WARNING"}, notice)
+        width, height = frame.size
+        self.report({"INFO"}, f"Wrote {width}x{height} rays to {exr_path} and {npz_path}")
+        return {"FINISHED"}
+
+
+class MULTISCALE_OT_report_show(bpy.types.Operator):
+    """Show the last build report in full (also kept in the text 'Multiscale Report')"""
+
+    bl_idname = "multiscale.report_show"
+    bl_label = "Full Report"
+
+    lines = []
+
+    @classmethod
+    def poll(cls, context):
+        return bool(settings_of(context).report)
+
+    def execute(self, context):
+        try:
+            report = json.loads(settings_of(context).report)
+        except ValueError:
+            self.report({"ERROR"}, "The stored report is not readable; compute the field again")
+            return {"CANCELLED"}
+        text = bpy.data.texts.get(REPORT_TEXT) or bpy.data.texts.new(REPORT_TEXT)
+        self.lines = readable(report)
+        text.from_string("\n".join(self.lines) + "\n\n" + settings_of(context).report + "\n")
+        return {"FINISHED"}
+
+    def invoke(self, context, event):
+        result = self.execute(context)
+        if "FINISHED" in result:
+            return context.window_manager.invoke_popup(self, width=620)
+        return result
+
+    def draw(self, context):
+        col = self.layout.column(align=True)
+        for line in self.lines:
+            col.label(text=line)
+        col.separator()
+        col.label(text=f"In full (JSON): Text Editor > '{REPORT_TEXT}'", icon="TEXT")
+
+
+REPORT_TEXT = "Multiscale Report"
+
+
+class MULTISCALE_OT_cache_clear(bpy.types.Operator):
+    """Delete every cached ray field (in memory and on disk); the next render rebuilds"""
+
+    bl_idname = "multiscale.cache_clear"
+    bl_label = "Clear Cache"
+
+    def execute(self, context):
+        size = SERVICE.cache.size_bytes()
+        removed = SERVICE.clear()
+        self.report({"INFO"}, f"Removed {removed} cached fields ({size / 1e6:.1f} MB)")
+        return {"FINISHED"}
+
+
+CLASSES = (
+    MULTISCALE_OT_validate,
+    MULTISCALE_OT_compute_field,
+    MULTISCALE_OT_render,
+    MULTISCALE_OT_export_rays,
+    MULTISCALE_OT_report_show,
+    MULTISCALE_OT_cache_clear,
+)
