@@ -29,7 +29,7 @@ METHOD_ITEMS = [
     ),
 ]
 
-# The most accurate method the code has (DESIGN.md).
+# The most accurate method the code has (docs/methods.md).
 DEFAULT_METHOD = "SCALAR_FIELD"
 
 QUALITY_ITEMS = [

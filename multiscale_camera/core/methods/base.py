@@ -37,7 +37,7 @@ class Settings:
 
 
 # Quality presets: accuracy target in pixels and voxel budget (about 0.1, 0.4 and
-# 1.3 GB of build memory), DESIGN.md's `quality` enum.
+# 1.3 GB of build memory), the `quality` enum of `scene.multiscale`.
 QUALITY = {
     "PREVIEW": Settings(2.0, 96**3),
     "STANDARD": Settings(0.5, 160**3),

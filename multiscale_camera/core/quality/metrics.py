@@ -1,4 +1,4 @@
-"""The report's measures of a ray bundle (DESIGN.md, Metrics).
+"""The report's measures of a ray bundle (docs/report.md).
 
 - Preserved-ray error of camera i (i >= 2) at a pixel of its mask eroded by 2 pixels:
   where the ray the pixel renders beyond camera i's near plane meets that plane
@@ -17,7 +17,7 @@ import numpy as np
 
 from ..geometry import dot3
 
-# Erosion of the masks, pixels, before measuring preserved rays (DESIGN.md).
+# Erosion of the masks, pixels, before measuring preserved rays (docs/report.md).
 ERODE_PX = 2
 # At most this many pixels per camera are measured; a larger mask is subsampled evenly.
 MAX_MEASURED = 20000

@@ -1,4 +1,4 @@
-"""The build report (DESIGN.md, report schema version 1), measured on the rays a field
+"""The build report (docs/report.md, schema version 1), measured on the rays a field
 actually hands to the renderer."""
 
 import json
