@@ -37,6 +37,7 @@ Writes bench/cycles.json.
 """
 
 import argparse
+import contextlib
 import json
 import os
 import sys
@@ -63,6 +64,32 @@ def timed_render(engine):
     wall, cpu = time.perf_counter(), time.process_time()
     bpy.ops.render.render()
     return time.perf_counter() - wall, time.process_time() - cpu
+
+
+@contextlib.contextmanager
+def handoff_reports():
+    """A list that collects the ``cycles.HandoffReport`` of every hand-off rendered
+    inside the ``with`` block (the engine drops it after its render)."""
+    from multiscale_camera.render import cycles
+
+    reports = []
+    hand_off = cycles.render
+
+    def recording(*args):
+        report = hand_off(*args)
+        reports.append(report)
+        return report
+
+    cycles.render = recording
+    try:
+        yield reports
+    finally:
+        cycles.render = hand_off
+
+
+def block_figures(report):
+    """The pinhole blocks of a hand-off, for the JSON: pixels per side, share of blocks."""
+    return {"block": report.block, "share": report.share}
 
 
 def light_scene(args):
@@ -100,15 +127,16 @@ def floor_camera(scene, camera, pinhole_camera, folder):
 
     import numpy as np
 
-    from multiscale_camera.render import cycles
+    from multiscale_camera.render.cycles_rays import PinholeBlocks, pinhole_affine
+    from multiscale_camera.render.cycles_shader import compile_shader
 
     width, height = pinhole_camera.width, pinhole_camera.height
-    blocks = cycles.PinholeBlocks(
+    blocks = PinholeBlocks(
         max(width, height),
         np.ones((1, 1), dtype=np.int32),
-        cycles.pinhole_affine(pinhole_camera, np.asarray(camera.matrix_world))[None],
+        pinhole_affine(pinhole_camera, np.asarray(camera.matrix_world))[None],
     )
-    bytecode = cycles.compile_shader(folder, blocks)
+    bytecode = compile_shader(folder, blocks)
     copy = camera.copy()
     copy.data = camera.data.copy()
     copy.name = copy.data.name = "custom camera floor"
@@ -140,7 +168,7 @@ def measure(scene, args):
     import bpy
     import numpy as np
 
-    from multiscale_camera.render import cycles, pipeline
+    from multiscale_camera.render import pipeline
     from multiscale_camera.render.tables import ray_tables
     from tests.blender.scenes import mask_image
     from tests.blender.test_cycles import cycles_settings
@@ -181,12 +209,14 @@ def measure(scene, args):
             runs[f"plain_camera_{i + 1}"].append(timed_render("CYCLES"))
         scene.camera = camera1
         set_rig(scene, rig)
-        runs["handoff"].append(timed_render("MULTISCALE"))
-        stages.append({k: round(v, 3) for k, v in cycles.LAST_SECONDS.items()})
-        blocks["handoff"] = dict(cycles.LAST_BLOCKS)
+        with handoff_reports() as reports:
+            runs["handoff"].append(timed_render("MULTISCALE"))
+        stages.append({k: round(v, 3) for k, v in reports[-1].seconds().items()})
+        blocks["handoff"] = block_figures(reports[-1])
         set_rig(scene, one_camera)
-        runs["one_camera"].append(timed_render("MULTISCALE"))
-        blocks["one_camera"] = dict(cycles.LAST_BLOCKS)
+        with handoff_reports() as reports:
+            runs["one_camera"].append(timed_render("MULTISCALE"))
+        blocks["one_camera"] = block_figures(reports[-1])
     set_rig(scene, rig)
     bpy.data.cameras.remove(floor.data)
     load_end = os.getloadavg()[0]

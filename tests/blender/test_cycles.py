@@ -10,7 +10,7 @@ import pytest
 from scipy.ndimage import binary_erosion
 
 from multiscale_camera.io.exr import read_channels
-from multiscale_camera.render import cycles, workers
+from multiscale_camera.render import cycles, cycles_rays, cycles_shader, workers
 from tests.exr import read_passes
 
 from .scenes import add_camera, add_mesh, mask_image, two_camera_scene
@@ -44,6 +44,20 @@ def render(scene, path, engine, camera=None, seed=0):
     return read_passes(path)
 
 
+def record_handoffs(monkeypatch):
+    """The list of the HandoffReports of the hand-offs rendered from now on."""
+    reports = []
+    hand_off = cycles.render
+
+    def recording(*args):
+        report = hand_off(*args)
+        reports.append(report)
+        return report
+
+    monkeypatch.setattr(cycles, "render", recording)
+    return reports
+
+
 def rms(a, b):
     """RMS difference of the Combined colour of two renders' passes."""
     return float(np.sqrt(np.mean((a["Combined"][..., :3] - b["Combined"][..., :3]) ** 2)))
@@ -65,7 +79,7 @@ def orbit(target, distance, azimuth_deg, elevation_deg):
     return tuple(np.asarray(target) + distance * offset)
 
 
-def test_one_camera_full_mask_matches_plain_cycles(empty_scene, tmp_path):
+def test_one_camera_full_mask_matches_plain_cycles(empty_scene, tmp_path, monkeypatch):
     """One camera, every pixel preserved: the hand-off is a plain Cycles render of that
     camera, up to Cycles' own noise (measured between two seeds)."""
     scene = empty_scene
@@ -83,6 +97,7 @@ def test_one_camera_full_mask_matches_plain_cycles(empty_scene, tmp_path):
     bpy.context.view_layer.update()
     plain0 = render(scene, tmp_path / "plain0.exr", "CYCLES", seed=0)
     plain1 = render(scene, tmp_path / "plain1.exr", "CYCLES", seed=1)
+    reports = record_handoffs(monkeypatch)
     handoff0 = render(scene, tmp_path / "handoff0.exr", "MULTISCALE", seed=0)
     handoff1 = render(scene, tmp_path / "handoff1.exr", "MULTISCALE", seed=1)
     noise = rms(plain0, plain1)
@@ -95,7 +110,8 @@ def test_one_camera_full_mask_matches_plain_cycles(empty_scene, tmp_path):
     # pixels shows camera 1's own rays, which the custom camera computes at each jittered
     # sub-pixel position as Cycles' own camera does (the table's interpolated rays alone
     # gave a difference of up to a tenth of the noise)
-    assert cycles.LAST_BLOCKS["share"] == 1.0
+    assert len(reports) == 2 and all(report.share == 1.0 for report in reports)
+    assert list(reports[0].seconds()) == ["march", "tables", "cycles", "passes"]
     assert rms(handoff0, plain0) <= 1e-3 * noise
     mean_gap = abs(handoff0["Combined"][..., :3].mean() - plain1["Combined"][..., :3].mean())
     assert mean_gap <= 0.01 * plain1["Combined"][..., :3].mean()
@@ -180,8 +196,9 @@ def test_rays_blocked_before_the_plane_come_from_the_origin_and_direction_tables
     def recording(folder, tables, *args, **kw):
         params = write_tables(folder, tables, *args, **kw)
         channels, _ = read_channels(params["ray_table"])
-        inner = (slice(cycles.PAD, -cycles.PAD),) * 2
-        marked = np.abs(np.stack([channels[c][inner] for c in "RGBA"])) > cycles.UNUSABLE_LIMIT
+        inner = (slice(cycles_rays.PAD, -cycles_rays.PAD),) * 2
+        limit = cycles_rays.UNUSABLE_LIMIT
+        marked = np.abs(np.stack([channels[c][inner] for c in "RGBA"])) > limit
         written.append((dict(params), marked.all(axis=0), tables.object_index))
         return params
 
@@ -260,7 +277,9 @@ def test_handoff_failure_is_reported_and_leaves_the_scene(empty_scene, tmp_path,
     cycles_settings(scene, samples=1)
     before = snapshot(scene)
     before_tables = leftover_tables()
-    monkeypatch.setattr(cycles, "OSL_SOURCE", "shader broken( {")
+    broken = tmp_path / "broken.osl"
+    broken.write_text("shader broken( {")
+    monkeypatch.setattr(cycles_shader, "OSL_PATH", str(broken))
     scene.render.filepath = str(tmp_path / "b.exr")
     with pytest.raises(RuntimeError) as info:
         bpy.ops.render.render(write_still=True)
@@ -293,9 +312,11 @@ def test_handoff_cancelled_during_the_march_leaves_the_scene(empty_scene, tmp_pa
         return march_tables(frame, stop_at_second_check, progress)
 
     monkeypatch.setattr(cycles, "ray_tables", tables_with_esc)
+    reports = record_handoffs(monkeypatch)
     scene.render.engine = "MULTISCALE"
     bpy.ops.render.render()
     assert len(calls) == 2 and not started
+    assert reports == [cycles.HandoffReport()]  # no stage finished
     assert snapshot(scene) == before
     assert leftover_tables() == before_tables
 

@@ -1,10 +1,11 @@
 """The hand-off's table helpers in plain numpy: camera space, the two-plane table, edge
 padding and the blocks of pinhole rays."""
 
+import re
+
 import numpy as np
 
-from multiscale_camera.render.cycles import (
-    OSL_SOURCE,
+from multiscale_camera.render.cycles_rays import (
     PAD,
     PINHOLE_TOLERANCE_PX,
     UNUSABLE,
@@ -16,8 +17,8 @@ from multiscale_camera.render.cycles import (
     pinhole_classes,
     pinhole_rays,
     plane_rays,
-    shader_source,
 )
+from multiscale_camera.render.cycles_shader import OSL_PATH, shader_source
 from multiscale_camera.render.tables import RayTables
 
 from .rigs import look_at, three_camera_rig
@@ -55,8 +56,9 @@ def test_pad_edges_extrapolates_linear_tables_exactly():
 def test_shader_maps_pixel_centres_to_texel_centres():
     """The shader's lookup: raster (x + 0.5) / W -> texel x + PAD of the padded table,
     and raster row 0 at the bottom -> the table's bottom row (tables are top-first)."""
-    assert "float s = (raster[0] * width + pad) / (width + 2 * pad);" in OSL_SOURCE
-    assert "float t = 1.0 - (raster[1] * height + pad) / (height + 2 * pad);" in OSL_SOURCE
+    source = shader_source(None)
+    assert "float s = (raster[0] * width + pad) / (width + 2 * pad);" in source
+    assert "float t = 1.0 - (raster[1] * height + pad) / (height + 2 * pad);" in source
     w, h = 40, 30
     x, y_top = np.arange(w), np.arange(h)
     s = ((x + 0.5) / w * w + PAD) / (w + 2 * PAD)
@@ -116,7 +118,7 @@ def test_plane_rays_mark_rays_that_do_not_head_forward():
     np.testing.assert_array_equal(marked, expected)
     np.testing.assert_array_equal(padded[:, PAD], np.zeros((1 + 2 * PAD, 4)))
     assert np.isfinite(padded).all()
-    assert f"< {UNUSABLE_LIMIT!r})" in OSL_SOURCE and UNUSABLE < 1e38  # float32 holds it
+    assert f"< {UNUSABLE_LIMIT!r})" in shader_source(None) and UNUSABLE < 1e38  # float32 holds it
 
 
 def tables_of(origin, direction):
@@ -202,3 +204,21 @@ def test_shader_source_compiles_the_blocks_in():
     assert f"int block_class[{7 * 12}] = {{{','.join(['1'] * 84)}}}" in source
     assert "float pinhole[54] = {" in source
     assert "int block_class[1] = {0}" in shader_source(None)
+
+
+def test_shader_template_is_a_file_of_the_package():
+    """The OSL source lives beside the module (packed with the extension) and every
+    token of it is filled."""
+    with open(OSL_PATH, encoding="utf-8") as template:
+        tokens = set(re.findall(r"@[A-Z_]+@", template.read()))
+    assert tokens == {
+        "@UNUSABLE_LIMIT@",
+        "@BLOCK@",
+        "@BLOCKS_X@",
+        "@BLOCKS_Y@",
+        "@BLOCK_COUNT@",
+        "@BLOCK_CLASS@",
+        "@PINHOLE_COUNT@",
+        "@PINHOLE@",
+    }
+    assert "shader multiscale_camera(" in shader_source(None)
