@@ -1,11 +1,11 @@
-"""``multiscale.export_rays``: the per-pixel ray tables as one multi-channel EXR and the
-polylines as ``.npz``. The formats are documented in docs/ray_tables.md."""
+"""The ray tables' files: the per-pixel first-hit rays as one multi-channel EXR and the
+polylines as ``.npz``. The formats are documented in docs/ray_tables.md; the export
+that marches the rays is ``render/export.py``."""
 
 import os
 
 import numpy as np
 
-from ..render.tables import ray_tables
 from .exr import ExrError, write_channels
 
 # Bumped when a channel or array changes meaning or goes away (adding is compatible).
@@ -15,7 +15,14 @@ MISS = 1e10
 
 
 def table_channels(tables):
-    """The EXR channels of ``RayTables``: name -> (H, W) float32, row 0 at the top."""
+    """The EXR channels of first-hit tables: name -> (H, W) float32, row 0 at the top.
+
+    Parameters
+    ----------
+    tables : the tables of an H x W image (``RayTables`` of render/tables.py): origin,
+        direction (H, W, 3); distance, depth, membership, object_index (H, W); hit (H, W)
+        bool.
+    """
     channels = {}
     for axis, c in enumerate("XYZ"):
         channels[f"origin.{c}"] = tables.origin[..., axis]
@@ -29,13 +36,33 @@ def table_channels(tables):
     return {k: np.asarray(v, dtype=np.float32) for k, v in channels.items()}
 
 
-def export_rays(frame, path, should_stop=None):
-    """March ``frame`` and write ``path`` (EXR) and the same name with ``.npz``.
+def check_folder(path):
+    """Raise OSError, saying why, when ``path``'s folder does not exist or is not writable
+    (before minutes of marching are spent on files that cannot be written).
 
     Parameters
     ----------
-    frame : pipeline.Frame. path : str ending in .exr (absolute).
-    should_stop : callable -> bool, or None.
+    path : str, the EXR to write.
+    """
+    folder = os.path.dirname(path) or "."
+    if not os.path.isdir(folder):
+        raise OSError(f"Cannot write '{path}': the folder '{folder}' does not exist")
+    if not os.access(folder, os.W_OK):
+        raise OSError(f"Cannot write '{path}': the folder '{folder}' is not writable")
+
+
+def write_rays(path, tables, lines, size):
+    """Write ``path`` (EXR: ``table_channels``) and the same name with ``.npz`` (the
+    polylines).
+
+    Parameters
+    ----------
+    path : str ending in .exr (absolute).
+    tables : first-hit tables (``table_channels``).
+    lines : the polylines (``Polylines`` of render/tables.py): points (V, 3) float32,
+        offsets (R + 1,) int64, membership (V,) float32, reach, start_depth (R,) float32,
+        pixels (R, 2) int32.
+    size : (width, height) int, pixels of the image.
 
     Returns
     -------
@@ -43,15 +70,9 @@ def export_rays(frame, path, should_stop=None):
 
     Raises
     ------
-    OSError: the folder does not exist or cannot be written. ExrError: writing failed.
+    ExrError: writing failed.
     """
-    folder = os.path.dirname(path) or "."
-    if not os.path.isdir(folder):
-        raise OSError(f"Cannot write '{path}': the folder '{folder}' does not exist")
-    if not os.access(folder, os.W_OK):
-        raise OSError(f"Cannot write '{path}': the folder '{folder}' is not writable")
-    tables, lines = ray_tables(frame, should_stop, keep_polylines=True)
-    width, height = frame.size
+    width, height = size
     write_channels(
         path,
         table_channels(tables),

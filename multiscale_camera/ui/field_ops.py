@@ -12,9 +12,9 @@ from ..core.diagnostics import Diagnostics
 from ..core.errors import RigError, SolverDidNotConverge
 from ..core.quality import headline, readable, to_json
 from ..io.exr import ExrError
-from ..io.rays import export_rays
 from ..render import pipeline
 from ..render.checks import validate_scene
+from ..render.export import export_rays
 from ..render.fields import SERVICE
 from ..render.volume import prepare_volumes
 from .context import evaluated_scene, settings_of
