@@ -47,9 +47,8 @@ NO_OPENVDB = (
     "its grids cannot be read; save the grid as .npy, .raw or .nrrd and set it as the "
     "Volume File of an object (Object Properties > Multiscale Volume) instead"
 )
-# Newest volumes kept decoded (values normalised, block ranges), keyed by their source.
+# Newest volumes kept decoded (``VolumeGridCache``).
 KEEP_VOLUMES = 2
-_CACHE = {}
 _OPENVDB = []
 
 
@@ -79,20 +78,43 @@ def openvdb_module():
     return module
 
 
-def _remember(key, make):
-    if key in _CACHE:
-        _CACHE[key] = _CACHE.pop(key)
-        return _CACHE[key]
-    value = make()
-    _CACHE[key] = value
-    while len(_CACHE) > KEEP_VOLUMES:
-        _CACHE.pop(next(iter(_CACHE)))
-    return value
+class VolumeGridCache:
+    """The newest ``keep`` decoded volume sources (values normalised to [0, 1], block
+    ranges, gradient directions), keyed by their source: file, size and date, grid or
+    layout, value range. Decoding a large grid takes seconds; a frame that reads the
+    same unchanged sources again takes them from here.
 
+    Parameters
+    ----------
+    keep : int, how many to keep; the least recently used go first.
+    """
 
-def clear_cache():
-    """Forget every decoded volume."""
-    _CACHE.clear()
+    def __init__(self, keep=KEEP_VOLUMES):
+        self.keep = keep
+        self._entries = {}
+
+    def __len__(self):
+        return len(self._entries)
+
+    def get(self, key, make):
+        """The value kept under ``key`` (now the newest), or ``make()``'s, then kept.
+
+        Parameters
+        ----------
+        key : hashable, the source. make : callable () -> value, run on a miss.
+        """
+        if key in self._entries:
+            self._entries[key] = self._entries.pop(key)
+            return self._entries[key]
+        value = make()
+        self._entries[key] = value
+        while len(self._entries) > self.keep:
+            self._entries.pop(next(iter(self._entries)))
+        return value
+
+    def clear(self):
+        """Forget every decoded volume."""
+        self._entries.clear()
 
 
 def _file_key(path):
@@ -111,17 +133,17 @@ def _value_range(settings):
     return (settings.range_min, settings.range_max)
 
 
-def _decoded(key, read, value_range):
+def _decoded(cache, key, read, value_range):
     """(values in [0, 1] float32, block ranges, gradient directions, extra) of a source,
-    from the cache when the source and range are unchanged; ``read()`` returns (array,
-    extra)."""
+    from ``cache`` (a VolumeGridCache) when the source and range are unchanged;
+    ``read()`` returns (array, extra)."""
 
     def make():
         array, extra = read()
         values = normalise(array, value_range)
         return values, block_ranges(values), gradient_directions(values), extra
 
-    return _remember(key + (value_range,), make)
+    return cache.get(key + (value_range,), make)
 
 
 def _object_box(obj):
@@ -134,8 +156,13 @@ def _object_box(obj):
     return corners.min(0), corners.max(0)
 
 
-def file_volume(obj, matrix_world):
+def file_volume(obj, matrix_world, cache):
     """The volume file attached to ``obj`` (``obj.multiscale_volume``) placed in its box.
+
+    Parameters
+    ----------
+    obj : bpy.types.Object, evaluated. matrix_world : (4, 4) float64, its instance's.
+    cache : VolumeGridCache, where the decoded file is looked up and kept.
 
     Returns
     -------
@@ -160,6 +187,7 @@ def file_volume(obj, matrix_world):
     key = ("file",) + _file_key(path) + (dims, settings.value_type, settings.little_endian)
     try:
         values, ranges, normals, _ = _decoded(
+            cache,
             key,
             lambda: (read_volume(path, dims, settings.value_type, settings.little_endian), None),
             _value_range(settings),
@@ -202,8 +230,13 @@ def _pick_grid(obj, wanted):
     return scalar[0] if scalar else grids[0]
 
 
-def grid_volume(obj, matrix_world):
+def grid_volume(obj, matrix_world, cache):
     """The chosen scalar grid of a Volume object (``obj`` evaluated), as a volume.
+
+    Parameters
+    ----------
+    obj : bpy.types.Object, evaluated. matrix_world : (4, 4) float64, its instance's.
+    cache : VolumeGridCache, where the decoded grid is looked up and kept.
 
     Returns
     -------
@@ -242,7 +275,7 @@ def grid_volume(obj, matrix_world):
         return a, np.array(lo, dtype=np.float64)
 
     key = ("vdb",) + _file_key(path) + (grid.name,)
-    values, ranges, normals, origin = _decoded(key, read, _value_range(settings))
+    values, ranges, normals, origin = _decoded(cache, key, read, _value_range(settings))
     index_to_object = np.array([list(r) for r in grid.matrix_object], dtype=np.float64)
     shift = np.eye(4)
     shift[:3, 3] = -origin
@@ -258,8 +291,13 @@ def is_volume_source(obj):
     return bool(settings is not None and settings.use)
 
 
-def scene_volumes(depsgraph):
+def scene_volumes(depsgraph, cache):
     """Every render-visible volume source of an evaluated depsgraph.
+
+    Parameters
+    ----------
+    depsgraph : bpy.types.Depsgraph, evaluated.
+    cache : VolumeGridCache, where decoded sources are looked up and kept.
 
     Returns
     -------
@@ -277,14 +315,14 @@ def scene_volumes(depsgraph):
             continue
         matrix = np.array(inst.matrix_world, dtype=np.float64)
         if obj.type == "VOLUME":
-            out.append(grid_volume(obj, matrix))
+            out.append(grid_volume(obj, matrix, cache))
             if len(obj.original.modifiers):
                 notices.append(
                     f"Volume object '{obj.original.name}': its modifiers are not applied "
                     "here; the grid in its file is rendered"
                 )
         else:
-            out.append(file_volume(obj, matrix))
+            out.append(file_volume(obj, matrix, cache))
     return out, notices
 
 

@@ -11,11 +11,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..adapters.volumes import VolumeGridCache, scene_volumes, transfer_tables
 from ..core.volume import VolumeScene, composite_over, march_volume
 
 # Worker threads per tile: numpy releases the GIL in its loops, so two threads keep two
 # cores busy; more only add contention.
 THREADS = max(1, min(2, os.cpu_count() or 1))
+# Decoded volume sources, shared by every frame of this process.
+GRID_CACHE = VolumeGridCache()
 
 
 @dataclass
@@ -33,8 +36,13 @@ class FrameVolumes:
         return bool(self.scenes)
 
 
-def prepare_volumes(depsgraph):
+def prepare_volumes(depsgraph, grids=GRID_CACHE):
     """Every volume of the evaluated scene with the cameras' transfer functions.
+
+    Parameters
+    ----------
+    depsgraph : bpy.types.Depsgraph, evaluated.
+    grids : VolumeGridCache, where decoded sources are looked up and kept.
 
     Returns
     -------
@@ -44,9 +52,7 @@ def prepare_volumes(depsgraph):
     ------
     VolumeError (a RigError) naming the object or camera and what to change.
     """
-    from ..adapters.volumes import scene_volumes, transfer_tables
-
-    found, notices = scene_volumes(depsgraph)
+    found, notices = scene_volumes(depsgraph, grids)
     if not found:
         return FrameVolumes(), notices
     settings = depsgraph.scene.multiscale

@@ -10,6 +10,7 @@ import pytest
 from multiscale_camera.adapters import volumes as adapters
 from multiscale_camera.core import volume as V
 from multiscale_camera.render import pipeline
+from multiscale_camera.render import volume as render_volume
 from multiscale_camera.ui.volume import new_transfer_function
 from tests.unit.test_volume import psnr, reference_cast
 
@@ -26,7 +27,7 @@ RAMP = [  # position, RGBA: what the test's camera sees
 
 @pytest.fixture(autouse=True)
 def fresh_caches():
-    adapters.clear_cache()
+    render_volume.GRID_CACHE.clear()
     pipeline.clear_fields()
     yield
 
@@ -150,6 +151,34 @@ def volume_object(scene, path, name="Vol"):
     obj = bpy.data.objects.new(name, data)
     scene.collection.objects.link(obj)
     return obj
+
+
+def test_grid_cache_keeps_the_newest_sources():
+    cache = adapters.VolumeGridCache(keep=2)
+    made = []
+    for key in ("a", "b", "a", "c", "a", "b"):
+        assert cache.get(key, lambda key=key: made.append(key) or key.upper()) == key.upper()
+    # "a" was read again before "c" came, so "b" went first; "c" went when "b" came back
+    assert made == ["a", "b", "c", "b"] and len(cache) == 2
+    cache.clear()
+    assert len(cache) == 0
+
+
+def test_frames_share_the_decoded_volume(empty_scene, tmp_path, monkeypatch):
+    """Two frames of an unchanged volume file read and decode it once."""
+    scene = empty_scene
+    one_camera_scene(scene)
+    path = tmp_path / "v.npy"
+    np.save(path, lumpy())
+    file_box(scene, path)
+    reads = []
+    read = adapters.read_volume
+    monkeypatch.setattr(adapters, "read_volume", lambda *args: reads.append(args) or read(*args))
+    for _ in range(2):
+        bpy.context.view_layer.update()
+        volumes, _ = render_volume.prepare_volumes(bpy.context.evaluated_depsgraph_get())
+        assert len(volumes.scenes) == 1
+    assert len(reads) == 1 and len(render_volume.GRID_CACHE) == 1
 
 
 def test_openvdb_is_found_in_this_blender():
