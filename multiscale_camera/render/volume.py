@@ -25,10 +25,11 @@ GRID_CACHE = VolumeGridCache()
 class FrameVolumes:
     """The volumes of a frame, each ready to march (``core.volume.VolumeScene``).
 
-    scenes : list of VolumeScene. samples, skipped : int, counters for the log.
+    scenes : list of VolumeScene. samples, skipped : int, the samples the frame's tiles
+        took and skipped in empty blocks so far (counters for the log).
     """
 
-    scenes: list = field(default_factory=list)
+    scenes: list[VolumeScene] = field(default_factory=list)
     samples: int = 0
     skipped: int = 0
 

@@ -107,9 +107,9 @@ def march_volume(scene, vertices, membership, reach, stop=None, should_stop=None
         if pool is not None:
             pool.shutdown()
     for sl, out in done:
-        colour[sl], alpha[sl], entry[sl], depth[sl] = out[:4]
-        samples += out[4]
-        skipped += out[5]
+        colour[sl], alpha[sl], entry[sl], depth[sl] = out.colour, out.alpha, out.entry, out.depth
+        samples += out.samples
+        skipped += out.skipped
     return VolumeResult(colour, alpha, entry, depth, samples, skipped)
 
 
@@ -219,8 +219,7 @@ def _march_chunk(scene, vertices, membership, reach, stop):
 
     Returns
     -------
-    colour (R, 3) float32 premultiplied, alpha (R,) float32, entry (R,) float64, depth
-    (R,) float64, samples taken and samples skipped (int), as in ``VolumeResult``.
+    VolumeResult of the chunk's R rays.
     """
     vol = scene.volume
     shape = vol.shape
@@ -234,35 +233,33 @@ def _march_chunk(scene, vertices, membership, reach, stop):
 
     def result(samples, skipped):
         alpha = (1.0 - trans).astype(np.float32)
-        return colour.T.copy(), alpha, entry, depth, samples, skipped
+        return VolumeResult(colour.T.copy(), alpha, entry, depth, samples, skipped)
 
     skipped = int(dense_skipped[:, -1].sum())
     if runs is None:
         return result(0, skipped)
     pieces = _pieces(scene, runs)
-    busy = pieces["busy"]
+    busy = pieces.busy
     # the pieces' skipped samples, less those behind where a ray stopped
     empty = np.zeros(len(busy) + 1, np.int64)
-    np.cumsum(np.where(busy, 0, pieces["count"]), out=empty[1:])
+    np.cumsum(np.where(busy, 0, pieces.count), out=empty[1:])
     skipped += int(empty[-1])
-    piece_ray = runs["ray"].take(pieces["run"])
+    piece_ray = runs.ray.take(pieces.run)
     sel = np.flatnonzero(busy)
     if not len(sel):
         return result(0, skipped)
 
     # the busy pieces, with what their samples need
-    run = pieces["run"][sel]
-    i = pieces["i"][sel]
-    count = pieces["count"][sel]
-    p0 = [
-        (runs["p"][c].take(run) + i * runs["dp"][c].take(run)).astype(np.float32) for c in range(3)
-    ]
-    dp = [runs["dp"][c].take(run).astype(np.float32) for c in range(3)]
-    n0 = (runs["nm"].take(run) + i * runs["dnm"].take(run)).astype(np.float32)
-    dn = runs["dnm"].take(run).astype(np.float32)
-    j0 = runs["j"].take(run) + i
-    wdir = [runs["dir"][c].take(run).astype(np.float32) for c in range(3)]
-    bseg = runs["seg"].take(run)
+    run = pieces.run[sel]
+    i = pieces.i[sel]
+    count = pieces.count[sel]
+    p0 = [(runs.p[c].take(run) + i * runs.dp[c].take(run)).astype(np.float32) for c in range(3)]
+    dp = [runs.dp[c].take(run).astype(np.float32) for c in range(3)]
+    n0 = (runs.nm.take(run) + i * runs.dnm.take(run)).astype(np.float32)
+    dn = runs.dnm.take(run).astype(np.float32)
+    j0 = runs.j.take(run) + i
+    wdir = [runs.direction[c].take(run).astype(np.float32) for c in range(3)]
+    bseg = runs.seg.take(run)
     bray = piece_ray[sel]
     done_at = np.zeros(len(sel) + 1, np.int64)  # samples in busy pieces before each
     np.cumsum(count, out=done_at[1:])

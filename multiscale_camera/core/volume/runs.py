@@ -4,6 +4,8 @@ make visible, and cut into pieces of samples, so that only the samples of occupi
 pieces are taken (empty-space skipping).
 """
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from .scene import BLOCK, camera_runs
@@ -19,6 +21,51 @@ PIECE_VOXELS = BLOCK
 MEMBERSHIP_SNAP = 1e-3
 # Rounding allowed for between a piece's end memberships and its samples' ones.
 MEMBERSHIP_ROUNDING = 1e-5
+
+
+@dataclass(frozen=True)
+class Runs:
+    """The lattice samples of a chunk's rays that may be visible, as C runs along
+    straight segments of the polylines, in ray then arc order (``_runs``).
+
+    ray, seg : (C,) int64, the ray (within the chunk) and its segment.
+    j : (C,) int64, the lattice index of the run's first sample (arc length j * h).
+    n : (C,) int64, samples in the run (>= 1).
+    p, dp : (3, C) float64, voxel units: the first sample's position and the step from
+        one sample to the next.
+    nm, dnm : (C,) float64, the membership at the first sample and its change per sample.
+    sure : (C,) bool, the run is one piece already known to be occupied.
+    direction : (3, C) float32, the segment's unit direction, world space.
+    """
+
+    ray: np.ndarray
+    seg: np.ndarray
+    j: np.ndarray
+    n: np.ndarray
+    p: np.ndarray
+    dp: np.ndarray
+    nm: np.ndarray
+    dnm: np.ndarray
+    sure: np.ndarray
+    direction: np.ndarray
+
+
+@dataclass(frozen=True)
+class Pieces:
+    """Runs cut into P pieces of at most ``_per_piece`` samples, in ray then arc order
+    (``_pieces``).
+
+    run : (P,) int64, the piece's run (an index into ``Runs``' arrays).
+    i : (P,) int64, the piece's first sample within its run.
+    count : (P,) int64, samples in the piece (>= 1).
+    busy : (P,) bool, the piece's box of blocks holds a block occupied under the
+        cameras its membership can weigh.
+    """
+
+    run: np.ndarray
+    i: np.ndarray
+    count: np.ndarray
+    busy: np.ndarray
 
 
 def _box_interval(p, d, n):
@@ -159,13 +206,7 @@ def _runs(scene, vertices, membership, reach, stop, h):
 
     Returns
     -------
-    runs : None when no segment needs sampling, else a dict of (C,) arrays, C runs in
-        ray then arc order: ``ray``, ``seg`` int64 (segment within the ray); ``j``
-        int64, the first sample's lattice index; ``n`` int64, samples; ``p``, ``dp``
-        (3, C) float64, the first sample's voxel position and the step between samples;
-        ``nm``, ``dnm`` float64, the membership at the first sample and its change per
-        sample; ``sure`` bool, one piece already known to be occupied; ``dir`` (3, C)
-        float32, the segment's unit world direction.
+    runs : Runs, or None when no segment needs sampling.
     skipped : (R, K + 1) int64, samples skipped so far along each ray (entry k counts
         the empty segments 0..k).
     entry : (R,) float64, arc length of each ray's first sample in the box (inf: none).
@@ -265,18 +306,18 @@ def _runs(scene, vertices, membership, reach, stop, h):
     dm = mem.ravel().take(v0 + 1) - m0
     first_run = np.flatnonzero(np.r_[True, ray[1:] != ray[:-1]])
     entry[ray[first_run]] = np.minimum(entry[ray[first_run]], ja[first_run] * h)
-    runs = {
-        "ray": ray,
-        "seg": seg,
-        "j": ja.astype(np.int64),
-        "n": n,
-        "p": a + dv * local,
-        "dp": dv * rise,
-        "nm": m0 + dm * local,
-        "dnm": dm * rise,
-        "sure": full.ravel().take(cand) & (n <= _per_piece(scene)),
-        "dir": np.stack([d[c].ravel().take(cand) for c in range(3)]) / seglen.ravel().take(cand),
-    }
+    runs = Runs(
+        ray=ray,
+        seg=seg,
+        j=ja.astype(np.int64),
+        n=n,
+        p=a + dv * local,
+        dp=dv * rise,
+        nm=m0 + dm * local,
+        dnm=dm * rise,
+        sure=full.ravel().take(cand) & (n <= _per_piece(scene)),
+        direction=np.stack([d[c].ravel().take(cand) for c in range(3)]) / seglen.ravel().take(cand),
+    )
     return runs, skipped, entry
 
 
@@ -289,29 +330,32 @@ def _pieces(scene, runs):
     """Cut runs into pieces of at most ``_per_piece`` samples and test each piece's box
     of blocks (its first and last sample's) under the cameras its membership can weigh.
 
+    Parameters
+    ----------
+    scene : VolumeScene. runs : Runs.
+
     Returns
     -------
-    dict of (P,) arrays, pieces in ray then arc order: ``run`` int64 (index into the
-    runs), ``i`` int64 (first sample within its run), ``count`` int64, ``busy`` bool.
+    Pieces
     """
     per = _per_piece(scene)
-    n = runs["n"]
+    n = runs.n
     pcs = -(-n // per)
     run = np.repeat(np.arange(len(n)), pcs)
     i = _within(pcs) * per
     count = np.minimum(per, n.take(run) - i)
-    busy = runs["sure"].take(run)
+    busy = runs.sure.take(run)
     test = np.flatnonzero(~busy)
     if len(test):
         rt, it, ct = run[test], i[test], count[test]
-        p = [runs["p"][c].take(rt) + it * runs["dp"][c].take(rt) for c in range(3)]
-        q = [p[c] + (ct - 1) * runs["dp"][c].take(rt) for c in range(3)]
+        p = [runs.p[c].take(rt) + it * runs.dp[c].take(rt) for c in range(3)]
+        q = [p[c] + (ct - 1) * runs.dp[c].take(rt) for c in range(3)]
         bp, bq = _blocks(scene.volume.shape, p), _blocks(scene.volume.shape, q)
         cams = None
         if len(scene.tables) > 1:
-            n0 = runs["nm"].take(rt) + it * runs["dnm"].take(rt)
-            n1 = n0 + (ct - 1) * runs["dnm"].take(rt)
+            n0 = runs.nm.take(rt) + it * runs.dnm.take(rt)
+            n1 = n0 + (ct - 1) * runs.dnm.take(rt)
             low = np.minimum(n0, n1).astype(np.float32)
             cams = _camera_bounds(scene, low, np.maximum(n0, n1).astype(np.float32))
         busy[test] = _occupied(scene, bp, bq, cams)
-    return {"run": run, "i": i, "count": count, "busy": busy}
+    return Pieces(run=run, i=i, count=count, busy=busy)
