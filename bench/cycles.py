@@ -37,7 +37,6 @@ Writes bench/cycles.json.
 """
 
 import argparse
-import contextlib
 import json
 import os
 import sys
@@ -64,27 +63,6 @@ def timed_render(engine):
     wall, cpu = time.perf_counter(), time.process_time()
     bpy.ops.render.render()
     return time.perf_counter() - wall, time.process_time() - cpu
-
-
-@contextlib.contextmanager
-def handoff_reports():
-    """A list that collects the ``cycles.HandoffReport`` of every hand-off rendered
-    inside the ``with`` block (the engine drops it after its render)."""
-    from multiscale_camera.render import cycles
-
-    reports = []
-    hand_off = cycles.render
-
-    def recording(*args):
-        report = hand_off(*args)
-        reports.append(report)
-        return report
-
-    cycles.render = recording
-    try:
-        yield reports
-    finally:
-        cycles.render = hand_off
 
 
 def block_figures(report):
@@ -171,7 +149,7 @@ def measure(scene, args):
     from multiscale_camera.render import pipeline
     from multiscale_camera.render.tables import ray_tables
     from tests.blender.scenes import mask_image
-    from tests.blender.test_cycles import cycles_settings
+    from tests.blender.test_cycles import cycles_settings, handoff_reports
 
     cycles_settings(scene, samples=args.samples)
     rig = [(item.camera, item.mask) for item in scene.multiscale.cameras]

@@ -1,5 +1,6 @@
 """Cycles hand-off (shading = 'CYCLES'): against plain Cycles renders of the rig's cameras."""
 
+import contextlib
 import os
 import tempfile
 import time
@@ -44,8 +45,10 @@ def render(scene, path, engine, camera=None, seed=0):
     return read_passes(path)
 
 
-def record_handoffs(monkeypatch):
-    """The list of the HandoffReports of the hand-offs rendered from now on."""
+@contextlib.contextmanager
+def handoff_reports():
+    """A list that collects the ``cycles.HandoffReport`` of every hand-off rendered
+    inside the ``with`` block (the engine drops it after its render)."""
     reports = []
     hand_off = cycles.render
 
@@ -54,8 +57,11 @@ def record_handoffs(monkeypatch):
         reports.append(report)
         return report
 
-    monkeypatch.setattr(cycles, "render", recording)
-    return reports
+    cycles.render = recording
+    try:
+        yield reports
+    finally:
+        cycles.render = hand_off
 
 
 def rms(a, b):
@@ -79,7 +85,7 @@ def orbit(target, distance, azimuth_deg, elevation_deg):
     return tuple(np.asarray(target) + distance * offset)
 
 
-def test_one_camera_full_mask_matches_plain_cycles(empty_scene, tmp_path, monkeypatch):
+def test_one_camera_full_mask_matches_plain_cycles(empty_scene, tmp_path):
     """One camera, every pixel preserved: the hand-off is a plain Cycles render of that
     camera, up to Cycles' own noise (measured between two seeds)."""
     scene = empty_scene
@@ -97,9 +103,9 @@ def test_one_camera_full_mask_matches_plain_cycles(empty_scene, tmp_path, monkey
     bpy.context.view_layer.update()
     plain0 = render(scene, tmp_path / "plain0.exr", "CYCLES", seed=0)
     plain1 = render(scene, tmp_path / "plain1.exr", "CYCLES", seed=1)
-    reports = record_handoffs(monkeypatch)
-    handoff0 = render(scene, tmp_path / "handoff0.exr", "MULTISCALE", seed=0)
-    handoff1 = render(scene, tmp_path / "handoff1.exr", "MULTISCALE", seed=1)
+    with handoff_reports() as reports:
+        handoff0 = render(scene, tmp_path / "handoff0.exr", "MULTISCALE", seed=0)
+        handoff1 = render(scene, tmp_path / "handoff1.exr", "MULTISCALE", seed=1)
     noise = rms(plain0, plain1)
     print("noise", noise, rms(handoff0, plain1), rms(handoff1, plain0), rms(handoff0, plain0))
     assert noise > 1e-4  # the scene is noisy enough for the comparison to mean something
@@ -312,9 +318,9 @@ def test_handoff_cancelled_during_the_march_leaves_the_scene(empty_scene, tmp_pa
         return march_tables(frame, stop_at_second_check, progress)
 
     monkeypatch.setattr(cycles, "ray_tables", tables_with_esc)
-    reports = record_handoffs(monkeypatch)
     scene.render.engine = "MULTISCALE"
-    bpy.ops.render.render()
+    with handoff_reports() as reports:
+        bpy.ops.render.render()
     assert len(calls) == 2 and not started
     assert reports == [cycles.HandoffReport()]  # no stage finished
     assert snapshot(scene) == before
