@@ -1,5 +1,6 @@
 """Blender images -> boolean masks at the render size (row 0 at the top)."""
 
+import bpy
 import numpy as np
 
 # Rec. 709 luminance weights: white (preserved) is luminance >= 0.5.
@@ -60,8 +61,6 @@ def mask_from_image(image, width, height):
 def image_from_rgba(name, rgba, colorspace=None, pack=True):
     """A Blender image (replacing one of the same name) from (H, W, 4) float RGBA, row 0 at
     the top, packed into the .blend file so it survives save and reload."""
-    import bpy
-
     h, w = rgba.shape[:2]
     old = bpy.data.images.get(name)
     if old is not None:

@@ -3,6 +3,7 @@
 
 from dataclasses import dataclass, field
 
+import bpy
 import numpy as np
 
 from .textures import texture_from_node
@@ -63,8 +64,6 @@ class SceneGeometry:
 
 def uses_nodes(block):
     """Whether a material or world is shaded by its node tree (always, from Blender 5.0)."""
-    import bpy
-
     if block.node_tree is None:
         return False
     return bpy.app.version >= (5, 0, 0) or block.use_nodes

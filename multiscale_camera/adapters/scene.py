@@ -1,9 +1,13 @@
 """A Blender scene's multiscale settings -> a checked core ``Rig``."""
 
+from dataclasses import replace
+
+import bpy
 import numpy as np
 
 from ..core.errors import RigError
 from ..core.geometry import Rig, resolve_conflicts
+from ..core.methods import settings_for
 from .cameras import pinhole_from_object, render_size
 from .masks import mask_from_image
 
@@ -28,8 +32,6 @@ def render_processes_of(scene):
     of the memory allocator that thread held (seen in Blender 5.2: the workers spun in
     libtbbmalloc for good); the workers' watchdog would end them after
     ``parallel.STALL_SECONDS``, but that wait is not worth taking by default."""
-    import bpy
-
     count = processes_of(scene)
     if count or bpy.app.background:
         return count
@@ -38,10 +40,6 @@ def render_processes_of(scene):
 
 def field_settings(scene):
     """The core ``Settings`` of the scene's quality, accuracy target and threads."""
-    from dataclasses import replace
-
-    from ..core.methods import settings_for
-
     s = scene.multiscale
     return replace(settings_for(s.quality, s.accuracy_px), processes=processes_of(scene))
 

@@ -17,6 +17,7 @@ import glob
 import importlib.util
 import os
 
+import bpy
 import numpy as np
 
 from ..core.errors import VolumeError
@@ -58,10 +59,10 @@ def openvdb_module():
         return _OPENVDB[0]
     module = None
     try:
+        # here only: openvdb is optional (some Blender builds lack it; the bpy module has
+        # it off sys.path, found below), and its absence is reported, not an error
         import openvdb as module
     except ImportError:
-        import bpy
-
         base = bpy.utils.system_resource("PYTHON")
         pattern = os.path.join(base or "", "lib", "python3*", "site-packages", "openvdb*")
         for path in sorted(glob.glob(pattern)):
@@ -168,8 +169,6 @@ def file_volume(obj, matrix_world, cache):
     -------
     (ScalarVolume, (lo, hi) block ranges, gradient directions)
     """
-    import bpy
-
     settings = obj.original.multiscale_volume
     name = obj.original.name
     path = bpy.path.abspath(settings.filepath, library=obj.original.library)
@@ -242,8 +241,6 @@ def grid_volume(obj, matrix_world, cache):
     -------
     (ScalarVolume, (lo, hi) block ranges, gradient directions)
     """
-    import bpy
-
     name = obj.original.name
     settings = obj.original.multiscale_volume
     grid = _pick_grid(obj, settings.grid.strip())

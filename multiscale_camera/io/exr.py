@@ -13,8 +13,10 @@ class ExrError(Exception):
 
 def _openexr():
     try:
+        # here only: OpenEXR is a wheel the extension bundles, which a bare checkout may
+        # lack; without it only the EXR files fail, with an ExrError that says so
         import OpenEXR
-    except ImportError as err:  # the extension bundles it; a bare checkout may lack it
+    except ImportError as err:
         raise ExrError(f"The OpenEXR Python package is not available ({err})") from err
     return OpenEXR
 

@@ -2,7 +2,9 @@
 ``multiscale.validate`` operator and every build run first (``core.quality`` holds
 the geometry-free checks)."""
 
+import bpy  # noqa: F401 (outside Blender, the bpy module provides mathutils once imported)
 import numpy as np
+from mathutils.bvhtree import BVHTree
 
 from ..adapters.meshes import scene_geometry
 from ..adapters.scene import rig_from_scene
@@ -35,8 +37,6 @@ def geometry_cast(geometry, tree):
 
 def scene_tree(depsgraph):
     """(SceneGeometry, BVHTree or None) of the evaluated scene."""
-    from mathutils.bvhtree import BVHTree
-
     geometry = scene_geometry(depsgraph)
     if not len(geometry):
         return geometry, None

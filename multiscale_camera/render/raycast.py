@@ -3,12 +3,12 @@ are cast in order on one BVH until one hits.
 
 Segments that miss the scene's bounding box are culled before any cast, and the rest
 are clipped to it, so a ray pays only for the stretch that can meet geometry; with an
-occupancy grid (``core.occupancy``) a stretch that crosses empty cells only is culled
-too. The loop over casts is the only per-ray Python in the renderer: the segments are
-cast in waves (every ray's first segment, then the next segment of the rays still
-unhit, ...), each a ``map`` of ``ray_cast`` over prepared lists that keeps only the hit
-triangle's index (the distance is solved in numpy on that triangle), checking
-``should_stop`` every ``CASTS_PER_CHECK`` casts.
+occupancy grid (``core.sampling.Occupancy``) a stretch that crosses empty cells only is
+culled too. The loop over casts is the only per-ray Python in the renderer: the
+segments are cast in waves (every ray's first segment, then the next segment of the
+rays still unhit, ...), each a ``map`` of ``ray_cast`` over prepared lists that keeps
+only the hit triangle's index (the distance is solved in numpy on that triangle),
+checking ``should_stop`` every ``CASTS_PER_CHECK`` casts.
 """
 
 import contextlib
@@ -109,7 +109,7 @@ def march(tree, seg, should_stop=None, bounds=None, geometry=None, occupancy=Non
         ``triangles`` (T, 3) int, as SceneGeometry has them), or None. With them a cast
         keeps only the index of the triangle it hits and the distance is solved here
         (``plane_distance``), which is cheaper than keeping ``ray_cast``'s whole answer.
-    occupancy : core.occupancy.Occupancy of the same triangles, or None: segments whose
+    occupancy : core.sampling.Occupancy of the same triangles, or None: segments whose
         stretch in the box crosses empty cells only are skipped. Segments that ``seg``
         marks not castable (``Segments.castable``) are skipped before any test.
 

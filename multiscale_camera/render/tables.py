@@ -17,6 +17,7 @@ import numpy as np
 from ..core.geometry import RayBundle
 from ..core.parallel import STALL_SECONDS, forked_map, shared_array
 from ..core.sampling import Segments
+from . import pipeline, workers
 from .raycast import bundle_segments, march
 
 # A handed-on ray starts at least this fraction of the scene's size before its hit: far
@@ -163,15 +164,12 @@ def ray_tables(frame, should_stop=None, progress=None, keep_polylines=False):
     -------
     RayTables, or (RayTables, Polylines) with ``keep_polylines``.
     """
-    from .pipeline import rows_per_tile
-    from .workers import MIN_RAYS, worker_count
-
     width, height = frame.size
     shape = (height, width)
-    step = rows_per_tile(width)
+    step = pipeline.rows_per_tile(width)
     tiles = [(row0, min(row0 + step, height)) for row0 in range(0, height, step)]
-    processes = 1 if keep_polylines else worker_count(frame.processes)
-    shared = processes > 1 and width * height >= MIN_RAYS and len(tiles) > 1
+    processes = 1 if keep_polylines else workers.worker_count(frame.processes)
+    shared = processes > 1 and width * height >= workers.MIN_RAYS and len(tiles) > 1
 
     def table(extra, dtype, fill):
         out = shared_array((*shape, *extra), dtype) if shared else np.empty((*shape, *extra), dtype)
