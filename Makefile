@@ -20,7 +20,8 @@ PYTHON311 := $(shell command -v python3.11)
 VENV := .venv
 PY := $(VENV)/bin/python
 # The import contracts of pyproject.toml: the core imports no other layer and no bpy, and
-# its stages import only the stages below them.
+# its stages import only the stages below them; io imports the core at most, adapters
+# the core and io, render no ui.
 LINT_IMPORTS := $(VENV)/bin/lint-imports --no-logo
 VENV_STAMP := $(VENV)/.stamp
 BPY_SCRIPTS := $(VENV)/lib/python3.11/site-packages/bpy/5.0/scripts
