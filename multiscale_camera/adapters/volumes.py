@@ -13,6 +13,7 @@ Two kinds of source:
 Either way the object's world transform places the voxels.
 """
 
+import functools
 import glob
 import importlib.util
 import os
@@ -50,13 +51,11 @@ NO_OPENVDB = (
 )
 # Newest volumes kept decoded (``VolumeGridCache``).
 KEEP_VOLUMES = 2
-_OPENVDB = []
 
 
+@functools.cache  # looked up once, as an import is
 def openvdb_module():
     """The ``openvdb`` module Blender bundles, or None where there is none."""
-    if _OPENVDB:
-        return _OPENVDB[0]
     module = None
     try:
         # here only: openvdb is optional (some Blender builds lack it; the bpy module has
@@ -75,7 +74,6 @@ def openvdb_module():
                 break
             except ImportError:
                 module = None
-    _OPENVDB.append(module)
     return module
 
 

@@ -9,8 +9,8 @@ nothing a caller says is written onto the field, which the cache shares among ca
 When a build started with ``start`` ends, the service stores it and tells its listeners
 (the ray preview registers one), on the main thread.
 
-``SERVICE`` is the one instance; it owns the field cache and the frame's BVH tree cache
-(``trees``, see ``pipeline.scene_tree``).
+``SERVICE`` is the one instance; it owns the caches: fields, the frame's BVH tree
+(``trees``, see ``pipeline.scene_tree``) and decoded volume sources (``volume_grids``).
 """
 
 from __future__ import annotations
@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import bpy
 
 from ..adapters.scene import field_settings, rig_from_scene
+from ..adapters.volumes import VolumeGridCache
 from ..core import parallel
 from ..core.diagnostics import Diagnostics, Level
 from ..core.errors import Cancelled
@@ -136,6 +137,7 @@ class FieldService:
     def __init__(self, cache: FieldCache | None = None):
         self.cache = cache if cache is not None else FieldCache(lazy_folder=True)
         self.trees = {}  # pipeline.scene_tree's last result, keyed on its triangles
+        self.volume_grids = VolumeGridCache()  # decoded volume sources, every frame
         self._listeners: list[Callable] = []
         self._build: FieldBuild | None = None
 

@@ -11,14 +11,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..adapters.volumes import VolumeGridCache, scene_volumes, transfer_tables
+from ..adapters.volumes import scene_volumes, transfer_tables
 from ..core.volume import VolumeScene, composite_over, march_volume
+from .fields import SERVICE
 
 # Worker threads per tile: numpy releases the GIL in its loops, so two threads keep two
 # cores busy; more only add contention.
 THREADS = max(1, min(2, os.cpu_count() or 1))
-# Decoded volume sources, shared by every frame of this process.
-GRID_CACHE = VolumeGridCache()
 
 
 @dataclass
@@ -37,13 +36,14 @@ class FrameVolumes:
         return bool(self.scenes)
 
 
-def prepare_volumes(depsgraph, grids=GRID_CACHE):
+def prepare_volumes(depsgraph, grids=None):
     """Every volume of the evaluated scene with the cameras' transfer functions.
 
     Parameters
     ----------
     depsgraph : bpy.types.Depsgraph, evaluated.
-    grids : VolumeGridCache, where decoded sources are looked up and kept.
+    grids : adapters.volumes.VolumeGridCache, where decoded sources are looked up and
+        kept (default: the field service's, shared by every frame of this process).
 
     Returns
     -------
@@ -53,6 +53,7 @@ def prepare_volumes(depsgraph, grids=GRID_CACHE):
     ------
     VolumeError (a RigError) naming the object or camera and what to change.
     """
+    grids = SERVICE.volume_grids if grids is None else grids
     found, notices = scene_volumes(depsgraph, grids)
     if not found:
         return FrameVolumes(), notices

@@ -9,7 +9,7 @@ import pytest
 
 from multiscale_camera.adapters import volumes as adapters
 from multiscale_camera.core import volume as V
-from multiscale_camera.render import pipeline
+from multiscale_camera.render import fields, pipeline
 from multiscale_camera.render import volume as render_volume
 from multiscale_camera.ui.volume import new_transfer_function
 from tests.unit.test_volume import psnr, reference_cast
@@ -27,7 +27,7 @@ RAMP = [  # position, RGBA: what the test's camera sees
 
 @pytest.fixture(autouse=True)
 def fresh_caches():
-    render_volume.GRID_CACHE.clear()
+    fields.SERVICE.volume_grids.clear()
     pipeline.clear_fields()
     yield
 
@@ -178,7 +178,7 @@ def test_frames_share_the_decoded_volume(empty_scene, tmp_path, monkeypatch):
         bpy.context.view_layer.update()
         volumes, _ = render_volume.prepare_volumes(bpy.context.evaluated_depsgraph_get())
         assert len(volumes.scenes) == 1
-    assert len(reads) == 1 and len(render_volume.GRID_CACHE) == 1
+    assert len(reads) == 1 and len(fields.SERVICE.volume_grids) == 1
 
 
 def test_openvdb_is_found_in_this_blender():
@@ -276,7 +276,7 @@ def test_volume_object_without_openvdb(empty_scene, tmp_path, monkeypatch):
     one_camera_scene(scene)
     write_vdb(tmp_path / "v.vdb", lumpy(), 0.1)
     volume_object(scene, tmp_path / "v.vdb", name="Smoke")
-    monkeypatch.setattr(adapters, "_OPENVDB", [None])
+    monkeypatch.setattr(adapters, "openvdb_module", lambda: None)
     msg = adapters.NO_OPENVDB.format(name="Smoke")
     assert msg.startswith("Volume object 'Smoke': this Blender has no openvdb Python module")
     assert f"Error: Multiscale: {msg}" in render_error()
