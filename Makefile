@@ -35,7 +35,8 @@ export BLENDER
 OPENEXR_VERSION := $(shell sed -n 's/^OpenEXR==//p' requirements.txt)
 PACKAGE_FILES := $(shell find multiscale_camera -name __pycache__ -prune -o -print 2>/dev/null)
 LINUX_ZIP := dist/LINUX_ZIP
-SAMPLE_SCRIPTS := $(wildcard sample_blends/*.py)
+# what sample_blends/*.blend are made from
+SAMPLE_SCRIPTS := $(wildcard sample_blends/*.py fixtures/*.py fixtures/blender/*.py)
 # --python-exit-code acts on the scripts after it, as in Blender.
 RUN_SAMPLES := $(BLENDER) -b --factory-startup --python-exit-code 1 \
 	--python sample_blends/make_samples.py

@@ -59,12 +59,12 @@ def _commit():
 
 def run_one(rig_name, method, quality, width, height):
     """Build one field in this process; return its row (a dict)."""
+    from fixtures import rigs
     from multiscale_camera.core.errors import RigError
     from multiscale_camera.core.geometry import Rig
     from multiscale_camera.core.methods import prepare, settings_for
     from multiscale_camera.core.parallel import cores
     from multiscale_camera.core.quality import build_report
-    from tests.unit import rigs
 
     cams, masks = getattr(rigs, rig_name)(width, height)
     settings = settings_for(quality)

@@ -3,7 +3,7 @@
     .venv/bin/python bench/volume.py [--width 1920 --height 1080 --voxels 256]
         [--configs single multiscale] [--threads 2]
 
-The volume is the sample phantom (sample_blends/phantom.py: skin, organ, vessel tree)
+The volume is the sample phantom (fixtures/phantom.py: skin, organ, vessel tree)
 in a 2 m cube, seen by the volume demo's rig:
 
 - single: camera 1 alone with a full mask (straight rays), the body's transfer function;
@@ -30,7 +30,6 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "sample_blends"))
 OUT = Path(__file__).with_suffix(".json")
 CONFIGS = ("single", "multiscale")
 TARGET_SECONDS = 60.0
@@ -38,10 +37,10 @@ TARGET_SECONDS = 60.0
 
 def rig_for(config, width, height):
     import numpy as np
-    import phantom
 
-    from multiscale_camera.core.geometry import Rig, pixel_centres
-    from tests.unit import rigs
+    from fixtures import phantom, rigs
+    from fixtures.masks import radius, ring_masks
+    from multiscale_camera.core.geometry import Rig
 
     cams = tuple(
         rigs.camera(
@@ -57,16 +56,8 @@ def rig_for(config, width, height):
     )
     if config == "single":
         return Rig(cams[:1], np.ones((1, height, width), bool)), "IMAGE_BLEND"
-    px, py = pixel_centres(width, height)
-    r = np.hypot(px - width / 2, py - height / 2) * (640 / width)
-    radii = phantom.DEMO_RADII
-    masks = np.stack(
-        [
-            r >= radii["cam1"],
-            (r >= radii["cam2_inner"]) & (r <= radii["cam2_outer"]),
-            r <= radii["cam3"],
-        ]
-    )
+    # the radii are pixels of a 640-pixel-wide image
+    masks = ring_masks(radius(width, height) * (640 / width), phantom.DEMO_RADII)
     return Rig(cams, masks), "SCALAR_FIELD"
 
 
@@ -77,8 +68,8 @@ def phantom_file(voxels):
     if not path.is_file():
         path.parent.mkdir(exist_ok=True)
         code = (
-            f"import sys, numpy as np; sys.path.insert(0, {str(ROOT / 'sample_blends')!r}); "
-            f"import phantom; np.save({str(path)!r}, phantom.phantom({voxels}))"
+            f"import sys, numpy as np; sys.path.insert(0, {str(ROOT)!r}); "
+            f"from fixtures import phantom; np.save({str(path)!r}, phantom.phantom({voxels}))"
         )
         subprocess.run([sys.executable, "-c", code], check=True)
     return path
@@ -86,8 +77,8 @@ def phantom_file(voxels):
 
 def run_one(config, width, height, voxels, threads, step):
     import numpy as np
-    import phantom
 
+    from fixtures import phantom
     from multiscale_camera.core import volume as V
     from multiscale_camera.core.methods import prepare, settings_for
 

@@ -17,7 +17,8 @@ import bpy
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 REPO = os.path.dirname(HERE)
-sys.path.insert(0, HERE)
+# Blender runs this file as a script: the repository root holds the package and fixtures/
+sys.path[:0] = [HERE, REPO]
 import scenes  # noqa: E402
 
 # name -> builder(scene, out_dir): the folder the .blend (and any data file) goes to
@@ -33,7 +34,6 @@ def enable_multiscale():
     """Register the package from this checkout (--factory-startup enables no extension)."""
     if hasattr(bpy.types.Scene, "multiscale"):
         return
-    sys.path.insert(0, REPO)
     import multiscale_camera
 
     multiscale_camera.register()

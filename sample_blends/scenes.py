@@ -693,7 +693,7 @@ def _transfer_function(name, points):
 def build_volume_demo(scene, out_dir):
     """Fill an empty ``scene`` with the volume demo and write its volume file.
 
-    The phantom of ``phantom.py`` (192^3, gzip NRRD next to the .blend) fills a 2-unit
+    The phantom of ``fixtures/phantom.py`` (192^3, gzip NRRD next to the .blend) fills a 2-unit
     empty cube centred 1 m above the origin. "Cam1 Body" sees the whole body from 4.6 m,
     "Cam2 Organ" the organ from 1.7 m, "Cam3 Vessels" the vessel tree from 0.9 m; each has its
     own transfer function: the skin is opaque at the first scale, clear at the second
@@ -701,8 +701,7 @@ def build_volume_demo(scene, out_dir):
     """
     import os
 
-    import phantom
-
+    from fixtures import phantom
     from multiscale_camera.io.volume_files import write_nrrd
 
     width, height = VOLUME_DEMO_SIZE

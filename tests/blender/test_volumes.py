@@ -7,12 +7,14 @@ import bpy
 import numpy as np
 import pytest
 
+from fixtures.masks import disk_masks
+from fixtures.rigs import orbit
 from multiscale_camera.adapters import volumes as adapters
 from multiscale_camera.core import volume as V
 from multiscale_camera.render import fields, pipeline
 from multiscale_camera.render import volume as render_volume
 from multiscale_camera.ui.volume import new_transfer_function
-from tests.unit.test_volume import psnr, reference_cast
+from tests.unit.test_volume import erode, psnr, reference_cast, slab_volume
 
 from .scenes import add_camera, add_mesh, mask_image
 
@@ -385,9 +387,6 @@ def test_raw_and_nrrd_files_render_as_the_npy_does(empty_scene, tmp_path):
 def test_each_camera_shows_its_own_colour_ramp_where_preserved(empty_scene, tmp_path):
     """Two cameras, a red ramp and a green ramp on their textures: in each camera's
     eroded mask the image has that camera's colour only; between them, both."""
-    from tests.unit.rigs import disk_masks, orbit
-    from tests.unit.test_volume import erode, slab_volume
-
     scene = empty_scene
     w, h = 96, 72
     scene.render.resolution_x, scene.render.resolution_y = w, h

@@ -11,12 +11,11 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from fixtures.rigs import three_camera_rig
 from multiscale_camera.core.field.solvers import _dot
 from multiscale_camera.core.geometry import Family
 from multiscale_camera.core.quality import bending_active
 from multiscale_camera.render.shade import _irradiance_factor
-
-from .rigs import three_camera_rig
 
 pytestmark = pytest.mark.skipif(
     not os.path.isdir("/proc/self/task") or (os.cpu_count() or 1) < 2,

@@ -1,9 +1,8 @@
 import numpy as np
 import pytest
 
+from fixtures.rigs import camera
 from multiscale_camera.core.geometry import pixel_centres
-
-from .rigs import camera
 
 
 def reference_direction(cam, x, y):

@@ -5,6 +5,7 @@ import re
 
 import numpy as np
 
+from fixtures.rigs import look_at, three_camera_rig
 from multiscale_camera.render.cycles_rays import (
     PAD,
     PINHOLE_TOLERANCE_PX,
@@ -20,8 +21,6 @@ from multiscale_camera.render.cycles_rays import (
 )
 from multiscale_camera.render.cycles_shader import OSL_PATH, shader_source
 from multiscale_camera.render.tables import RayTables
-
-from .rigs import look_at, three_camera_rig
 
 
 def test_camera_space_is_cycles_camera_frame():

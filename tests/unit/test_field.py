@@ -6,13 +6,13 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
+from fixtures.masks import disk_masks, radius
+from fixtures.rigs import camera, orbit, three_camera_rig, zoom_rig
 from multiscale_camera.core.errors import RigError
 from multiscale_camera.core.field import FieldTracer, choose_grid, fill_membership, solve_membership
 from multiscale_camera.core.geometry import Family, Rig
 from multiscale_camera.core.methods import prepare, settings_for
 from multiscale_camera.core.quality import build_report, turn_deg
-
-from .rigs import camera, disk_masks, orbit, zoom_rig
 
 
 def test_single_camera_tangent_field_is_the_pinhole_direction():
@@ -178,8 +178,6 @@ def test_contradictory_masks_are_counted_and_reported():
 
 
 def test_family_jacobian_matches_central_differences():
-    from .rigs import three_camera_rig
-
     cams, _ = three_camera_rig(192, 108)
     rng = np.random.default_rng(0)
     for i in range(3):
@@ -231,13 +229,10 @@ def test_crossing_views_of_cameras_that_are_not_neighbours_are_named():
 
 
 def test_non_neighbouring_preserved_views_that_touch_are_detected_without_nan():
-    from .rigs import three_camera_rig
-
     cams, masks = three_camera_rig(96, 54)
     # no ring for camera 2, and camera 1 keeps everything outside a hole barely wider
     # than camera 3's disk: the preserved views of cameras 1 and 3 touch
-    px, py = np.meshgrid(np.arange(96) + 0.5, np.arange(54) + 0.5)
-    r = np.hypot(px - 48, py - 27) / 96
+    r = radius(96, 54) / 96
     masks = np.stack([r > 0.125, np.zeros_like(r, bool), r < 0.12])
     fld = prepare(Rig(cams, masks), "SCALAR_FIELD", settings_for("PREVIEW"))
     assert any("which are not neighbours in the list, cross in" in w for w in fld.warnings), (

@@ -5,12 +5,11 @@ import os
 import numpy as np
 import pytest
 
+from fixtures.rigs import two_camera_rig
 from multiscale_camera.core.geometry import Rig
 from multiscale_camera.core.methods import Settings, field_key, prepare
 from multiscale_camera.io.cache import FieldCache
 from multiscale_camera.io.fields import field_from_arrays, field_to_arrays
-
-from .rigs import two_camera_rig
 
 SETTINGS = Settings(2.0, 48**3)
 

@@ -1,8 +1,7 @@
 import numpy as np
 
+from fixtures.rigs import camera, two_camera_rig
 from multiscale_camera.core.geometry import GUARD_FRACTION, bezier, build_guides, curved_rays
-
-from .rigs import camera, two_camera_rig
 
 
 def test_bezier_endpoints_and_tangents():

@@ -3,10 +3,9 @@ import pytest
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from fixtures.masks import disk_masks
 from multiscale_camera.core.errors import RigError
 from multiscale_camera.core.field import mask_weights
-
-from .rigs import disk_masks
 
 
 def dense_reference(masks):

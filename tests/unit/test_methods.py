@@ -1,11 +1,10 @@
 import numpy as np
 import pytest
 
+from fixtures.rigs import two_camera_rig, zoom_rig
 from multiscale_camera.core.errors import RigError
 from multiscale_camera.core.geometry import Rig, resolve_conflicts
 from multiscale_camera.core.methods import prepare, settings_for
-
-from .rigs import two_camera_rig
 
 
 def test_image_blend_preserves_each_cameras_pinhole_rays():
@@ -62,8 +61,6 @@ def test_auto_takes_image_blend_where_its_rays_do_not_fold():
     from multiscale_camera.core.methods import prepare_image_blend
     from multiscale_camera.core.quality import fold_map
 
-    from .rigs import zoom_rig
-
     cams, masks = zoom_rig(96, 72)
     assert not fold_map(prepare_image_blend(Rig(cams, masks)))[0].any()
     fld = prepare(Rig(cams, masks), "AUTO", settings_for("PREVIEW"))
@@ -72,8 +69,6 @@ def test_auto_takes_image_blend_where_its_rays_do_not_fold():
 
 
 def test_auto_builds_the_scalar_field_where_image_blend_would_fold():
-    from .rigs import zoom_rig
-
     cams, masks = zoom_rig(96, 72, turn_deg=60)  # IMAGE_BLEND folds 9 quads here
     fld = prepare(Rig(cams, masks), "AUTO", settings_for("PREVIEW"))
     assert fld.method == "SCALAR_FIELD"

@@ -5,6 +5,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from fixtures.rigs import three_camera_rig, zoom1000_rig
 from multiscale_camera.core.field import (
     BAND_CELLS,
     NestedDomain,
@@ -19,8 +20,6 @@ from multiscale_camera.core.field import (
 from multiscale_camera.core.geometry import Family, Rig
 from multiscale_camera.core.methods import prepare, settings_for
 from multiscale_camera.core.quality import build_report
-
-from .rigs import three_camera_rig, zoom1000_rig
 
 
 @pytest.fixture(scope="module")

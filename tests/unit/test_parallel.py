@@ -7,13 +7,12 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from fixtures.rigs import three_camera_rig
 from multiscale_camera.core import parallel
 from multiscale_camera.core.errors import Cancelled
 from multiscale_camera.core.field import tracer as field_module
 from multiscale_camera.core.geometry import Rig
 from multiscale_camera.core.methods import prepare, settings_for
-
-from .rigs import three_camera_rig
 
 needs_fork = pytest.mark.skipif(parallel.fork_context() is None, reason="no fork here")
 

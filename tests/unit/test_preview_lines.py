@@ -4,11 +4,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from fixtures.rigs import two_camera_rig
 from multiscale_camera.core.geometry import RayBundle, Rig
 from multiscale_camera.core.methods import RayField
 from multiscale_camera.ui.preview_lines import PALETTE, camera_colour, frustum_lines, preview_lines
-
-from .rigs import two_camera_rig
 
 
 @dataclass

@@ -7,12 +7,11 @@ import math
 import numpy as np
 import pytest
 
+from fixtures.rigs import two_camera_rig
 from multiscale_camera.core import parallel, sampling
 from multiscale_camera.core.geometry import Rig
 from multiscale_camera.core.methods import Settings, prepare
 from multiscale_camera.core.sampling import simplification
-
-from .rigs import two_camera_rig
 
 
 def point_to_polyline(points, chain):

@@ -6,6 +6,7 @@ import dataclasses
 import numpy as np
 from scipy import ndimage
 
+from fixtures.rigs import zoom_rig
 from multiscale_camera.core.geometry import Rig, pixel_centres
 from multiscale_camera.core.methods import (
     nearest_mask_pixels,
@@ -15,8 +16,6 @@ from multiscale_camera.core.methods import (
     settings_for,
 )
 from multiscale_camera.core.quality import build_report
-
-from .rigs import zoom_rig
 
 
 def all_rays(fld):

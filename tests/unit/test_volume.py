@@ -5,13 +5,12 @@ import numpy as np
 import pytest
 from scipy.ndimage import map_coordinates
 
+from fixtures import rigs
 from multiscale_camera.core import volume as V
 from multiscale_camera.core.geometry import Rig, pixel_centres
 from multiscale_camera.core.methods import prepare
 from multiscale_camera.core.quality import erode
 from multiscale_camera.core.volume import runs as volume_runs
-
-from . import rigs
 
 TARGET = np.array([0.0, 0.0, 0.5])
 
