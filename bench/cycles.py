@@ -4,11 +4,12 @@
 
 Two scenes, each measured on its own and reported with its own ratio:
 
-- "light": the three-camera rig of tests/blender/test_cycles.py (five objects, 1160
-  triangles, a sun); the scene issue 4's first measurements used.
-- "dense": the renderer benchmark's scene (bench/render.py ``build_scene``: the
-  two-camera rig over a bumpy ground of about 100k triangles), the scene of the other
-  speed lines of ``make bench``.
+- "light": the three-camera test scene (fixtures/blender/scenes.py
+  ``three_camera_scene``: five objects, 1160 triangles, a sun); the scene issue 4's
+  first measurements used.
+- "dense": the renderer benchmark's scene (fixtures/blender/scenes.py ``dense_scene``:
+  the two-camera rig over a bumpy ground of about 100k triangles), the scene of the
+  other speed lines of ``make bench``.
 
 Per scene, these renders alternate (so that all see the same load on a shared machine):
 a plain Cycles render from camera 1 ("plain"); the Multiscale engine with shading =
@@ -74,7 +75,7 @@ def light_scene(args):
     """The three-camera test rig (optionally with a dense icosphere)."""
     import bpy
 
-    from tests.blender.test_cycles import three_camera_scene
+    from fixtures.blender.scenes import three_camera_scene
 
     scene = bpy.context.scene
     three_camera_scene(scene, args.width, args.height)
@@ -89,12 +90,9 @@ def light_scene(args):
 
 def dense_scene(args):
     """bench/render.py's 100k-triangle scene."""
-    sys.path.insert(0, str(BENCH))
-    try:
-        from render import build_scene
-    finally:
-        sys.path.remove(str(BENCH))
-    return build_scene(args.width, args.height, DENSE_TRIANGLES)
+    from fixtures.blender.scenes import dense_scene
+
+    return dense_scene(args.width, args.height, DENSE_TRIANGLES)
 
 
 def floor_camera(scene, camera, pinhole_camera, folder):
@@ -146,10 +144,11 @@ def measure(scene, args):
     import bpy
     import numpy as np
 
+    from fixtures.blender.objects import mask_image
+    from fixtures.blender.scenes import cycles_settings
     from multiscale_camera.render import pipeline
     from multiscale_camera.render.tables import ray_tables
-    from tests.blender.scenes import mask_image
-    from tests.blender.test_cycles import cycles_settings, handoff_reports
+    from tests.blender.test_cycles import handoff_reports
 
     cycles_settings(scene, samples=args.samples)
     rig = [(item.camera, item.mask) for item in scene.multiscale.cameras]

@@ -23,7 +23,6 @@ Writes bench/render.json.
 
 import argparse
 import json
-import math
 import os
 import sys
 import time
@@ -34,31 +33,6 @@ sys.path.insert(0, str(ROOT))
 OUT = Path(__file__).with_suffix(".json")
 # Segment casts replayed in a bare loop after every tile of the timed render.
 INTERLEAVED_CASTS = 4000
-
-
-def build_scene(width, height, triangles):
-    """The two-camera test scene with its ground replaced by a bumpy grid of about
-    ``triangles`` triangles, so every pixel's ray meets a real BVH."""
-    import bpy
-    import numpy as np
-
-    from tests.blender.scenes import two_camera_scene
-
-    scene = bpy.context.scene
-    two_camera_scene(scene, width, height)
-    bpy.data.objects.remove(scene.objects["Plane"])
-    n = max(2, int(math.sqrt(triangles / 2)) + 1)
-    bpy.ops.mesh.primitive_grid_add(x_subdivisions=n, y_subdivisions=n, size=20)
-    ground = bpy.context.object
-    ground.pass_index = 1
-    co = np.empty(len(ground.data.vertices) * 3, dtype=np.float32)
-    ground.data.vertices.foreach_get("co", co)
-    co = co.reshape(-1, 3)
-    co[:, 2] = 0.05 * np.sin(co[:, 0] * 3.1) * np.cos(co[:, 1] * 2.3)
-    ground.data.vertices.foreach_set("co", co.ravel())
-    ground.data.update()
-    bpy.context.view_layer.update()
-    return scene
 
 
 def raw_rate(frame, seconds=3.0):
@@ -175,12 +149,13 @@ def main():
     import bpy
 
     import multiscale_camera
+    from fixtures.blender.scenes import dense_scene
     from multiscale_camera.adapters.scene import render_processes_of
     from multiscale_camera.render import pipeline, workers
 
     multiscale_camera.register()
     bpy.ops.wm.read_homefile(use_empty=True)
-    scene = build_scene(args.width, args.height, args.triangles)
+    scene = dense_scene(args.width, args.height, args.triangles)
     scene.multiscale.samples = args.samples
     settings = scene.multiscale
     depsgraph = bpy.context.evaluated_depsgraph_get()

@@ -6,7 +6,7 @@
 
 Writes demo.blend, two_camera.blend, galleon.blend and volume_demo.blend (compressed, masks packed;
 the volume demo's voxels in volume_demo_phantom.nrrd beside it) next to this script,
-or into --out.
+or into --out. The scenes are those of fixtures/blender/samples.py.
 """
 
 import argparse
@@ -18,15 +18,15 @@ import bpy
 HERE = os.path.dirname(os.path.abspath(__file__))
 REPO = os.path.dirname(HERE)
 # Blender runs this file as a script: the repository root holds the package and fixtures/
-sys.path[:0] = [HERE, REPO]
-import scenes  # noqa: E402
+sys.path.insert(0, REPO)
+from fixtures.blender import samples  # noqa: E402
 
 # name -> builder(scene, out_dir): the folder the .blend (and any data file) goes to
 BUILDERS = {
-    "demo": lambda scene, _out: scenes.build_demo(scene),
-    "two_camera": lambda scene, _out: scenes.build_two_camera(scene),
-    "galleon": lambda scene, _out: scenes.build_galleon(scene),
-    "volume_demo": scenes.build_volume_demo,
+    "demo": lambda scene, _out: samples.build_demo(scene),
+    "two_camera": lambda scene, _out: samples.build_two_camera(scene),
+    "galleon": lambda scene, _out: samples.build_galleon(scene),
+    "volume_demo": samples.build_volume_demo,
 }
 
 

@@ -6,11 +6,10 @@ import pytest
 from bpy_extras.object_utils import world_to_camera_view
 from mathutils import Vector
 
+from fixtures.blender.objects import add_camera, add_mesh, mask_image
 from multiscale_camera.adapters.cameras import pinhole_from_object
 from multiscale_camera.adapters.masks import mask_from_image
 from multiscale_camera.adapters.meshes import scene_geometry
-
-from .scenes import add_camera, add_mesh, mask_image
 
 
 @pytest.mark.parametrize(

@@ -4,9 +4,10 @@ import bpy
 import numpy as np
 import pytest
 
+from fixtures.blender.objects import add_camera, add_mesh, mask_image
+from fixtures.blender.scenes import two_camera_scene
+from fixtures.masks import disk
 from tests.exr import read_passes
-
-from .scenes import add_mesh, mask_image, two_camera_scene
 
 EMPTY = (
     "The camera list is empty: add cameras in the 3D viewport's sidebar "
@@ -103,8 +104,6 @@ def test_last_mask_empty_and_missing(empty_scene):
 def test_intermediate_camera_with_empty_mask_renders(empty_scene, tmp_path):
     scene = empty_scene
     c1, c2 = two_camera_scene(scene)
-    from .scenes import add_camera
-
     mid = add_camera(scene, "Mid", (0.3, -8, 6), (0.5, -0.3, 1.8), clip_start=3.0)
     item = scene.multiscale.cameras.add()
     item.camera = mid
@@ -117,10 +116,7 @@ def test_intermediate_camera_with_empty_mask_renders(empty_scene, tmp_path):
 def test_mask_of_another_size_is_resampled_with_notice(empty_scene, tmp_path, capfd):
     scene = empty_scene
     two_camera_scene(scene)
-    big = np.zeros((72, 96), bool)
-    yy, xx = np.mgrid[0:72, 0:96] + 0.5
-    big[np.hypot(xx - 48, yy - 36) < 14] = True
-    scene.multiscale.cameras[1].mask = mask_image("big", big)
+    scene.multiscale.cameras[1].mask = mask_image("big", disk(96, 72, 14))
     passes = render_to(scene, tmp_path / "resampled.exr")
     out = capfd.readouterr().out
     assert "Mask 'big' is 96x72, the render is 48x36: resampled to the render size" in out

@@ -10,28 +10,20 @@ import numpy as np
 import pytest
 from scipy.ndimage import binary_erosion
 
+from fixtures.blender.objects import add_camera, add_mesh, mask_image
+from fixtures.blender.scenes import (
+    cycles_settings,
+    shapes_and_sun,
+    three_camera_scene,
+    two_camera_scene,
+)
 from multiscale_camera.io.exr import read_channels
 from multiscale_camera.render import cycles, cycles_rays, cycles_shader, workers
 from tests.exr import read_passes
 
-from .scenes import add_camera, add_mesh, mask_image, two_camera_scene
-
 pytestmark = pytest.mark.skipif(
     cycles.unsupported_reason() is not None, reason="needs Blender 4.5+ with Cycles and OSL"
 )
-
-
-def cycles_settings(scene, samples, seed=0):
-    scene.cycles.device = "CPU"
-    scene.cycles.samples = samples
-    scene.cycles.seed = seed
-    scene.cycles.use_denoising = False
-    scene.cycles.use_adaptive_sampling = False
-    scene.view_settings.view_transform = "Standard"
-    settings = scene.render.image_settings
-    settings.media_type = "MULTI_LAYER_IMAGE"
-    settings.color_depth = "32"
-    bpy.context.view_layer.use_pass_object_index = True
 
 
 def render(scene, path, engine, camera=None, seed=0):
@@ -69,22 +61,6 @@ def rms(a, b):
     return float(np.sqrt(np.mean((a["Combined"][..., :3] - b["Combined"][..., :3]) ** 2)))
 
 
-def objects(scene):
-    add_mesh("plane", (0, 0, 0), 1, (0.2, 0.6, 0.2), size=30)
-    add_mesh("cube", (1.2, 0.2, 0.5), 2, (0.8, 0.2, 0.2))
-    add_mesh("uv_sphere", (-0.35, -0.5, 0.8), 3, (0.2, 0.3, 0.9), radius=0.25)
-    add_mesh("cone", (-2.0, 1.5, 0.5), 4, (0.9, 0.8, 0.1))
-    add_mesh("cylinder", (2.5, 2.0, 0.75), 5, (0.6, 0.1, 0.6), radius=0.4, depth=1.5)
-    bpy.ops.object.light_add(type="SUN", rotation=(0.6, 0.2, 0.3))
-    bpy.context.object.data.energy = 3.0
-
-
-def orbit(target, distance, azimuth_deg, elevation_deg):
-    az, el = np.radians(azimuth_deg), np.radians(elevation_deg)
-    offset = np.array([np.sin(az) * np.cos(el), -np.cos(az) * np.cos(el), np.sin(el)])
-    return tuple(np.asarray(target) + distance * offset)
-
-
 def test_one_camera_full_mask_matches_plain_cycles(empty_scene, tmp_path):
     """One camera, every pixel preserved: the hand-off is a plain Cycles render of that
     camera, up to Cycles' own noise (measured between two seeds)."""
@@ -92,7 +68,7 @@ def test_one_camera_full_mask_matches_plain_cycles(empty_scene, tmp_path):
     width, height = 64, 48
     scene.render.resolution_x, scene.render.resolution_y = width, height
     scene.render.resolution_percentage = 100
-    objects(scene)
+    shapes_and_sun(scene)
     cam = add_camera(scene, "C1", (1.0, -9.0, 5.0), (0, 0, 0.6), clip_start=3.0)
     item = scene.multiscale.cameras.add()
     item.camera = cam
@@ -123,29 +99,6 @@ def test_one_camera_full_mask_matches_plain_cycles(empty_scene, tmp_path):
     assert mean_gap <= 0.01 * plain1["Combined"][..., :3].mean()
     print("idx agree", (handoff0["IndexOB"] == plain0["IndexOB"]).mean())
     assert (handoff0["IndexOB"] == plain0["IndexOB"]).mean() >= 0.99
-
-
-def three_camera_scene(scene, width, height):
-    """The three-camera rig of tests/unit/rigs.py with objects around its subject."""
-    scene.render.resolution_x, scene.render.resolution_y = width, height
-    scene.render.resolution_percentage = 100
-    objects(scene)
-    target = (0.0, 0.0, 0.5)
-    cams = [
-        add_camera(scene, "C1", orbit(target, 24.0, 0, 25), target, 9.6),
-        add_camera(scene, "C2", orbit(target, 10.0, 10, 25), target, 5.0),
-        add_camera(scene, "C3", orbit(target, 4.0, 20, 25), target, 2.0),
-    ]
-    px, py = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
-    r = np.hypot(px - width / 2, py - height / 2) / width
-    masks = [r > 0.42, (r > 0.2) & (r < 0.3), r < 0.12]
-    for cam, mask in zip(cams, masks, strict=True):
-        item = scene.multiscale.cameras.add()
-        item.camera = cam
-        item.mask = mask_image(f"{cam.name} mask", mask)
-    scene.camera = cams[0]
-    bpy.context.view_layer.update()
-    return cams, masks
 
 
 def test_three_cameras_object_index_agrees_in_preserved_regions(empty_scene, tmp_path):

@@ -7,7 +7,8 @@ import OpenEXR
 import pytest
 from mathutils import Vector
 
-from .scenes import add_camera, add_mesh, mask_image, two_camera_scene
+from fixtures.blender.objects import add_camera, add_mesh, mask_image
+from fixtures.blender.scenes import two_camera_scene
 
 CHANNELS = {
     "origin.X",

@@ -7,10 +7,10 @@ import bpy
 import numpy as np
 import pytest
 
+from fixtures.blender.objects import mask_image
+from fixtures.blender.scenes import two_camera_scene
 from multiscale_camera.core import parallel
 from multiscale_camera.render import pipeline
-
-from .scenes import mask_image, two_camera_scene
 
 
 def test_compute_field_writes_a_version_1_report(empty_scene):

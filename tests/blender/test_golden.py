@@ -22,9 +22,8 @@ import numpy as np
 import pytest
 from syrupy.extensions.single_file import SingleFileSnapshotExtension
 
+from fixtures.blender.scenes import two_camera_scene
 from tests.exr import read_passes
-
-from .scenes import two_camera_scene
 
 METHODS = ("AUTO", "IMAGE_BLEND", "LINEAR", "VECTOR_FIELD", "SCALAR_FIELD")
 PASSES = ("Combined", "Depth", "Normal", "IndexOB", "Membership")

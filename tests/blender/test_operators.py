@@ -2,7 +2,8 @@
 
 import bpy
 
-from .scenes import add_camera, two_camera_scene
+from fixtures.blender.objects import add_camera
+from fixtures.blender.scenes import two_camera_scene
 
 
 def names(scene):

@@ -10,12 +10,12 @@ import pytest
 from mathutils import Vector
 from mathutils.geometry import barycentric_transform, intersect_point_tri
 
+from fixtures.blender.objects import add_camera, add_mesh, mask_image
+from fixtures.blender.scenes import two_camera_scene
 from multiscale_camera.adapters.masks import mask_from_image
 from multiscale_camera.core.quality import erode
 from multiscale_camera.render.pipeline import MISS_DEPTH
 from tests.exr import read_passes
-
-from .scenes import add_camera, add_mesh, mask_image, two_camera_scene
 
 WORLD = (0.05, 0.07, 0.1)
 

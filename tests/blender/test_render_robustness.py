@@ -6,12 +6,12 @@ import dataclasses
 import bpy
 import numpy as np
 
+from fixtures.blender.objects import add_mesh
+from fixtures.blender.scenes import two_camera_scene
 from multiscale_camera.core.errors import Cancelled
 from multiscale_camera.core.sampling import footprint
 from multiscale_camera.render import pipeline, raycast
 from tests.exr import read_passes
-
-from .scenes import add_mesh, two_camera_scene
 
 NO_MESH = "The scene has no visible mesh: only the world is rendered"
 NO_LIGHTS = "The scene has no lights: surfaces are lit by the world colour alone"

@@ -8,10 +8,11 @@ import bpy
 import numpy as np
 import pytest
 
+from fixtures.blender.objects import add_camera, add_mesh, mask_image
+from fixtures.blender.scenes import two_camera_scene
+from fixtures.masks import disk
 from multiscale_camera.adapters.cameras import pinhole_from_object
 from multiscale_camera.core.quality import turn_deg
-
-from .scenes import add_camera, add_mesh, disk, mask_image, two_camera_scene
 
 GUARD_C2 = (
     "Guides from 'C1' into 'C2' were shortened to keep them in front of 'C2' (beta x "

@@ -7,6 +7,7 @@ import bpy
 import numpy as np
 import pytest
 
+from fixtures.blender.objects import add_camera, add_mesh, mask_image
 from fixtures.masks import disk_masks
 from fixtures.rigs import orbit
 from multiscale_camera.adapters import volumes as adapters
@@ -15,8 +16,6 @@ from multiscale_camera.render import fields, pipeline
 from multiscale_camera.render import volume as render_volume
 from multiscale_camera.ui.volume import new_transfer_function
 from tests.unit.test_volume import erode, psnr, reference_cast, slab_volume
-
-from .scenes import add_camera, add_mesh, mask_image
 
 W, H = 48, 36
 RAMP = [  # position, RGBA: what the test's camera sees

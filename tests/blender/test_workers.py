@@ -6,11 +6,10 @@ import bpy
 import numpy as np
 import pytest
 
+from fixtures.blender.scenes import two_camera_scene
 from multiscale_camera.core import parallel
 from multiscale_camera.core.errors import Cancelled
 from multiscale_camera.render import pipeline, workers
-
-from .scenes import two_camera_scene
 
 
 def frame_of(scene):

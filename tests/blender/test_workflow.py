@@ -9,13 +9,14 @@ import bpy
 import numpy as np
 import pytest
 
+from fixtures.blender.objects import mask_image
+from fixtures.blender.scenes import two_camera_scene
+from fixtures.masks import disk
 from multiscale_camera.core.diagnostics import Diagnostics
 from multiscale_camera.io import cache
 from multiscale_camera.render import fields, pipeline
 from multiscale_camera.ui import preview
 from multiscale_camera.ui.mask_ops import _white
-
-from .scenes import disk, mask_image, two_camera_scene
 
 
 def operator_error(op, **kw):

@@ -2,7 +2,6 @@
 camera's eroded mask, the object that camera's own straight pinhole ray hits."""
 
 import json
-import sys
 
 import numpy as np
 import pytest
@@ -10,8 +9,6 @@ import pytest
 from multiscale_camera.core.quality import erode
 from tests.conftest import REPO
 from tests.exr import read_passes
-
-sys.path.insert(0, str(REPO / "sample_blends"))
 
 REGISTER = (
     "import sys; sys.path.insert(0, {repo!r}); import bpy, multiscale_camera; "
