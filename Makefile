@@ -1,7 +1,7 @@
 # Multiscale Camera: development targets.
 #
 #   make build    stage and pack the extension: dist/multiscale_camera-<version>-<platform>.zip
-#   make test     build, then run tests/ (unit, blender, e2e) with $(BLENDER)
+#   make test     build, then run tests/ (unit, blender, e2e, tools) with $(BLENDER)
 #   make samples  write sample_blends/*.blend
 #   make demo     install the linux zip in a throwaway user folder, render demo.blend to out/
 #   make bench    speed and accuracy: solver, every method, the renderer, the Cycles hand-off,

@@ -1,4 +1,5 @@
-"""The `blender` command line the tests rely on: tools/blender, or a real Blender ($BLENDER)."""
+"""The `blender` command line the tests rely on: tools/blender (the emulator on the bpy
+wheel), or a real Blender ($BLENDER). Tests of the tool, not of the extension."""
 
 import json
 import re
