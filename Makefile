@@ -2,6 +2,7 @@
 #
 #   make build    stage and pack the extension: dist/multiscale_camera-<version>-<platform>.zip
 #   make test     build, then run tests/ (unit, blender, e2e, tools) with $(BLENDER)
+#   make test-quick  the tests marked neither slow nor e2e: no build, about a minute
 #   make samples  write sample_blends/*.blend
 #   make demo     install the linux zip in a throwaway user folder, render demo.blend to out/
 #   make bench    speed and accuracy: solver, every method, the renderer, the Cycles hand-off,
@@ -41,7 +42,7 @@ SAMPLE_SCRIPTS := $(wildcard sample_blends/*.py fixtures/*.py fixtures/blender/*
 RUN_SAMPLES := $(BLENDER) -b --factory-startup --python-exit-code 1 \
 	--python sample_blends/make_samples.py
 
-.PHONY: venv build test samples demo bench bench-render lint clean distclean e2e-real
+.PHONY: venv build test test-quick samples demo bench bench-render lint clean distclean e2e-real
 
 venv: $(VENV_STAMP)
 
@@ -70,6 +71,11 @@ test: build
 	$(PY) -m ruff check .
 	$(LINT_IMPORTS)
 	$(PY) -m pytest -q tests
+
+# The loop while working: neither the slow tests (pyproject.toml's markers) nor those
+# that run $(BLENDER) in a subprocess, so no build is needed.
+test-quick: venv
+	$(PY) -m pytest -q -m "not slow and not e2e" tests
 
 samples: venv
 	$(RUN_SAMPLES)

@@ -101,6 +101,7 @@ def test_last_mask_empty_and_missing(empty_scene):
     assert msg in render_error(scene)
 
 
+@pytest.mark.slow
 def test_intermediate_camera_with_empty_mask_renders(empty_scene, tmp_path):
     scene = empty_scene
     c1, c2 = two_camera_scene(scene)
@@ -113,6 +114,7 @@ def test_intermediate_camera_with_empty_mask_renders(empty_scene, tmp_path):
     assert m.min() == pytest.approx(1.0) and m.max() == pytest.approx(3.0)
 
 
+@pytest.mark.slow
 def test_mask_of_another_size_is_resampled_with_notice(empty_scene, tmp_path, capfd):
     scene = empty_scene
     two_camera_scene(scene)
@@ -123,6 +125,7 @@ def test_mask_of_another_size_is_resampled_with_notice(empty_scene, tmp_path, ca
     assert passes["Membership"][18, 24, 0] == pytest.approx(2.0)
 
 
+@pytest.mark.slow
 def test_scene_without_mesh_renders_world_with_notice(empty_scene, tmp_path, capfd):
     scene = empty_scene
     two_camera_scene(scene)

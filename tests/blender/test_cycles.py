@@ -101,6 +101,7 @@ def test_one_camera_full_mask_matches_plain_cycles(empty_scene, tmp_path):
     assert (handoff0["IndexOB"] == plain0["IndexOB"]).mean() >= 0.99
 
 
+@pytest.mark.slow
 def test_three_cameras_object_index_agrees_in_preserved_regions(empty_scene, tmp_path):
     """In each camera's eroded mask, Cycles' Object Index through the bent rays equals
     the object a plain Cycles render of that camera sees, for >= 99% of the pixels, and
@@ -134,6 +135,7 @@ def test_three_cameras_object_index_agrees_in_preserved_regions(empty_scene, tmp
     assert handoff["Depth"].min() > 0 and handoff["Membership"].max() > 2.5
 
 
+@pytest.mark.slow
 def test_rays_blocked_before_the_plane_come_from_the_origin_and_direction_tables(
     empty_scene, tmp_path, monkeypatch
 ):
@@ -250,6 +252,7 @@ def test_handoff_failure_is_reported_and_leaves_the_scene(empty_scene, tmp_path,
     assert leftover_tables() == before_tables
 
 
+@pytest.mark.slow
 def test_handoff_cancelled_during_the_march_leaves_the_scene(empty_scene, tmp_path, monkeypatch):
     """Esc while the rays are marched: Cycles never starts, the tables are removed."""
     scene = empty_scene
@@ -314,6 +317,7 @@ def test_without_the_handoff_the_engine_renders_solid(empty_scene, tmp_path, mon
     assert np.array_equal(solid["Combined"], fallback["Combined"])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("crop", [True, False])
 def test_border_render_keeps_our_depth_in_the_border(empty_scene, tmp_path, crop):
     """A render border: the result is the border's pixels; Depth and Membership there

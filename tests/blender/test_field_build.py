@@ -13,6 +13,7 @@ from multiscale_camera.core import parallel
 from multiscale_camera.render import pipeline
 
 
+@pytest.mark.slow
 def test_compute_field_writes_a_version_1_report(empty_scene):
     scene = empty_scene
     two_camera_scene(scene)
@@ -28,6 +29,7 @@ def test_compute_field_writes_a_version_1_report(empty_scene):
     assert report["solver"]["converged"] and len(report["grids"]) == 1
 
 
+@pytest.mark.slow
 def test_field_is_reused_until_the_rig_changes(empty_scene):
     scene = empty_scene
     two_camera_scene(scene)
@@ -54,6 +56,7 @@ def test_field_is_reused_until_the_rig_changes(empty_scene):
     assert pipeline.build_field(scene)[1]
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(parallel.fork_context() is None, reason="no fork on this platform")
 def test_compute_field_says_when_its_workers_were_given_up(empty_scene, monkeypatch, capfd):
     """The field's trace, in workers that stalled, went on in Blender's process without a

@@ -1,6 +1,7 @@
 """Operators on the camera list, driven headless."""
 
 import bpy
+import pytest
 
 from fixtures.blender.objects import add_camera
 from fixtures.blender.scenes import two_camera_scene
@@ -46,6 +47,7 @@ def test_move_and_remove_poll(empty_scene):
     assert not bpy.ops.multiscale.camera_move.poll()
 
 
+@pytest.mark.slow
 def test_render_operator_sets_engine_and_scene_camera(empty_scene, tmp_path):
     scene = empty_scene
     two_camera_scene(scene)

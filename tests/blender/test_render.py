@@ -200,6 +200,7 @@ def psnr(image, reference):
     return math.inf if mse == 0 else 10 * math.log10(float(reference.max()) ** 2 / mse)
 
 
+@pytest.mark.slow
 def test_one_sample_matches_each_cameras_straight_render(empty_scene, tmp_path):
     scene = empty_scene
     width, height = 96, 72

@@ -176,6 +176,7 @@ def test_unsupported_camera_type(rig, kind, word):
     )
 
 
+@pytest.mark.slow
 def test_a_build_validates_first(rig, capfd):
     scene, _c1, c2 = rig
     c2.data.clip_start = 0.5

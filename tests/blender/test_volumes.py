@@ -383,6 +383,7 @@ def test_raw_and_nrrd_files_render_as_the_npy_does(empty_scene, tmp_path):
     np.testing.assert_array_equal(images["v.nrrd"], images["v.npy"])
 
 
+@pytest.mark.slow
 def test_each_camera_shows_its_own_colour_ramp_where_preserved(empty_scene, tmp_path):
     """Two cameras, a red ramp and a green ramp on their textures: in each camera's
     eroded mask the image has that camera's colour only; between them, both."""

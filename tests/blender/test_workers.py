@@ -23,6 +23,7 @@ def collect(frame, processes, should_stop=None):
     return out
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(workers.fork_context() is None, reason="no fork on this platform")
 def test_worker_processes_render_the_same_image(empty_scene, monkeypatch):
     two_camera_scene(empty_scene, 64, 48)

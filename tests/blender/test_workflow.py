@@ -184,6 +184,7 @@ def test_png_and_exr_masks_from_other_tools_load(empty_scene, tmp_path):
 # --- report ----------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_full_report_is_written_to_a_text(empty_scene, cache_dir):
     scene = empty_scene
     two_camera_scene(scene)
@@ -203,6 +204,7 @@ def test_full_report_is_written_to_a_text(empty_scene, cache_dir):
 # --- cache ----------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_disk_cache_hit_on_light_and_material_miss_on_mask_and_camera(empty_scene, cache_dir):
     scene = empty_scene
     c1, _c2 = two_camera_scene(scene)
@@ -228,6 +230,7 @@ def test_disk_cache_hit_on_light_and_material_miss_on_mask_and_camera(empty_scen
     assert list(cache_dir.glob("*.npz")) == [] and c.memory == {}
 
 
+@pytest.mark.slow
 def test_cache_folder_limit_comes_from_the_scene(empty_scene, cache_dir):
     scene = empty_scene
     two_camera_scene(scene)
@@ -239,6 +242,7 @@ def test_cache_folder_limit_comes_from_the_scene(empty_scene, cache_dir):
 # --- preview and background build ----------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_preview_toggle_headless_computes_lines_without_drawing(empty_scene, cache_dir):
     scene = empty_scene
     two_camera_scene(scene)
@@ -255,6 +259,7 @@ def test_preview_toggle_headless_computes_lines_without_drawing(empty_scene, cac
     assert shown.lines is None
 
 
+@pytest.mark.slow
 def test_background_build_hands_the_field_back_and_cancels(empty_scene, cache_dir):
     scene = empty_scene
     two_camera_scene(scene)
@@ -285,6 +290,7 @@ def test_background_build_hands_the_field_back_and_cancels(empty_scene, cache_di
         service._listeners.append(preview.update)
 
 
+@pytest.mark.slow
 def test_two_callers_of_one_cached_field_keep_their_own_notices(empty_scene, cache_dir):
     """A cached field is shared: what one caller is told never reaches another, and
     nothing is written onto the field."""
@@ -314,6 +320,7 @@ def test_compute_field_checks_the_rig_first(empty_scene, cache_dir):
     assert list(cache_dir.glob("*.npz")) == []
 
 
+@pytest.mark.slow
 def test_viewport_picture_is_the_render_at_sampled_pixels(empty_scene, cache_dir):
     from multiscale_camera.render import viewport
 
@@ -334,6 +341,7 @@ def test_viewport_picture_is_the_render_at_sampled_pixels(empty_scene, cache_dir
     np.testing.assert_allclose(small, full[np.ix_(iy, ix)], atol=1e-6)
 
 
+@pytest.mark.slow
 def test_a_cached_field_brings_its_report_back_from_disk(empty_scene, cache_dir, monkeypatch):
     scene = empty_scene
     two_camera_scene(scene)

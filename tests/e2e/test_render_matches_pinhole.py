@@ -48,6 +48,7 @@ json.dump(result, open(out, "w"))
 """
 
 
+@pytest.mark.slow
 @pytest.mark.e2e
 @pytest.mark.parametrize("method", ["SCALAR_FIELD", "IMAGE_BLEND"])
 def test_indexob_matches_each_cameras_own_pinhole_ray(run_blender, tmp_path, method):

@@ -72,6 +72,7 @@ def test_fill_constrains_every_voxel_around_preserved_rays():
     assert fill.conflicts == 0
 
 
+@pytest.mark.slow
 def test_streamline_matches_a_tight_adaptive_integration():
     cams, masks = zoom_rig(64, 48)
     rig = Rig(cams, masks)
@@ -109,6 +110,7 @@ def test_streamline_matches_a_tight_adaptive_integration():
         assert err < 0.02 * grid.cell, err
 
 
+@pytest.mark.slow
 def test_zoom_rig_scalar_field_meets_the_accuracy_target():
     cams, masks = zoom_rig(240, 180)
     fld = prepare(Rig(cams, masks), "SCALAR_FIELD", settings_for("STANDARD"))
@@ -123,6 +125,7 @@ def test_zoom_rig_scalar_field_meets_the_accuracy_target():
     assert not any(np.isnan(fld.traced.vertices).ravel())
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("nested", [False, True])
 def test_interpolated_rays_agree_with_directly_traced_ones(nested):
     cams, masks = zoom_rig(160, 120)

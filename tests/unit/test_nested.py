@@ -119,6 +119,7 @@ def test_membership_has_no_seam_where_levels_meet(levels_of_three_cameras):
     assert worst <= slope * 1.01 + 1e-6, (worst, slope)
 
 
+@pytest.mark.slow
 def test_scheduled_rays_lie_on_the_curves_at_the_steps_asked():
     cams, masks = three_camera_rig(96, 54)
     fam = Family(cams, 2, 0.2)
@@ -150,6 +151,7 @@ def test_scheduled_rays_lie_on_the_curves_at_the_steps_asked():
         np.testing.assert_allclose(gaps, want, rtol=0.02)
 
 
+@pytest.mark.slow
 def test_streamlines_cross_levels_without_kinks():
     cams, masks = three_camera_rig(96, 54)
     fld = prepare(Rig(cams, masks), "SCALAR_FIELD", replace(settings_for("STANDARD"), nested=True))
@@ -169,6 +171,7 @@ def test_streamlines_cross_levels_without_kinks():
     assert bend.max() < 20.0, bend.max()
 
 
+@pytest.mark.slow
 def test_1000x_rig_holds_every_camera_to_a_pixel_where_a_uniform_grid_fails():
     cams, masks = zoom1000_rig(192, 108)
     rig = Rig(cams, masks)

@@ -2,6 +2,7 @@
 a triangle, and does cull segments through empty space."""
 
 import numpy as np
+import pytest
 
 from multiscale_camera.core.sampling import Occupancy
 
@@ -23,6 +24,7 @@ def segment_hits_triangle(p0, p1, a, b, c):
     return u >= 0 and v >= 0 and u + v <= 1 and 0 <= t <= 1
 
 
+@pytest.mark.slow
 def test_segments_that_meet_a_triangle_are_never_culled():
     rng = np.random.default_rng(3)
     centres = rng.uniform(-4, 4, (80, 3))

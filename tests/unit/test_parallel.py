@@ -17,6 +17,7 @@ from multiscale_camera.core.methods import prepare, settings_for
 needs_fork = pytest.mark.skipif(parallel.fork_context() is None, reason="no fork here")
 
 
+@pytest.mark.slow
 @needs_fork
 def test_rays_traced_in_two_processes_equal_those_traced_in_one(monkeypatch):
     monkeypatch.setattr(field_module, "MIN_RAYS_PER_PROCESS", 16)
@@ -113,6 +114,7 @@ def test_without_fork_the_work_stays_in_process(monkeypatch):
     assert parallel.forked_map(lambda x: x, [1, 2], 2) is None
 
 
+@pytest.mark.slow
 @needs_fork
 def test_nested_levels_filled_and_rays_laid_out_in_workers_equal_those_done_in_process(
     monkeypatch,

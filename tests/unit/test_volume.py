@@ -211,6 +211,7 @@ def solid_table(rgb, opacity=0.3):
     return V.table_from_points([(0.0, (*rgb, 0.0)), (0.3, (*rgb, opacity)), (1.0, (*rgb, 1.0))])
 
 
+@pytest.mark.slow
 def test_each_camera_uses_its_own_transfer_function_where_preserved():
     cams, masks = rigs.zoom_rig(96, 72)
     rig = Rig(cams, masks)
@@ -330,6 +331,7 @@ def test_occupancy_of_block_boxes_matches_brute_force():
     np.testing.assert_array_equal(got, want)
 
 
+@pytest.mark.slow
 def test_skipping_by_each_cameras_own_table_changes_nothing_visible():
     """Blocks clear under the tables a ray's membership weighs are skipped even where
     another camera's table would show them: the image is the one marched without any
