@@ -7,14 +7,13 @@ import bpy
 import numpy as np
 import pytest
 
-from fixtures.blender.objects import add_camera, add_mesh, mask_image
+from fixtures.blender.objects import add_camera, add_mesh, mask_image, transfer_function
 from fixtures.masks import disk_masks
 from fixtures.rigs import orbit
 from multiscale_camera.adapters import volumes as adapters
 from multiscale_camera.core import volume as V
 from multiscale_camera.render import fields, pipeline
 from multiscale_camera.render import volume as render_volume
-from multiscale_camera.ui.volume import new_transfer_function
 from tests.unit.test_volume import erode, psnr, reference_cast, slab_volume
 
 W, H = 48, 36
@@ -44,14 +43,7 @@ def lumpy(shape=(24, 20, 16), seed=2):
 
 
 def ramp_texture(points=RAMP):
-    tex = new_transfer_function("TF test")
-    els = tex.color_ramp.elements
-    while len(els) > 1:
-        els.remove(els[-1])
-    for i, (pos, colour) in enumerate(points):
-        el = els[0] if i == 0 else els.new(pos)
-        el.position, el.color = pos, colour
-    return tex
+    return transfer_function("TF test", points)
 
 
 def one_camera_scene(scene):
