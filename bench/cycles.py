@@ -144,11 +144,10 @@ def measure(scene, args):
     import bpy
     import numpy as np
 
+    from fixtures.blender.handoff import cycles_settings, handoff_reports
     from fixtures.blender.objects import mask_image
-    from fixtures.blender.scenes import cycles_settings
     from multiscale_camera.render import pipeline
     from multiscale_camera.render.tables import ray_tables
-    from tests.blender.test_cycles import handoff_reports
 
     cycles_settings(scene, samples=args.samples)
     rig = [(item.camera, item.mask) for item in scene.multiscale.cameras]

@@ -1,6 +1,5 @@
 """Cycles hand-off (shading = 'CYCLES'): against plain Cycles renders of the rig's cameras."""
 
-import contextlib
 import os
 import tempfile
 import time
@@ -10,13 +9,9 @@ import numpy as np
 import pytest
 from scipy.ndimage import binary_erosion
 
+from fixtures.blender.handoff import cycles_settings, handoff_reports
 from fixtures.blender.objects import add_camera, add_mesh, mask_image
-from fixtures.blender.scenes import (
-    cycles_settings,
-    shapes_and_sun,
-    three_camera_scene,
-    two_camera_scene,
-)
+from fixtures.blender.scenes import shapes_and_sun, three_camera_scene, two_camera_scene
 from multiscale_camera.io.exr import read_channels
 from multiscale_camera.render import cycles, cycles_rays, cycles_shader, workers
 from tests.exr import read_passes
@@ -35,25 +30,6 @@ def render(scene, path, engine, camera=None, seed=0):
     scene.render.filepath = str(path)
     bpy.ops.render.render(write_still=True)
     return read_passes(path)
-
-
-@contextlib.contextmanager
-def handoff_reports():
-    """A list that collects the ``cycles.HandoffReport`` of every hand-off rendered
-    inside the ``with`` block (the engine drops it after its render)."""
-    reports = []
-    hand_off = cycles.render
-
-    def recording(*args):
-        report = hand_off(*args)
-        reports.append(report)
-        return report
-
-    cycles.render = recording
-    try:
-        yield reports
-    finally:
-        cycles.render = hand_off
 
 
 def rms(a, b):
