@@ -9,6 +9,7 @@
 #                 volume ray casting: bench/*.json
 #   make lint     ruff and the import contracts (pyproject.toml, [tool.importlinter])
 #   make e2e-real the extension in real Blender 5.2 and 4.3, screenshots to docs/images/
+#   make e2e-timing  Compute Field and render of the demo: real 5.2 window against -b
 #
 # BLENDER defaults to tools/blender (Blender's command line on the bpy wheel);
 # point it at a real Blender to run the same tests there.
@@ -42,7 +43,8 @@ SAMPLE_SCRIPTS := $(wildcard sample_blends/*.py fixtures/*.py fixtures/blender/*
 RUN_SAMPLES := $(BLENDER) -b --factory-startup --python-exit-code 1 \
 	--python sample_blends/make_samples.py
 
-.PHONY: venv build test test-quick samples demo bench bench-render lint clean distclean e2e-real
+.PHONY: venv build test test-quick samples demo bench bench-render lint clean distclean e2e-real \
+	e2e-timing
 
 venv: $(VENV_STAMP)
 
@@ -112,6 +114,11 @@ bench-render: venv
 # whose screenshots land in docs/images/. Optional: not part of `make test`.
 e2e-real: build sample_blends/demo.blend
 	tools/e2e_real/run.sh
+
+# Compute Field and the render of demo.blend in a real Blender 5.2 window and with
+# `blender -b` on the same cores: out/e2e-real/timing-*.json. Optional, needs root.
+e2e-timing: build sample_blends/demo.blend
+	tools/e2e_real/timing.sh
 
 lint: venv
 	$(PY) -m ruff check .

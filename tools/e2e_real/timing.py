@@ -1,0 +1,121 @@
+"""Time Compute Field and the render of the open file, as a user runs them, in a real
+Blender window or with ``blender -b`` (tools/e2e_real/timing.sh, ``make e2e-timing``).
+
+    blender demo.blend --python timing.py -- --out DIR/window.json
+    blender -b demo.blend --python timing.py -- --out DIR/background.json
+
+The field cache is cleared first, so the build is a real one. In the window, Compute
+Field runs as its button does (INVOKE_DEFAULT: a background build the window polls) and
+the render as F12 does (INVOKE_DEFAULT); the script waits on timers for each to end and
+quits Blender. Headless, both run as a script would. Writes the seconds, the report's
+headline figures and the machine's load to --out.
+"""
+
+import argparse
+import json
+import os
+import sys
+import time
+
+import bpy
+
+
+def parse():
+    argv = sys.argv[sys.argv.index("--") + 1 :] if "--" in sys.argv else []
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--out", required=True)
+    return parser.parse_args(argv)
+
+
+ARGS = parse()
+RESULT = {
+    "blender": bpy.app.version_string,
+    "mode": "background" if bpy.app.background else "window",
+    "cores": os.cpu_count(),
+}
+STATE = {}
+
+
+def write():
+    RESULT["load_average"] = [round(x, 2) for x in os.getloadavg()]
+    os.makedirs(os.path.dirname(ARGS.out) or ".", exist_ok=True)
+    with open(ARGS.out, "w") as f:
+        json.dump(RESULT, f, indent=1)
+    print("E2E_TIMING", json.dumps(RESULT), flush=True)
+
+
+def report():
+    rep = json.loads(bpy.context.scene.multiscale.report or "{}")
+    return {k: rep.get(k) for k in ("method", "quality", "folds", "cached", "grids")}
+
+
+def on_render_done(_scene, _depsgraph=None):
+    STATE["render_end"] = time.perf_counter()
+
+
+def override():
+    win = bpy.context.window_manager.windows[0]
+    area = max(
+        (a for a in win.screen.areas if a.type == "VIEW_3D"), key=lambda a: a.width * a.height
+    )
+    region = next(r for r in area.regions if r.type == "WINDOW")
+    return bpy.context.temp_override(window=win, area=area, region=region)
+
+
+def background():
+    scene = bpy.context.scene
+    bpy.ops.multiscale.cache_clear()
+    t = time.perf_counter()
+    RESULT["compute_field"] = sorted(bpy.ops.multiscale.compute_field())
+    RESULT["compute_seconds"] = round(time.perf_counter() - t, 2)
+    RESULT["report"] = report()
+    scene.render.filepath = os.path.join(os.path.dirname(ARGS.out), "timing_background.png")
+    t = time.perf_counter()
+    bpy.ops.render.render(write_still=True)
+    RESULT["render_seconds"] = round(time.perf_counter() - t, 2)
+    write()
+
+
+def window_steps():
+    """Timer callback: start the build, wait for it, start the render, wait, quit."""
+    scene = bpy.context.scene
+    step = STATE.get("step", "start")
+    if step == "start":
+        with override():
+            bpy.ops.multiscale.cache_clear()
+            scene.multiscale.report = ""
+            STATE["t0"] = time.perf_counter()
+            bpy.ops.multiscale.compute_field("INVOKE_DEFAULT")
+        STATE["step"] = "building"
+        return 0.05
+    if step == "building":
+        if not scene.multiscale.report:
+            if time.perf_counter() - STATE["t0"] > 1800:
+                RESULT["error"] = "the build did not end in 30 minutes"
+                write()
+                bpy.ops.wm.quit_blender()
+                return None
+            return 0.05
+        RESULT["compute_seconds"] = round(time.perf_counter() - STATE["t0"], 2)
+        RESULT["report"] = report()
+        bpy.app.handlers.render_complete.append(on_render_done)
+        bpy.app.handlers.render_cancel.append(on_render_done)
+        with override():
+            STATE["t1"] = time.perf_counter()
+            bpy.ops.render.render("INVOKE_DEFAULT")
+        STATE["step"] = "rendering"
+        return 0.05
+    if step == "rendering":
+        if "render_end" not in STATE:
+            return 0.05
+        RESULT["render_seconds"] = round(STATE["render_end"] - STATE["t1"], 2)
+        write()
+        bpy.ops.wm.quit_blender()
+        return None
+    return None
+
+
+if bpy.app.background:
+    background()
+else:
+    bpy.app.timers.register(window_steps, first_interval=3.0)

@@ -1,0 +1,37 @@
+#!/usr/bin/env bash
+# make e2e-timing: Compute Field and the render of sample_blends/demo.blend as saved, in
+# a real Blender 5.2 window (Xvfb) and with `blender -b`, on the same machine
+# (../shared/tools/realblender; needs root). Each run clears the field cache first.
+# Writes out/e2e-real/timing-{window,background}.json and prints both, with the ratio
+# of window to background for the build and the render.
+set -euo pipefail
+REPO=$(cd "$(dirname "$0")/../.." && pwd)
+RB=${RB:-$(cd "$REPO/../shared/tools/realblender" 2>/dev/null && pwd || echo /work/shared/tools/realblender)}
+OUT=$REPO/out/e2e-real
+ZIP=$REPO/$(cat "$REPO/dist/LINUX_ZIP")
+BLEND=${BLEND:-$REPO/sample_blends/demo.blend}
+export RB_SUITE=sid RB_HOME=$OUT/home-timing
+root="${XDG_CACHE_HOME:-$HOME/.cache}/realblender/sid-root"
+[ -x "$root/usr/bin/blender" ] || "$RB/setup.sh"
+mkdir -p "$OUT"
+rm -rf "$RB_HOME"
+"$RB/run.sh" --command extension install-file -r user_default -e "$ZIP" | tail -1
+
+echo "== background: $BLEND"
+"$RB/run.sh" -b "$BLEND" --python-exit-code 1 --python "$REPO/tools/e2e_real/timing.py" \
+  -- --out "$OUT/timing-background.json" > "$OUT/timing-background.log" 2>&1 \
+  || { tail -30 "$OUT/timing-background.log"; exit 1; }
+
+echo "== window: $BLEND"
+RB_DISPLAY=${RB_DISPLAY:-:99} "$RB/run.sh" "$BLEND" --python "$REPO/tools/e2e_real/timing.py" \
+  -- --out "$OUT/timing-window.json" > "$OUT/timing-window.log" 2>&1 || true
+RB_DISPLAY=${RB_DISPLAY:-:99} "$RB/run.sh" --stop-xvfb || true
+
+python3 - "$OUT/timing-background.json" "$OUT/timing-window.json" <<'PY'
+import json, sys
+bg, win = (json.load(open(p)) for p in sys.argv[1:3])
+for key in ("compute_seconds", "render_seconds"):
+    print(f"{key}: window {win[key]} s, background {bg[key]} s, ratio {win[key] / bg[key]:.2f}")
+print("load averages: background", bg["load_average"], "window", win["load_average"])
+sys.exit(0 if "error" not in win else 1)
+PY
