@@ -168,7 +168,8 @@ class Diagnostics:
 def check_stop(should_stop: Callable[[], bool] | None) -> None:
     """Raise ``Cancelled`` when ``should_stop`` (a callable, or None: never) says so: the
     one cancel check of the numeric kernels, which take a plain callable so that they
-    run the same in a worker process (where it beats, ``core.parallel.beat``)."""
+    run the same in a worker process (where it is the worker's ``core.runtime.Context``,
+    which beats)."""
     if should_stop is not None and should_stop():
         raise Cancelled()
 

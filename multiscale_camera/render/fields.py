@@ -24,19 +24,19 @@ import bpy
 
 from ..adapters.scene import field_settings, rig_from_scene
 from ..adapters.volumes import VolumeGridCache
-from ..core import parallel
 from ..core.diagnostics import Diagnostics, Level
 from ..core.errors import Cancelled
 from ..core.geometry import Rig
 from ..core.methods import Settings, field_key, prepare
 from ..core.quality import build_report, crossing_messages, empty_mask_messages
+from ..core.runtime import gave_up, runtime
 from ..io.cache import DEFAULT_LIMIT_MB, FieldCache
 
 # Worker processes of a build, the simplification or the ray tables gave way.
 WORKERS_GIVEN_UP = (
-    "Worker processes died or stopped making progress (a forked copy of Blender can hang "
-    "on a lock another thread held); their work went on in Blender's process, only "
-    "slower. Render > Performance > Threads: Fixed at 1 keeps it there from the start"
+    "Worker processes died, stopped making progress or could not be used; their work "
+    "went on in Blender's process, only slower. Render > Performance > Threads: Fixed at "
+    "1 keeps it there from the start"
 )
 # How often a background build is polled from the main thread, seconds.
 POLL_SECONDS = 0.25
@@ -295,10 +295,9 @@ class FieldService:
 
 def _build(request: FieldRequest, diag: Diagnostics):
     """(RayField, whether worker processes were given up) for ``request``."""
-    given_up = parallel.given_up()
-    with diag.stage("field"):
+    with runtime().journal() as runs, diag.stage("field"):  # what its workers did
         fld = prepare(request.rig, request.method, request.settings, diag)
-    return fld, parallel.given_up() > given_up
+    return fld, gave_up(runs)
 
 
 def _measure(fld, request: FieldRequest, start: float) -> dict:

@@ -10,11 +10,10 @@ from mathutils.bvhtree import BVHTree
 from ..adapters.lights import World, scene_lights, scene_world
 from ..adapters.meshes import SceneGeometry, scene_geometry
 from ..adapters.scene import render_processes_of
-from ..core import parallel
 from ..core.diagnostics import Diagnostics, Level
 from ..core.geometry import Rig
-from ..core.parallel import worker_count
 from ..core.quality import obstruction_messages
+from ..core.runtime import gave_up, runtime, worker_count
 from ..core.sampling import DEFAULT_TOLERANCE_PX, Occupancy, RaySampler, sample_offsets
 from .checks import geometry_cast
 from .fields import SERVICE, WORKERS_GIVEN_UP
@@ -127,11 +126,10 @@ def prepare_frame(depsgraph, diag=None):
     """
     diag = diag if diag is not None else Diagnostics()
     scene = depsgraph.scene
-    given_up = parallel.given_up()
     # volumes first: a missing or unusable volume file stops the render before the build
     volumes, volume_notices = prepare_volumes(depsgraph)
     field_stage = diag.stage("field")
-    with field_stage:
+    with field_stage, runtime().journal() as runs:  # what the field's workers did
         result = SERVICE.get(SERVICE.request(scene), diag)
     if not result.built:  # said as "field (cached)" in the timings
         diag.seconds["field (cached)"] = diag.seconds.pop("field")
@@ -159,9 +157,9 @@ def prepare_frame(depsgraph, diag=None):
     settings = scene.multiscale
     tol = getattr(settings, "simplify_px", DEFAULT_TOLERANCE_PX)
     processes = render_processes_of(scene)
-    with diag.stage("simplify"):
+    with diag.stage("simplify"), runtime().journal() as simplified:
         sampler = sampler_for(ray_field, tol, bounds, diag.should_stop, occupancy, processes)
-    if parallel.given_up() > given_up:  # the field's trace or the simplification
+    if gave_up(runs + simplified):  # the field's trace or the simplification
         diag.warn(WORKERS_GIVEN_UP)
     return Frame(
         rig=rig,
@@ -215,7 +213,7 @@ def scene_tree(geometry):
 def sampler_for(ray_field, tol_px, bounds, should_stop=None, occupancy=None, processes=1):
     """The field's RaySampler at ``tol_px`` pixels for geometry inside ``bounds`` (and in
     the occupied cells of ``occupancy``, when given), built once per field, tolerance and
-    geometry layout; its simplification in ``processes`` forked workers (0: one per
+    geometry layout; its simplification in ``processes`` worker processes (0: one per
     core)."""
     cache = ray_field.__dict__.setdefault("_samplers", {})
     box = None if bounds is None else tuple(np.round(np.concatenate(bounds), 9).tolist())

@@ -9,7 +9,7 @@ import pytest
 
 from fixtures.blender.objects import mask_image
 from fixtures.blender.scenes import two_camera_scene
-from multiscale_camera.core import parallel
+from multiscale_camera.core.runtime import pool
 from multiscale_camera.render import pipeline
 
 
@@ -57,28 +57,29 @@ def test_field_is_reused_until_the_rig_changes(empty_scene):
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(parallel.fork_context() is None, reason="no fork on this platform")
 def test_compute_field_says_when_its_workers_were_given_up(empty_scene, monkeypatch, capfd):
     """The field's trace, in workers that stalled, went on in Blender's process without a
-    word; Compute Field now says why it was slow, and the field is the one traced there."""
+    word; Compute Field now says why it was slow, and the field is the one traced by
+    workers that did not stall."""
     from multiscale_camera.core.field import tracer as field_module
+
+    from ..unit.runtime_tasks import InWorkers
 
     scene = empty_scene
     two_camera_scene(scene, 64, 48)
     scene.render.threads_mode = "FIXED"
-    scene.render.threads = 1
-    pipeline.clear_fields()
-    alone, _ = pipeline.build_field(scene)
-    pipeline.clear_fields()
     scene.render.threads = 2
     monkeypatch.setattr(field_module, "MIN_RAYS_PER_PROCESS", 16)
-    monkeypatch.setattr(parallel, "STALL_SECONDS", 0.5)
-    # ``beat`` is what the trace's workers call as they go (the parent asks Esc)
-    monkeypatch.setattr(parallel, "beat", lambda: time.sleep(30))
+    pipeline.clear_fields()
+    pooled, _ = pipeline.build_field(scene)
+    pipeline.clear_fields()
+    monkeypatch.setattr(pool, "STALL_SECONDS", 0.5)
+    # the trace's shares hang in the workers, without a beat (in Blender's process they run)
+    monkeypatch.setattr(field_module, "_trace_share", InWorkers(field_module._trace_share, "hang"))
     start = time.perf_counter()
     assert bpy.ops.multiscale.compute_field() == {"FINISHED"}
     assert time.perf_counter() - start < 30.0
     assert pipeline.WORKERS_GIVEN_UP in capfd.readouterr().out
     rescued, built = pipeline.build_field(scene)
     assert not built
-    np.testing.assert_array_equal(rescued.traced.vertices, alone.traced.vertices)
+    np.testing.assert_array_equal(rescued.traced.vertices, pooled.traced.vertices)

@@ -9,7 +9,10 @@ import pytest
 from fixtures.blender.scenes import two_camera_scene
 from multiscale_camera.core import parallel
 from multiscale_camera.core.errors import Cancelled
+from multiscale_camera.core.runtime import pool
 from multiscale_camera.render import pipeline, workers
+
+from ..unit.runtime_tasks import InWorkers
 
 
 def frame_of(scene):
@@ -214,7 +217,6 @@ def test_render_says_when_its_workers_were_given_up(empty_scene, monkeypatch, tm
     assert (tmp_path / "out.png").exists()
 
 
-@pytest.mark.skipif(workers.fork_context() is None, reason="no fork on this platform")
 def test_frame_says_when_the_simplification_workers_were_given_up(empty_scene, monkeypatch):
     """Workers of the ray simplification that stalled gave way to the parent without a
     word: the frame was only slower, and nobody said why. Now its notices say so; the
@@ -229,9 +231,9 @@ def test_frame_says_when_the_simplification_workers_were_given_up(empty_scene, m
     alone.field.__dict__.pop("_samplers")
     empty_scene.render.threads = 2
     monkeypatch.setattr(sampling, "CHUNK", 64)
-    monkeypatch.setattr(sampling, "STALL_SECONDS", 0.5)
-    # ``beat`` is what the workers call as they go (the parent asks ``should_stop``)
-    monkeypatch.setattr(sampling, "beat", lambda: time.sleep(30))
+    monkeypatch.setattr(pool, "STALL_SECONDS", 0.5)
+    # the measures hang in the workers, without a beat (in Blender's process they run)
+    monkeypatch.setattr(sampling, "_measure", InWorkers(sampling._measure, "hang"))
     start = time.perf_counter()
     rescued = frame_of(empty_scene)
     assert time.perf_counter() - start < 20.0

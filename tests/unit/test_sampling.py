@@ -8,9 +8,10 @@ import numpy as np
 import pytest
 
 from fixtures.rigs import two_camera_rig
-from multiscale_camera.core import parallel, sampling
+from multiscale_camera.core import sampling
 from multiscale_camera.core.geometry import Rig
 from multiscale_camera.core.methods import Settings, prepare
+from multiscale_camera.core.runtime import runtime
 from multiscale_camera.core.sampling import simplification
 
 
@@ -204,22 +205,16 @@ def test_lattice_simplification_hears_a_stop_request(traced_field):
     assert len(seen) >= traced_field.traced.vertices.shape[1] // 16
 
 
-@pytest.mark.skipif(parallel.fork_context() is None, reason="no fork on this platform")
 def test_lattice_simplified_in_worker_processes_is_the_same(traced_field, monkeypatch):
-    """The lattice's measures and leaf schedules, shared among forked workers that write
-    into shared memory, equal those made in-process."""
+    """The lattice's measures and leaf schedules, shared among worker processes that
+    write into shared memory, equal those made in-process."""
     alone = sampling.RaySampler(traced_field, 0.25)
     monkeypatch.setattr(simplification, "CHUNK", 7)  # many chunks from a small lattice
-    ran = []
-    forked_map = parallel.forked_map
-
-    def counted(task, items, *args, **kwargs):
-        ran.append(len(items))
-        return forked_map(task, items, *args, **kwargs)
-
-    monkeypatch.setattr(simplification, "forked_map", counted)
-    pooled = sampling.RaySampler(traced_field, 0.25, processes=2)
-    assert len(ran) == 2 and min(ran) > 2  # the measures and the leaf schedules
+    with runtime().journal() as runs:
+        pooled = sampling.RaySampler(traced_field, 0.25, processes=2)
+    # the measures and the leaf schedules, every chunk in a worker
+    assert len(runs) == 2 and min(len(r.where) for r in runs) > 2
+    assert all(r.in_workers == len(r.where) for r in runs)
     np.testing.assert_array_equal(pooled.leaf_keep, alone.leaf_keep)
     np.testing.assert_array_equal(pooled.slot_terms, alone.slot_terms)
     np.testing.assert_array_equal(pooled.slot_castable is None, alone.slot_castable is None)

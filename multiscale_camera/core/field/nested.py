@@ -23,12 +23,13 @@ put them out of step wherever one ray crosses the face and its neighbour does no
 """
 
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 
-from .. import parallel
 from ..diagnostics import check_stop
 from ..geometry import DEFAULT_SEGMENTS, build_guides, curved_rays
+from ..runtime import runtime
 from .grid import FieldSampler, Grid
 from .solvers import solve_membership
 
@@ -365,18 +366,23 @@ class LevelSolve:
     converged: bool
 
 
+def _fill_level(fill_membership, rig, families, grid, context):
+    """A worker's fill of one level (``solve_levels``)."""
+    return fill_membership(rig, grid, families, should_stop=context)
+
+
 def solve_levels(rig, grids, families, fill_membership, should_stop=None, processes=1):
     """Fill and solve every level, coarsest first; a finer level's boundary voxels hold
     its parent's membership (Dirichlet), its own constraints hold inside.
 
     The fills do not depend on one another: with ``processes`` > 1 they are shared
-    among forked workers (``parallel.forked_map``) before the solves run in order.
+    among worker processes (``runtime``) before the solves run in order.
 
     Parameters
     ----------
     rig : Rig. grids : sequence of Grid, coarsest first. families : list of Family.
     fill_membership : callable (rig, grid, families, should_stop=) -> Fill
-        (``fill.fill_membership``).
+        (``fill.fill_membership``; module-level, so that workers find it by name).
     should_stop : optional callable, asked during each level's fill and solve.
     processes : int, worker processes for the fills (1: in-process).
 
@@ -387,13 +393,8 @@ def solve_levels(rig, grids, families, fill_membership, should_stop=None, proces
 
     shared = None
     if processes > 1:
-        shared = parallel.forked_map(
-            lambda grid: fill_membership(rig, grid, families, should_stop=parallel.beat),
-            grids,
-            processes,
-            should_stop,
-            parallel.STALL_SECONDS,
-        )
+        task = partial(_fill_level, fill_membership, rig, families)
+        shared = runtime().map(task, grids, processes, should_stop).results
     fields, fills, its, res, ok = [], [], 0, 0.0, True
     for lev, grid in enumerate(grids):
         check_stop(should_stop)

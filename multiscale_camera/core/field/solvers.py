@@ -278,7 +278,7 @@ def _check(values, constrained, dtype):
 
 def _dot(a, b):
     """Inner product accumulated in float64, whatever the inputs' dtype (einsum, not
-    BLAS: see the note on BLAS threads in ``core/parallel``)."""
+    BLAS: see the note on BLAS threads in ``core/runtime``)."""
     if a.dtype == b.dtype == np.float64:
         return float(np.einsum("i,i->", a.ravel(), b.ravel()))
     return float(np.add.reduce((a * b).ravel(), dtype=np.float64))

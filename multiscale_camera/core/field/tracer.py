@@ -10,12 +10,13 @@
 """
 
 import time
+from functools import partial
 
 import numpy as np
 
-from .. import parallel
 from ..errors import Cancelled
 from ..geometry import Family, dot3, solve3
+from ..runtime import runtime, worker_count
 from .grid import FieldSampler
 from .trace import StopReason, Traced, merge, rk4_streamlines
 
@@ -196,7 +197,7 @@ def _scheduled_chunk(family, u, v, step, vertices, contains):
 
 
 # A trace is shared among worker processes only when each gets at least this many
-# rays: forking and sending the rays back cost more than tracing fewer.
+# rays: sending the work out and the rays back cost more than tracing fewer.
 MIN_RAYS_PER_PROCESS = 256
 # ... and in shares of at most this many rays, so that no worker holds more than a few
 # hundred megabytes of rays at once (they come back pickled).
@@ -233,7 +234,7 @@ class FieldTracer:
     domain : ``nested.NestedDomain`` or None: when given, N is read from it (``grid``
         and ``membership`` are then its coarsest level) and the modelled volume is its
         outer box.
-    processes : int, worker processes that share a trace's rays (``parallel``); 0: one
+    processes : int, worker processes that share a trace's rays (``runtime``); 0: one
         per core. The rays come out the same whichever count traced them, to about
         float32 rounding (numpy may round a float64's last bit differently with the
         length of an array, and the trace carries that on).
@@ -255,6 +256,16 @@ class FieldTracer:
         self.tangent_seconds = 0.0
         self.missed = 0  # tangent evaluations Newton could not solve (see Family.solve)
         self.ready = None  # the Newton state of ``_forget``
+
+    # the per-ray state of the last trace stays behind when the tracer goes to workers
+    _TRANSIENT = ("params", "jacobian", "solved_at", "ready")
+
+    def __getstate__(self):
+        state = dict(self.__dict__)
+        for name in self._TRANSIENT:
+            state.pop(name, None)
+        state["ready"] = None
+        return state
 
     def _forget(self, rays):
         """Start the per-ray Newton state afresh for ``rays`` rays: where Newton last
@@ -403,37 +414,25 @@ class FieldTracer:
 
     def _workers(self, rays):
         """Worker processes for ``rays`` rays: 1 (in-process) when too few to share."""
-        workers = parallel.worker_count(self.processes)
+        workers = worker_count(self.processes)
         return min(workers, rays // MIN_RAYS_PER_PROCESS)
 
-    def _shared(self, task, rays, should_stop):
-        """``task(rows)`` -> Traced over every n-th of ``rays`` rays in forked workers,
-        merged; None when the work is not shared (too few rays, or no fork)."""
+    def _shared(self, kind, a, b, step, max_steps, should_stop):
+        """``_trace_share`` over every n-th of the ``len(a)`` rays in worker processes,
+        merged (a share whose worker was given up is traced here); None when the work
+        is not shared (too few rays)."""
+        rays = len(a)
         workers = self._workers(rays)
         if workers < 2:
             return None
         # every n-th ray to each share: neighbours on the lattice run alike, so the
         # shares take about as long
         n = max(workers, -(-rays // MAX_RAYS_PER_SHARE))
-        shares = [np.arange(k, rays, n) for k in range(n)]
-        parts = parallel.forked_map(
-            lambda rows: self._part(task, rows),
-            shares,
-            workers,
-            should_stop,
-            parallel.STALL_SECONDS,
-        )
-        if parts is None:
-            return None
+        task = partial(_trace_share, self, kind, a, b, step, max_steps, rays)
+        parts = runtime().map(task, [(k, n) for k in range(n)], workers, should_stop).results
         self.missed += sum(p[1] for p in parts)
         self.tangent_seconds += float(np.mean([p[2] for p in parts]))
-        return merge([p[0] for p in parts], shares, rays)
-
-    def _part(self, task, rows):
-        """In a worker: (Traced, Newton's missed points, tangent seconds) of ``rows``."""
-        missed, seconds = self.missed, self.tangent_seconds
-        traced = task(rows)
-        return traced, self.missed - missed, self.tangent_seconds - seconds
+        return merge([p[0] for p in parts], [np.arange(k, rays, n) for k in range(n)], rays)
 
     def trace(self, u0, v0, step, max_steps, should_stop=None):
         """RK4 streamlines from the near-plane points of pixels (u0, v0) of camera 1.
@@ -451,11 +450,7 @@ class FieldTracer:
         ------
         Cancelled when ``should_stop`` says so.
         """
-        traced = self._shared(
-            lambda rows: self._trace_here(u0[rows], v0[rows], step, max_steps, parallel.beat),
-            len(u0),
-            should_stop,
-        )
+        traced = self._shared("trace", u0, v0, step, max_steps, should_stop)
         if traced is not None:
             return traced
         return self._trace_here(u0, v0, step, max_steps, should_stop)
@@ -469,11 +464,7 @@ class FieldTracer:
         -------
         Traced of the R rays, in the order of the pixels.
         """
-        traced = self._shared(
-            lambda rows: self._pixels_here(ix[rows], iy[rows], step, max_steps, parallel.beat),
-            len(ix),
-            should_stop,
-        )
+        traced = self._shared("pixels", ix, iy, step, max_steps, should_stop)
         if traced is not None:
             return traced
         return self._pixels_here(ix, iy, step, max_steps, should_stop)
@@ -550,3 +541,18 @@ class FieldTracer:
             lines.reason,
             None if callable(step) else step,
         )
+
+
+def _trace_share(tracer, kind, a, b, step, max_steps, rays, share, context):
+    """A worker's share of ``FieldTracer.trace`` (``kind`` "trace": ``a, b`` are u0, v0)
+    or ``trace_pixels`` ("pixels": ix, iy): rays k, k + n, ... of ``rays`` for
+    ``share`` = (k, n). Returns (Traced, Newton's missed points, tangent seconds) of the
+    share; the tracer's own counts are left as they were (the caller adds these)."""
+    k, n = share
+    rows = np.arange(k, rays, n)
+    missed, seconds = tracer.missed, tracer.tangent_seconds
+    here = tracer._trace_here if kind == "trace" else tracer._pixels_here
+    traced = here(a[rows], b[rows], step, max_steps, context)
+    counts = tracer.missed - missed, tracer.tangent_seconds - seconds
+    tracer.missed, tracer.tangent_seconds = missed, seconds
+    return traced, *counts

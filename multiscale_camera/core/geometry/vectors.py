@@ -8,7 +8,7 @@ def dot3(a, b):
     """Row-wise dot product of (..., 3) arrays (either may be a single (3,) vector):
     (...) float. ``einsum`` makes one pass and no (..., 3) temporary (2.5 times faster
     than three column products from 50,000 rows), and calls no BLAS (whose threads spin
-    on the other cores after each call: ``core/parallel``)."""
+    on the other cores after each call: ``core/runtime``)."""
     return np.einsum("...j,...j->...", a, b)
 
 

@@ -22,8 +22,8 @@ from ..field import (
     solve_membership,
 )
 from ..geometry import Family
-from ..parallel import worker_count
 from ..quality import check_rig
+from ..runtime import worker_count
 from .base import Settings, record_seconds
 from .traced import TracedField, capped_message, field_grid, trace_field
 

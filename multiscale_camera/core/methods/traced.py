@@ -4,6 +4,7 @@ them would err, and every other pixel's ray is interpolated from the traced ones
 """
 
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 
@@ -304,6 +305,12 @@ def capped_message(settings, wanted, cell):
     )
 
 
+def _nested_step(cells, domain, x):
+    """The trace's step at points ``x`` ((..., 3)): ``cells`` of the local cell of the
+    nested grids (``NestedDomain.cell_at``), world units."""
+    return cells * domain.cell_at(x)
+
+
 def trace_field(fld, tracer, fill, settings, diag, levels=None):
     """Trace a field method's rays on the adaptive lattice into ``fld`` (a TracedField
     whose ``grid`` and ``membership`` are set) and record the stats and warnings;
@@ -317,8 +324,8 @@ def trace_field(fld, tracer, fill, settings, diag, levels=None):
     cells = step_cells(settings.accuracy_px, rig.size[0])
     max_steps = int(sum(np.ceil(np.linalg.norm(np.array(g.shape)) / cells * 2) for g in grids)) + 8
     if levels:
-        domain = tracer.domain
-        step = lambda x: cells * domain.cell_at(x)  # noqa: E731
+        # a partial, not a lambda: the step goes to worker processes with the tracer
+        step = partial(_nested_step, cells, tracer.domain)
     else:
         step = cells * grid.cell
     fld.step = step

@@ -12,16 +12,18 @@ Pure numpy.
 """
 
 import math
+from functools import partial
 
 import numpy as np
 
 from ..geometry import dot3
 from .simplification import (
     DEFAULT_TOLERANCE_PX,
+    _is_shared,
+    _keep_leaves,
     _shares,
     _zeros,
     camera_footprints,
-    greedy_keep,
     in_chunks,
     polyline_measures,
     segments_from_points,
@@ -128,7 +130,7 @@ class RaySampler:
         ``lo`` and ``hi`` ((S, 3) float64) hold no geometry (``Occupancy.any_between``),
         or None. With it (and ``bounds``), a traced field's segments that lie in empty
         space for a whole lattice leaf come out with ``Segments.castable`` False.
-    processes : int, forked workers that share the lattice's simplification (the same
+    processes : int, worker processes that share the lattice's simplification (the same
         result in any number).
     """
 
@@ -181,18 +183,9 @@ class RaySampler:
         rows = [idx[y0, x0], idx[y0, x1], idx[y1, x0], idx[y1, x1]]
         shared = _shares(len(x0), processes)
         self.leaf_keep = _zeros((len(x0), k), bool, shared)
-
-        def keep_leaves(part, stop):
-            corners = [c[part[0] : part[1]] for c in rows]
-            self.leaf_keep[part[0] : part[1]] = greedy_keep(
-                np.maximum.reduce([seglen[c] for c in corners]),
-                np.maximum.reduce([turn[c] for c in corners]),
-                np.minimum.reduce([tol[c] for c in corners]),
-                np.maximum.reduce([last[c] for c in corners]),
-                stop,
-            )
-
-        in_chunks(keep_leaves, len(x0), processes if shared else 1, should_stop)
+        shared = shared and _is_shared(self.leaf_keep)
+        keep = partial(_keep_leaves, rows, seglen, turn, tol, last, self.leaf_keep)
+        in_chunks(keep, len(x0), processes if shared else 1, should_stop)
         # the same schedule, ragged: leaf n keeps vertices kept_k[kept_at[n]:kept_at[n + 1]]
         leaf_of_kept, self.kept_k = np.nonzero(self.leaf_keep)
         self.kept_n = np.bincount(leaf_of_kept, minlength=len(self.leaf_keep))

@@ -12,12 +12,13 @@ Pure numpy.
 """
 
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 
 from ..diagnostics import check_stop
 from ..geometry import dot3
-from ..parallel import STALL_SECONDS, beat, forked_map, shared_array
+from ..runtime import runtime
 
 # Turning below this (radians) is float32 noise of the stored vertices, not a bend.
 NOISE = 1e-4
@@ -29,7 +30,7 @@ CHUNK = 16384
 # Vertices measured at once: temporaries of a few MB stay in the caches (the demo's 38k
 # rays of 418 vertices measured in 1.7 s this way, 4.8 s in chunks of CHUNK rays).
 MEASURE_POINTS = 1 << 17
-# Parts per worker when chunks go to forked workers (they finish together).
+# Parts per worker when chunks go to worker processes (they finish together).
 PARTS_PER_WORKER = 4
 
 
@@ -108,7 +109,7 @@ def polyline_measures(
     clearance : callable (..., 3) points -> (...,) float64, a lower bound of their
         distance to any geometry, world units (``Occupancy.clearance``), or None: the
         distance to ``bounds`` is used.
-    processes : int, forked workers sharing the chunks of rays (``in_chunks``).
+    processes : int, worker processes sharing the chunks of rays (``in_chunks``).
 
     Returns
     -------
@@ -125,60 +126,83 @@ def polyline_measures(
     seglen = _zeros((r, max(k - 1, 0)), np.float32, shared)
     turn = _zeros((r, max(k - 2, 0)), np.float32, shared)
     tol = _zeros((r, k), np.float32, shared)
-
-    step = max(1, MEASURE_POINTS // max(k, 1))
-
-    def measure(rows, stop):
-        for a in range(rows[0], rows[1], step):
-            check_stop(stop)
-            b = min(a + step, rows[1])
-            v = np.asarray(vertices[a:b], dtype=np.float64)
-            d = v[:, 1:] - v[:, :-1]
-            n = np.sqrt(dot3(d, d))
-            seglen[a:b] = n
-            if k >= 3:
-                u = d / np.maximum(n, 1e-30)[..., None]
-                t = np.arccos(np.clip(dot3(u[:, :-1], u[:, 1:]), -1.0, 1.0))
-                t[t < NOISE] = 0.0
-                turn[a:b] = t
-            far = box_distance(v, bounds) if clearance is None else clearance(v)
-            tol[a:b] = np.maximum(footprint(v, eyes, angles) * tol_px, 0.5 * far)
-
-    in_chunks(measure, r, processes if shared else 1, should_stop)
+    shared = shared and all(_is_shared(a) for a in (seglen, turn, tol))
+    fill = partial(_measure, vertices, eyes, angles, tol_px, bounds, clearance, seglen, turn, tol)
+    in_chunks(fill, r, processes if shared else 1, should_stop)
     return seglen, turn, tol
+
+
+def _measure(vertices, eyes, angles, tol_px, bounds, clearance, seglen, turn, tol, rows, stop):
+    """``polyline_measures`` of rays rows[0] .. rows[1] - 1, written into ``seglen``,
+    ``turn`` and ``tol``."""
+    k = vertices.shape[1]
+    step = max(1, MEASURE_POINTS // max(k, 1))
+    for a in range(rows[0], rows[1], step):
+        check_stop(stop)
+        b = min(a + step, rows[1])
+        v = np.asarray(vertices[a:b], dtype=np.float64)
+        d = v[:, 1:] - v[:, :-1]
+        n = np.sqrt(dot3(d, d))
+        seglen[a:b] = n
+        if k >= 3:
+            u = d / np.maximum(n, 1e-30)[..., None]
+            t = np.arccos(np.clip(dot3(u[:, :-1], u[:, 1:]), -1.0, 1.0))
+            t[t < NOISE] = 0.0
+            turn[a:b] = t
+        far = box_distance(v, bounds) if clearance is None else clearance(v)
+        tol[a:b] = np.maximum(footprint(v, eyes, angles) * tol_px, 0.5 * far)
 
 
 def in_chunks(fill, n, processes=1, should_stop=None):
     """Call ``fill((a, b), stop)`` over consecutive ranges of ``range(n)`` (at most CHUNK
-    long): in forked workers when ``processes`` > 1, ``PARTS_PER_WORKER`` ranges each,
-    with ``stop`` = ``parallel.beat`` (``fill`` then writes into arrays made with
-    ``parallel.shared_array`` before the call; the parent asks ``should_stop`` while it
-    waits); else, or where the work cannot be shared, in this process, with ``stop`` =
-    ``should_stop``, also asked before each range (raises ``Cancelled``)."""
+    long): in worker processes when ``processes`` > 1, ``PARTS_PER_WORKER`` ranges each,
+    with ``stop`` the worker's ``runtime.Context`` (``fill`` is then a picklable task
+    that writes into arrays made with ``runtime().shared_array``; a range whose worker
+    was given up is filled here); else in this process, with ``stop`` = ``should_stop``,
+    also asked before each range (raises ``Cancelled``)."""
     size = CHUNK
     if processes > 1:
         size = min(CHUNK, max(1, -(-n // (processes * PARTS_PER_WORKER))))
     parts = [(a, min(a + size, n)) for a in range(0, n, size)]
     if processes > 1 and len(parts) > 1:
-
-        def task(part):
-            fill(part, beat)
-
-        shared = forked_map(task, parts, processes, should_stop, STALL_SECONDS)
-        if shared is not None:
-            return
+        runtime().map(fill, parts, processes, should_stop)
+        return
     for part in parts:
         check_stop(should_stop)
         fill(part, should_stop)
 
 
 def _shares(rows, processes):
-    """Whether work over ``rows`` rays goes to forked workers (more than one chunk)."""
+    """Whether work over ``rows`` rays goes to worker processes (more than one chunk)."""
     return processes > 1 and rows > CHUNK
 
 
 def _zeros(shape, dtype, shared):
-    return shared_array(shape, dtype) if shared else np.zeros(shape, dtype)
+    """Zeros, in shared memory when ``shared`` (and shared memory is to be had)."""
+    if shared:
+        try:
+            return runtime().shared_array(shape, dtype)
+        except OSError:  # no shared memory: the work stays in this process
+            pass
+    return np.zeros(shape, dtype)
+
+
+def _is_shared(array):
+    return runtime().shared.handle(array) is not None
+
+
+def _keep_leaves(rows, seglen, turn, tol, last, leaf_keep, part, stop):
+    """The leaf schedules of leaves part[0] .. part[1] - 1, written into ``leaf_keep``:
+    the greedy pass over the largest turns and lengths, and the smallest tolerances, of
+    each leaf's four corner rays (``rows``, four (L,) index arrays)."""
+    corners = [c[part[0] : part[1]] for c in rows]
+    leaf_keep[part[0] : part[1]] = greedy_keep(
+        np.maximum.reduce([seglen[c] for c in corners]),
+        np.maximum.reduce([turn[c] for c in corners]),
+        np.minimum.reduce([tol[c] for c in corners]),
+        np.maximum.reduce([last[c] for c in corners]),
+        stop,
+    )
 
 
 def greedy_keep(seglen, turn, tol, last, should_stop=None):
