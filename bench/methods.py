@@ -57,14 +57,31 @@ def _commit():
     return (head + ("+" if dirty else "")) or None
 
 
+def _workers_peak_mb():
+    """The largest peak resident size of a worker process, MB: the runtime's workers stay
+    alive (Linux's /proc tells their peaks), ended ones are counted by rusage."""
+    from multiscale_camera.core.runtime import runtime
+
+    peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss  # kB
+    for pid in runtime().pids():
+        try:
+            with open(f"/proc/{pid}/status") as status:
+                for line in status:
+                    if line.startswith("VmHWM:"):
+                        peak = max(peak, int(line.split()[1]))
+        except OSError:
+            pass
+    return round(peak / 1024, 1)
+
+
 def run_one(rig_name, method, quality, width, height):
     """Build one field in this process; return its row (a dict)."""
     from fixtures import rigs
     from multiscale_camera.core.errors import RigError
     from multiscale_camera.core.geometry import Rig
     from multiscale_camera.core.methods import prepare, settings_for
-    from multiscale_camera.core.parallel import cores
     from multiscale_camera.core.quality import build_report
+    from multiscale_camera.core.runtime import cores
 
     cams, masks = getattr(rigs, rig_name)(width, height)
     settings = settings_for(quality)
@@ -96,9 +113,9 @@ def run_one(rig_name, method, quality, width, height):
         "conflicts": report["conflicts"],
         "warnings": report["warnings"],
         "peak_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
-        # the largest worker process that shared the trace (forked: it shares the
-        # parent's pages until it writes them, so this overstates what it added)
-        "peak_mb_worker": round(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024, 1),
+        # the largest worker process that shared the trace (its own interpreter and
+        # numpy, and the shared memory of the tracer's grids it mapped)
+        "peak_mb_worker": _workers_peak_mb(),
     }
 
 

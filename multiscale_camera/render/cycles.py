@@ -36,8 +36,8 @@ from dataclasses import dataclass, replace
 import bpy
 import numpy as np
 
-from ..core import parallel
 from ..core.errors import Cancelled
+from ..core.runtime import gave_up, runtime
 from ..io.exr import ExrError
 from .cycles_rays import PAD, pinhole_blocks, pinhole_classes, write_tables
 from .cycles_shader import compile_shader, cycles_module
@@ -156,14 +156,14 @@ def render(engine, depsgraph, frame):
 
     try:
         engine.update_stats("", "Multiscale: marching rays for Cycles")
-        given_up = parallel.given_up()
         try:
-            tables = ray_tables(
-                frame, engine.test_break, progress=lambda f: engine.update_progress(0.2 * f)
-            )
+            with runtime().journal() as runs:  # what the march's workers did
+                tables = ray_tables(
+                    frame, engine.test_break, progress=lambda f: engine.update_progress(0.2 * f)
+                )
         except Cancelled:
             return report
-        if parallel.given_up() > given_up:
+        if gave_up(runs):
             engine.report({"WARNING"}, f"Multiscale: {WORKERS_GIVEN_UP}")
         lap("march")
         if engine.test_break():

@@ -11,13 +11,15 @@ with the scene's box and occupancy culling, one tile of rows at a time.
 """
 
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 
 from ..core.geometry import RayBundle
-from ..core.parallel import STALL_SECONDS, forked_map, shared_array
+from ..core.runtime import runtime
 from ..core.sampling import Segments
 from . import pipeline, workers
+from .processes import blender_launcher, frame_here, portable
 from .raycast import bundle_segments, march
 
 # A handed-on ray starts at least this fraction of the scene's size before its hit: far
@@ -151,12 +153,11 @@ def ray_tables(frame, should_stop=None, progress=None, keep_polylines=False):
 
     Parameters
     ----------
-    frame : pipeline.Frame; its tiles of rows are marched in its worker processes
-        (``workers.worker_count(frame.processes)``, into shared tables) when the image
-        has ``workers.MIN_RAYS`` pixels or more, else here.
+    frame : pipeline.Frame; its tiles of rows are marched in render worker processes
+        (``workers.worker_count(frame.processes)``, into shared tables; ``processes``)
+        when the image has ``workers.MIN_RAYS`` pixels or more, else here.
     should_stop : callable -> bool (raises ``Cancelled``).
-    progress : callable(fraction) or None, called after each tile of rows (once at the
-        end when workers marched them).
+    progress : callable(fraction) or None, called after each tile of rows.
     keep_polylines : bool, also return the simplified polylines (``Polylines``); they
         are made here.
 
@@ -172,58 +173,82 @@ def ray_tables(frame, should_stop=None, progress=None, keep_polylines=False):
     shared = processes > 1 and width * height >= workers.MIN_RAYS and len(tiles) > 1
 
     def table(extra, dtype, fill):
-        out = shared_array((*shape, *extra), dtype) if shared else np.empty((*shape, *extra), dtype)
+        out = None
+        if shared:
+            try:
+                out = runtime().shared_array((*shape, *extra), dtype)
+            except OSError:  # no shared memory to be had: one array here is as good
+                pass
+        out = np.empty((*shape, *extra), dtype) if out is None else out
         out[...] = fill
         return out
 
-    origin = table((3,), np.float64, 0.0)
-    direction = table((3,), np.float64, 0.0)
-    distance = table((), np.float64, np.inf)
-    depth = table((), np.float64, np.inf)
-    hit = table((), bool, False)
-    membership = table((), np.float32, 0.0)
-    index = table((), np.float32, 0.0)
-    lines = []
-
-    def fill(tile, stop=None):
-        """March rows tile[0] .. tile[1] - 1 into the tables; their segment casts."""
-        row0, row1 = tile
-        iy, ix = (a.ravel() for a in np.mgrid[row0:row1, 0:width])
-        seg = frame.sampler.segments(ix + 0.5, iy + 0.5, ix, iy)
-        hits = march(frame.tree, seg, stop, frame.bounds, frame.geometry, frame.occupancy)
-        o, d, t = first_hit_segments(seg, hits, START_MARGIN * frame.scale)
-        rows = slice(row0, row1)
-        origin[rows] = o.reshape(row1 - row0, width, 3)
-        direction[rows] = d.reshape(row1 - row0, width, 3)
-        distance[rows] = t.reshape(row1 - row0, width)
-        depth[rows] = np.where(hits.hit, seg.start_depth + hits.distance, np.inf).reshape(
-            row1 - row0, width
+    out = (
+        table((3,), np.float64, 0.0),  # origin
+        table((3,), np.float64, 0.0),  # direction
+        table((), np.float64, np.inf),  # distance
+        table((), np.float64, np.inf),  # depth
+        table((), bool, False),  # hit
+        table((), np.float32, 0.0),  # membership
+        table((), np.float32, 0.0),  # object index
+    )
+    shared = shared and runtime().shared.handle(out[0]) is not None
+    here = partial(_march_here, frame, out, keep_polylines)
+    if shared:
+        # in render workers (one per core by default) that write into the shared tables;
+        # a tile whose worker was given up is marched here
+        task = partial(_march_tile, portable(frame), out)
+        run = runtime().run(
+            task, tiles, processes, should_stop, launcher=blender_launcher(), local=here
         )
-        hit[rows] = hits.hit.reshape(row1 - row0, width)
-        membership[rows] = seg.membership.reshape(row1 - row0, width)
-        tile_index = np.zeros(len(seg), dtype=np.float32)
-        tile_index[hits.hit] = frame.geometry.pass_index[hits.triangle[hits.hit]]
-        index[rows] = tile_index.reshape(row1 - row0, width)
-        if keep_polylines:
-            lines.append(_polylines(frame.field.rays(ix, iy), seg, frame.sampler.reach))
-        return hits.casts
-
-    # in forked workers (one per core by default) that write into shared tables, or here
-    counts = forked_map(fill, tiles, processes, should_stop, STALL_SECONDS) if shared else None
-    if counts is not None and progress is not None:
-        progress(1.0)
-    if counts is None:
-        counts = []
-        for tile in tiles:
-            counts.append(fill(tile, should_stop))
-            if progress is not None:
-                progress(tile[1] / height)
+    else:
+        run = ((index, here(tile, should_stop)) for index, tile in enumerate(tiles))
+    counts, lines, rows = [0] * len(tiles), [None] * len(tiles), 0
+    for index, (casts, polylines) in run:
+        counts[index], lines[index] = casts, polylines
+        rows += tiles[index][1] - tiles[index][0]
+        if progress is not None:
+            progress(rows / height)
     casts = int(sum(counts))
     frame.casts += casts
-    tables = RayTables(origin, direction, distance, depth, hit, membership, index, casts)
+    tables = RayTables(*out, casts)
     if not keep_polylines:
         return tables
     return tables, _concatenate(lines)
+
+
+def _march_tile(frame, out, tile, context):
+    """In a render worker: ``_march_here`` with the frame's tree built there."""
+    return _march_here(frame_here(frame, context), out, False, tile, context)
+
+
+def _march_here(frame, out, keep_polylines, tile, stop=None):
+    """March rows tile[0] .. tile[1] - 1 of ``frame`` into the tables ``out`` (origin,
+    direction, distance, depth, hit, membership, object index). Returns (segment
+    casts, Polylines of the tile or None)."""
+    origin, direction, distance, depth, hit, membership, index = out
+    width = frame.size[0]
+    row0, row1 = tile
+    iy, ix = (a.ravel() for a in np.mgrid[row0:row1, 0:width])
+    seg = frame.sampler.segments(ix + 0.5, iy + 0.5, ix, iy)
+    hits = march(frame.tree, seg, stop, frame.bounds, frame.geometry, frame.occupancy)
+    o, d, t = first_hit_segments(seg, hits, START_MARGIN * frame.scale)
+    rows = slice(row0, row1)
+    origin[rows] = o.reshape(row1 - row0, width, 3)
+    direction[rows] = d.reshape(row1 - row0, width, 3)
+    distance[rows] = t.reshape(row1 - row0, width)
+    depth[rows] = np.where(hits.hit, seg.start_depth + hits.distance, np.inf).reshape(
+        row1 - row0, width
+    )
+    hit[rows] = hits.hit.reshape(row1 - row0, width)
+    membership[rows] = seg.membership.reshape(row1 - row0, width)
+    tile_index = np.zeros(len(seg), dtype=np.float32)
+    tile_index[hits.hit] = frame.geometry.pass_index[hits.triangle[hits.hit]]
+    index[rows] = tile_index.reshape(row1 - row0, width)
+    lines = None
+    if keep_polylines:
+        lines = _polylines(frame.field.rays(ix, iy), seg, frame.sampler.reach)
+    return hits.casts, lines
 
 
 def _polylines(bundle, seg, reach):

@@ -372,12 +372,12 @@ def test_tiled_cycles_render_is_not_lost(empty_scene, tmp_path):
     np.testing.assert_array_equal(tiled["IndexOB"], whole["IndexOB"])
 
 
-@pytest.mark.skipif(workers.fork_context() is None, reason="no fork on this platform")
 def test_handoff_says_when_its_march_workers_were_given_up(
     empty_scene, tmp_path, monkeypatch, capfd
 ):
     """The hand-off's tables, marched in workers that stalled, were marched again in
     Blender's process without a word; the render now says why it was slow."""
+    from multiscale_camera.core.runtime import pool
     from multiscale_camera.render import pipeline, tables
 
     scene = empty_scene
@@ -388,17 +388,16 @@ def test_handoff_says_when_its_march_workers_were_given_up(
     scene.render.threads = 2
     monkeypatch.setattr(workers, "MIN_RAYS", 0)
     monkeypatch.setattr(pipeline, "rows_per_tile", lambda width, rays=0, samples=1: 8)
-    monkeypatch.setattr(tables, "STALL_SECONDS", 0.5)
-    parent, march = os.getpid(), tables.march
-
-    def march_that_hangs_in_workers(*args):
-        if os.getpid() != parent:
-            time.sleep(30)
-        return march(*args)
-
-    monkeypatch.setattr(tables, "march", march_that_hangs_in_workers)
+    monkeypatch.setattr(pool, "STALL_SECONDS", 0.5)
+    # the workers' tiles hang without a beat (the tiles marched here do not)
+    monkeypatch.setattr(tables, "_march_tile", _hang)
     start = time.perf_counter()
     passes = render(scene, tmp_path / "a.exr", "MULTISCALE")
     assert time.perf_counter() - start < 30.0
     assert f"Multiscale: {pipeline.WORKERS_GIVEN_UP}" in capfd.readouterr().out
     assert set(np.unique(passes["IndexOB"])) >= {1.0, 2.0, 3.0}
+
+
+def _hang(*args):
+    """A render worker's tile that neither ends for half a minute nor beats."""
+    time.sleep(30)

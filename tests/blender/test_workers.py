@@ -1,16 +1,17 @@
-"""Tiles in forked worker processes give the same image as in-process, and Esc stops them."""
+"""Tiles in render worker processes give the same image as in-process, and Esc stops them."""
 
+import os
 import time
+from functools import partial
 
 import bpy
 import numpy as np
 import pytest
 
 from fixtures.blender.scenes import two_camera_scene
-from multiscale_camera.core import parallel
 from multiscale_camera.core.errors import Cancelled
-from multiscale_camera.core.runtime import pool
-from multiscale_camera.render import pipeline, workers
+from multiscale_camera.core.runtime import Launcher, cores, pool, runtime
+from multiscale_camera.render import pipeline, processes, workers
 
 from ..unit.runtime_tasks import InWorkers
 
@@ -27,7 +28,6 @@ def collect(frame, processes, should_stop=None):
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(workers.fork_context() is None, reason="no fork on this platform")
 def test_worker_processes_render_the_same_image(empty_scene, monkeypatch):
     two_camera_scene(empty_scene, 64, 48)
     empty_scene.multiscale.samples = 2
@@ -45,7 +45,6 @@ def test_worker_processes_render_the_same_image(empty_scene, monkeypatch):
     assert (frame.casts, frame.shadow_casts, frame.rays) == casts
 
 
-@pytest.mark.skipif(workers.fork_context() is None, reason="no fork on this platform")
 def test_stop_request_ends_the_workers(empty_scene, monkeypatch):
     two_camera_scene(empty_scene, 64, 48)
     monkeypatch.setattr(workers, "MIN_RAYS", 0)
@@ -61,16 +60,20 @@ def test_stop_request_ends_the_workers(empty_scene, monkeypatch):
             frame, pipeline.tiles(frame), 2, stop_after_two_tiles
         ):
             got.append(rows)
-    assert len(got) == 2 and workers._FRAME is None
+    assert len(got) == 2
+    # the workers stopped their tiles and stayed: the next render starts none
+    with runtime().journal() as runs:
+        assert len(collect(frame, 2)) == len(pipeline.tiles(frame))
+    assert runs[0].started == 0 and runs[0].in_workers == len(pipeline.tiles(frame))
 
 
-@pytest.mark.skipif(workers.fork_context() is None, reason="no fork on this platform")
 def test_stuck_workers_do_not_stop_esc(empty_scene, monkeypatch):
     """The tile loop used to wait on its workers without asking whether to stop: a
     worker stuck on a lock (a forked copy of a threaded host can be) froze the render,
     Esc or not. The loop now asks while it waits."""
     two_camera_scene(empty_scene, 64, 48)
     monkeypatch.setattr(workers, "MIN_RAYS", 0)
+    monkeypatch.setattr(pipeline, "rows_per_tile", lambda width, rays=0, samples=1: 8)
     monkeypatch.setattr(workers, "_render_tile", _hang)
     frame = frame_of(empty_scene)
     start = time.perf_counter()
@@ -79,35 +82,34 @@ def test_stuck_workers_do_not_stop_esc(empty_scene, monkeypatch):
     assert time.perf_counter() - start < 3.0
 
 
-def test_without_fork_tiles_render_in_process(empty_scene, monkeypatch):
+def test_without_worker_processes_tiles_render_in_process(empty_scene, monkeypatch):
     two_camera_scene(empty_scene, 64, 48)
     monkeypatch.setattr(workers, "MIN_RAYS", 0)
-    monkeypatch.setattr(workers, "fork_context", lambda: None)
-    monkeypatch.setattr(
-        parallel.multiprocessing, "get_context", lambda *a: pytest.fail("no pool without fork")
-    )
+    monkeypatch.setattr(pipeline, "rows_per_tile", lambda width, rays=0, samples=1: 8)
+    missing = Launcher("missing blender", ("/nonexistent/blender", "-b", "--python-expr"))
+    monkeypatch.setattr(workers, "blender_launcher", lambda: missing)
     frame = frame_of(empty_scene)
     out = collect(frame, 4)
     assert sorted(out) == pipeline.tiles(frame)
     assert frame.rays == 64 * 48
+    assert any(n.startswith(workers.WORKERS_UNUSED) for n in frame.notices)
 
 
-def test_when_no_process_can_start_tiles_render_in_process(empty_scene, monkeypatch):
+def test_without_shared_memory_tiles_render_in_process(empty_scene, monkeypatch):
     two_camera_scene(empty_scene, 64, 48)
     monkeypatch.setattr(workers, "MIN_RAYS", 0)
 
-    def no_pool(*args, **kwargs):
-        raise OSError(11, "Resource temporarily unavailable")
+    def no_memory(*args, **kwargs):
+        raise OSError(28, "No space left on device")
 
-    monkeypatch.setattr(workers, "ProcessPoolExecutor", no_pool)
+    monkeypatch.setattr(workers, "shared_passes", no_memory)
+    monkeypatch.setattr(pool, "Worker", lambda *a: pytest.fail("no worker without passes"))
     frame = frame_of(empty_scene)
     out = collect(frame, 2)
     assert sorted(out) == pipeline.tiles(frame)
     assert frame.rays == 64 * 48
-    assert workers._FRAME is None
 
 
-@pytest.mark.skipif(workers.fork_context() is None, reason="no fork on this platform")
 def test_a_dead_worker_does_not_hang_the_render(empty_scene, monkeypatch):
     """A worker that dies (here: every one, at its first tile) used to leave the pool
     waiting forever; the tiles now finish in Blender's process, with a notice."""
@@ -125,26 +127,47 @@ def test_a_dead_worker_does_not_hang_the_render(empty_scene, monkeypatch):
 
 
 def test_tiles_take_one_worker_per_core_unless_the_threads_are_fixed():
-    assert workers.worker_count(0) == parallel.cores() and workers.worker_count(3) == 3
+    assert workers.worker_count(0) == cores() and workers.worker_count(3) == 3
 
 
-def _die(rows):
-    """A worker's tile that kills its process (picklable by name, as pool tasks must be)."""
+def test_render_workers_have_mathutils_and_keep_the_frames_tree(empty_scene):
+    """Render workers are background Blenders (here: Pythons that import bpy); a frame's
+    tree, sent as its triangles, is built there once and kept for the next run."""
+    from multiscale_camera.core.runtime.worker import probe
+
+    launcher = processes.blender_launcher()
+    probes = runtime().map(probe, [0, 1], 2, launcher=launcher).results
+    assert all(bpy_there for *_rest, bpy_there in probes)
+    two_camera_scene(empty_scene, 64, 48)
+    frame = frame_of(empty_scene)
+    task = partial(_tree_id, processes.portable(frame))
+    first = runtime().map(task, range(4), 2, launcher=launcher).results
+    again = runtime().map(task, range(4), 2, launcher=launcher).results
+    assert all(pid != os.getpid() for pid, _tree in first)
+    assert dict(first) == dict(again)  # the same tree objects, in the same workers
+
+
+def _tree_id(frame, item, context):
+    """(pid, id of the frame's tree) in the process that runs it."""
+    return os.getpid(), id(processes.frame_here(frame, context).tree)
+
+
+def _die(*args):
+    """A worker's tile that kills its process (found by name, as tasks must be)."""
     import os
 
     os._exit(3)
 
 
-def _hang(rows):
-    """A worker's tile that does not end for half a minute (stopped by the pool's end)."""
+def _hang(*args):
+    """A worker's tile that does not end for half a minute, nor beats (ended by the
+    runtime)."""
     time.sleep(30)
 
 
-@pytest.mark.skipif(workers.fork_context() is None, reason="no fork on this platform")
 def test_ray_tables_marched_in_workers_are_the_same(empty_scene, monkeypatch):
-    """The Cycles hand-off's tables, marched in forked workers into shared memory, equal
+    """The Cycles hand-off's tables, marched in render workers into shared memory, equal
     the tables marched in-process."""
-    from multiscale_camera.core import parallel as par
     from multiscale_camera.render import tables
 
     two_camera_scene(empty_scene, 64, 48)
@@ -152,31 +175,27 @@ def test_ray_tables_marched_in_workers_are_the_same(empty_scene, monkeypatch):
     monkeypatch.setattr(pipeline, "rows_per_tile", lambda width, rays=0, samples=1: 5)
     frame = frame_of(empty_scene)
     frame.processes = 1
-    alone = tables.ray_tables(frame)
+    with runtime().journal() as runs:
+        alone = tables.ray_tables(frame)
+    assert runs == []
     frame.processes = 2
-    results = []
-
-    def forked_map(*args, **kwargs):
-        results.append(par.forked_map(*args, **kwargs))
-        return results[-1]
-
-    monkeypatch.setattr(tables, "forked_map", forked_map)
-    pooled = tables.ray_tables(frame)
-    assert len(results) == 1 and len(results[0]) == 10  # every tile in a worker
+    with runtime().journal() as runs:
+        pooled = tables.ray_tables(frame)
+    assert len(runs) == 1 and runs[0].in_workers == len(runs[0].where) == 10
     assert pooled.casts == alone.casts > 0
     for name in ("origin", "direction", "distance", "depth", "hit", "membership"):
         np.testing.assert_array_equal(getattr(pooled, name), getattr(alone, name))
     np.testing.assert_array_equal(pooled.object_index, alone.object_index)
 
 
-@pytest.mark.skipif(workers.fork_context() is None, reason="no fork on this platform")
 def test_stalled_workers_give_way_to_the_render_in_process(empty_scene, monkeypatch):
     """Workers that do no tile for STALL_SECONDS (as forked copies of Blender's window
     did, spinning for good in its memory allocator) are ended and the tiles render in
     Blender's process, with a notice; the image is the one rendered in-process."""
     two_camera_scene(empty_scene, 64, 48)
     monkeypatch.setattr(workers, "MIN_RAYS", 0)
-    monkeypatch.setattr(workers, "STALL_SECONDS", 0.5)
+    monkeypatch.setattr(pipeline, "rows_per_tile", lambda width, rays=0, samples=1: 8)
+    monkeypatch.setattr(pool, "STALL_SECONDS", 0.5)
     frame = frame_of(empty_scene)
     alone = collect(frame, 1)
     monkeypatch.setattr(workers, "_render_tile", _hang)
@@ -202,12 +221,12 @@ def test_render_workers_are_one_per_core_headless_and_none_with_a_window(empty_s
     assert render_processes_of(empty_scene) == 3
 
 
-@pytest.mark.skipif(workers.fork_context() is None, reason="no fork on this platform")
 def test_render_says_when_its_workers_were_given_up(empty_scene, monkeypatch, tmp_path, capfd):
     """The engine reported its notices before the tile loop only, so a worker that died
     (or stalled) during it went unsaid; the warning now reaches the user."""
     two_camera_scene(empty_scene, 64, 48)
     monkeypatch.setattr(workers, "MIN_RAYS", 0)
+    monkeypatch.setattr(pipeline, "rows_per_tile", lambda width, rays=0, samples=1: 8)
     monkeypatch.setattr(workers, "_render_tile", _die)
     empty_scene.render.threads_mode = "FIXED"
     empty_scene.render.threads = 2

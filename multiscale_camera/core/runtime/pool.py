@@ -197,6 +197,7 @@ class Run:
         self._local = function if local is None else local
         self._stall = STALL_SECONDS if stall is None else float(stall)
         self.outcome = None
+        self._given_up = []
         self._iterator = self._iterate()
 
     def __iter__(self):
@@ -211,6 +212,11 @@ class Run:
         if self.outcome is None:  # closed before it started: nothing ran
             where = (-1,) * len(self._items)
             self.outcome = Outcome(self._launcher.name, where, 0, (), True, 0.0)
+
+    @property
+    def given_up(self):
+        """tuple of GivenUp: the workers given up so far (while the run goes on too)."""
+        return tuple(self._given_up)
 
     def _stop_asked(self):
         return self._should_stop is not None and self._should_stop()
@@ -240,7 +246,7 @@ class _State:
         self.where = [-1] * len(self.items)
         self.todo = deque(range(len(self.items)))
         self.here = deque()
-        self.given_up = []
+        self.given_up = run._given_up
         self.busy = {}  # worker -> index of its item
         self.seen = {}  # worker -> (time of its last progress, its beats then)
         self.used, self.dropped, self.loaded, self.copies = [], set(), set(), []
