@@ -99,9 +99,20 @@ def bare_rate(cast, origins, dirs, lengths, seconds=3.0):
 
 
 def cpu_with_children():
-    """CPU seconds of this process and its reaped children (the tile workers)."""
+    """CPU seconds of this process, its reaped children and the worker runtime's live
+    workers (they stay across renders: Linux's /proc tells their times)."""
+    from multiscale_camera.core.runtime import runtime
+
     t = os.times()
-    return t[0] + t[1] + t[2] + t[3]
+    seconds = t[0] + t[1] + t[2] + t[3]
+    for pid in runtime().pids():
+        try:
+            with open(f"/proc/{pid}/stat") as stat:
+                fields = stat.read().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        seconds += (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    return seconds
 
 
 def render_tiles(frame, should_stop=None, processes=1):
@@ -150,7 +161,7 @@ def main():
 
     import multiscale_camera
     from fixtures.blender.scenes import dense_scene
-    from multiscale_camera.adapters.scene import render_processes_of
+    from multiscale_camera.adapters.scene import processes_of
     from multiscale_camera.render import pipeline, workers
 
     multiscale_camera.register()
@@ -162,7 +173,7 @@ def main():
     # a cold render: the field built now (the disk cache too is emptied)
     pipeline.clear_fields()
     # the engine's own worker count (one per core unless the threads are fixed)
-    processes = workers.worker_count(render_processes_of(scene))
+    processes = workers.worker_count(processes_of(scene))
     t0, c0 = time.perf_counter(), cpu_with_children()
     frame = pipeline.prepare_frame(depsgraph)
     t1, c1 = time.perf_counter(), cpu_with_children()

@@ -1,7 +1,8 @@
 """Multiscale Camera: continuous multiscale images through bent camera rays.
 
 Only ``register`` and ``unregister`` live here; bpy is imported when they run, so the
-pure-numpy ``core`` package imports without Blender.
+pure-numpy ``core`` package imports without Blender (the worker processes of
+``core.runtime`` import this package and its core, and nothing else).
 """
 
 
@@ -18,5 +19,8 @@ def register():
 
 
 def unregister():
+    from .core import runtime
+
     for module in reversed(_modules()):
         module.unregister()
+    runtime.shutdown()  # the worker processes end with the add-on

@@ -2,7 +2,6 @@
 
 from dataclasses import replace
 
-import bpy
 import numpy as np
 
 from ..core.errors import RigError
@@ -19,23 +18,13 @@ EMPTY_LIST = (
 
 def processes_of(scene):
     """Worker processes the scene's Render > Performance > Threads asks for: its count
-    when Fixed, else 0 (one per core)."""
+    when Fixed, else 0 (one per core), for a field's build and a render alike, with
+    Blender's window open too: the workers start as fresh processes (``core.runtime``),
+    not as forked copies of Blender, so they cannot inherit a lock that another of its
+    threads held (forked copies of Blender 5.2's window once spun for good in its memory
+    allocator)."""
     render = scene.render
     return int(render.threads) if render.threads_mode == "FIXED" else 0
-
-
-def render_processes_of(scene):
-    """Worker processes for a render's tiles, simplification and ray tables: the count
-    when Threads is Fixed; else one per core (0) in background mode, and 1 (Blender's
-    own process) with Blender's window open. A render forks from its job thread while
-    the window's thread draws and allocates, and a forked copy can then hang on a lock
-    of the memory allocator that thread held (seen in Blender 5.2: the workers spun in
-    libtbbmalloc for good); the workers' watchdog would end them after
-    ``parallel.STALL_SECONDS``, but that wait is not worth taking by default."""
-    count = processes_of(scene)
-    if count or bpy.app.background:
-        return count
-    return 1
 
 
 def field_settings(scene):

@@ -9,7 +9,7 @@ from mathutils.bvhtree import BVHTree
 
 from ..adapters.lights import World, scene_lights, scene_world
 from ..adapters.meshes import SceneGeometry, scene_geometry
-from ..adapters.scene import render_processes_of
+from ..adapters.scene import processes_of
 from ..core.diagnostics import Diagnostics, Level
 from ..core.geometry import Rig
 from ..core.quality import obstruction_messages
@@ -54,7 +54,7 @@ class Frame:
     sampler : core.sampling.RaySampler. bounds : ((3,), (3,)) float64 padded scene box
         or None. samples : int, rays per pixel. filter_width : float, pixels.
     processes : int, worker processes for the tiles, the simplification and the ray
-        tables (0: one per core; ``adapters.scene.render_processes_of``).
+        tables (0: one per core; ``adapters.scene.processes_of``).
     occupancy : core.sampling.Occupancy of the triangles in ``bounds``, or None.
     volumes : render.volume.FrameVolumes.
     casts, shadow_casts, rays : int, counted as the render goes.
@@ -156,7 +156,7 @@ def prepare_frame(depsgraph, diag=None):
             diag.extend(obstruction_messages(rig, geometry_cast(geometry, tree)))
     settings = scene.multiscale
     tol = getattr(settings, "simplify_px", DEFAULT_TOLERANCE_PX)
-    processes = render_processes_of(scene)
+    processes = processes_of(scene)
     with diag.stage("simplify"), runtime().journal() as simplified:
         sampler = sampler_for(ray_field, tol, bounds, diag.should_stop, occupancy, processes)
     if gave_up(runs + simplified):  # the field's trace or the simplification

@@ -207,18 +207,22 @@ def test_stalled_workers_give_way_to_the_render_in_process(empty_scene, monkeypa
         np.testing.assert_array_equal(rescued[rows]["Combined"], alone[rows]["Combined"])
 
 
-def test_render_workers_are_one_per_core_headless_and_none_with_a_window(empty_scene, monkeypatch):
+def test_render_workers_are_one_per_core_headless_and_with_a_window(empty_scene, monkeypatch):
+    """Workers start as fresh processes, not forked copies of Blender: with its window
+    open too, a render takes one per core unless Threads are Fixed."""
     from types import SimpleNamespace
 
-    from multiscale_camera.adapters.scene import render_processes_of
+    from multiscale_camera.adapters.scene import processes_of
 
     empty_scene.render.threads_mode = "AUTO"
-    assert bpy.app.background and render_processes_of(empty_scene) == 0
+    assert bpy.app.background and processes_of(empty_scene) == 0
     monkeypatch.setattr(bpy, "app", SimpleNamespace(background=False))
-    assert render_processes_of(empty_scene) == 1
+    assert processes_of(empty_scene) == 0
     empty_scene.render.threads_mode = "FIXED"
     empty_scene.render.threads = 3
-    assert render_processes_of(empty_scene) == 3
+    assert processes_of(empty_scene) == 3
+    empty_scene.render.threads = 1
+    assert processes_of(empty_scene) == 1
 
 
 def test_render_says_when_its_workers_were_given_up(empty_scene, monkeypatch, tmp_path, capfd):

@@ -523,11 +523,10 @@ class Runtime:
             runs.append(outcome)
 
     def pids(self, launcher=None):
-        """list of int, the live workers of ``launcher``'s kind (default: plain Python)."""
-        launcher = python_launcher() if launcher is None else launcher
+        """list of int, the live workers of ``launcher``'s kind (default: of every kind)."""
         with self._lock:
-            pool = self._pools.get(launcher)
-        return [] if pool is None else pool.pids()
+            pools = list(self._pools.values())
+        return [pid for p in pools if launcher in (None, p.launcher) for pid in p.pids()]
 
     def shutdown(self):
         """End every worker and remove every shared-memory name."""
