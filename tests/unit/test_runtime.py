@@ -161,6 +161,10 @@ def test_large_arrays_travel_through_shared_memory_small_ones_in_the_message(rt)
         == [(float(grid.sum(dtype=np.float64)), "mmap")] * 2
     )
     assert rt.map(partial(tasks.total, small), [0, 1], 2).results[0][1] != "mmap"
+    # a strided view travels as its elements, in C order
+    view = grid[:, ::2].T
+    sent = rt.map(partial(tasks.total, view), [0, 1], 2).results
+    assert sent == [(float(view.sum(dtype=np.float64)), "mmap")] * 2
 
 
 def test_no_segments_are_left_behind(rt):

@@ -405,8 +405,9 @@ class _State:
             self.pool.checkin(self.used)
         for seg in self.copies:
             seg.unlink()
-            with contextlib.suppress(BufferError):
-                seg.buffer.close()
+            if seg.buffer is not None:
+                with contextlib.suppress(BufferError):
+                    seg.buffer.close()
         return Outcome(
             kind=self.run._launcher.name,
             where=tuple(self.where),

@@ -26,6 +26,9 @@ import numpy as np
 # what is left, and whose (macOS allows 31 characters a name).
 PREFIX = "msc"
 
+# Bytes written at a time into a segment (``Segment.holding``).
+WRITE_BYTES = 1 << 28
+
 if os.name == "nt":
     _posixshmem = None
 else:
@@ -52,8 +55,9 @@ class Segment:
 
     Attributes
     ----------
-    name : str. size : int, bytes. buffer : mmap.mmap of ``size`` bytes.
-    owner : bool, whether this process created it (and removes its name).
+    name : str. size : int, bytes. buffer : mmap.mmap of ``size`` bytes, or None when
+    this process does not map it (``holding``). owner : bool, whether this process
+    created it (and removes its name).
     """
 
     def __init__(self, name, size, buffer, owner):
@@ -89,6 +93,37 @@ class Segment:
             os.close(fd)
         _track(name, True)
         return cls(name, size, buffer, True)
+
+    @classmethod
+    def holding(cls, array):
+        """A new segment holding a copy of ``array``'s elements in C order (POSIX: written
+        through the file, which is faster than through a mapping, and not mapped here;
+        the segment's ``buffer`` is then None).
+
+        Raises
+        ------
+        OSError when the memory cannot be had.
+        """
+        data = memoryview(np.ascontiguousarray(array)).cast("B")
+        size = max(len(data), 1)
+        if _posixshmem is None:
+            seg = cls.create(size)
+            seg.buffer[: len(data)] = data
+            return seg
+        name = f"{PREFIX}{os.getpid()}_{secrets.token_hex(4)}"
+        fd = _posixshmem.shm_open("/" + name, os.O_CREAT | os.O_EXCL | os.O_RDWR, mode=0o600)
+        try:
+            os.ftruncate(fd, size)
+            done = 0
+            while done < len(data):
+                done += os.pwrite(fd, data[done : done + WRITE_BYTES], done)
+        except BaseException:
+            _posixshmem.shm_unlink("/" + name)
+            raise
+        finally:
+            os.close(fd)
+        _track(name, True)
+        return cls(name, size, None, True)
 
     @classmethod
     def attach(cls, name, size):
@@ -136,8 +171,8 @@ class Handle:
     """How an array in a segment travels to another process.
 
     segment : str, the segment's name. size : int, its bytes. offset : int, bytes from
-    the segment's start to the array's first element. shape, strides : tuples of int.
-    dtype : numpy dtype.
+    the segment's start to the array's first element. shape : tuple of int. strides :
+    tuple of int, or None for C order. dtype : numpy dtype.
     """
 
     segment: str

@@ -12,7 +12,7 @@ import struct
 
 import numpy as np
 
-from .shared import Handle, Segment, attach, handle_in
+from .shared import Handle, Segment, attach
 
 # The line a worker writes before its first message.
 MARKER = b"\x00multiscale-camera worker protocol 1\n"
@@ -110,10 +110,9 @@ def dump_payload(obj, shared, copies):
             return known[1]
         handle = shared.handle(array)
         if handle is None and array.nbytes >= INLINE_BYTES and not array.dtype.hasobject:
-            seg = Segment.create(array.nbytes)
+            seg = Segment.holding(array)
             copies.append(seg)
-            seg.array(array.shape, array.dtype)[...] = array
-            handle = handle_in(seg.array(array.shape, array.dtype), seg.buffer, seg.name)
+            handle = Handle(seg.name, seg.size, 0, array.shape, None, array.dtype)
         seen[id(array)] = (array, handle)
         return handle
 

@@ -64,6 +64,12 @@ def probe(item, context):
     return item, os.getpid(), context.in_worker, mine, "bpy" in sys.modules
 
 
+def touch(arrays, item, context):
+    """A task that reads every element of ``arrays`` (tuple of ndarrays): their float64
+    sums. What data costs to reach a worker (bench/workers.py)."""
+    return tuple(float(a.sum(dtype=np.float64)) for a in arrays)
+
+
 def serve(control_name):
     """The worker's loop (the bootstrap's last call); returns at the end of its input."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl+C in a terminal is the parent's
