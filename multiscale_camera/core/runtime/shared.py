@@ -50,6 +50,28 @@ def _track(name, register):
         pass
 
 
+def _new_name():
+    """A new segment name: PREFIX, this process's id, 8 random hex digits."""
+    return f"{PREFIX}{os.getpid()}_{secrets.token_hex(4)}"
+
+
+def _posix_segment(size, fill):
+    """(name, fill's result): a new POSIX segment of ``size`` bytes, ``fill(fd)`` run on
+    its open file; the name is removed again if either fails."""
+    name = _new_name()
+    fd = _posixshmem.shm_open("/" + name, os.O_CREAT | os.O_EXCL | os.O_RDWR, mode=0o600)
+    try:
+        os.ftruncate(fd, size)
+        result = fill(fd)
+    except BaseException:
+        _posixshmem.shm_unlink("/" + name)
+        raise
+    finally:
+        os.close(fd)
+    _track(name, True)
+    return name, result
+
+
 class Segment:
     """A named block of shared memory, mapped in this process.
 
@@ -77,21 +99,16 @@ class Segment:
         that a full /dev/shm fails here rather than with SIGBUS on a later write).
         """
         size = max(int(size), 1)
-        name = f"{PREFIX}{os.getpid()}_{secrets.token_hex(4)}"
         if _posixshmem is None:
+            name = _new_name()
             return cls(name, size, mmap.mmap(-1, size, tagname=name), True)
-        fd = _posixshmem.shm_open("/" + name, os.O_CREAT | os.O_EXCL | os.O_RDWR, mode=0o600)
-        try:
-            os.ftruncate(fd, size)
+
+        def mapped(fd):
             if hasattr(os, "posix_fallocate"):
                 os.posix_fallocate(fd, 0, size)
-            buffer = mmap.mmap(fd, size)
-        except BaseException:
-            _posixshmem.shm_unlink("/" + name)
-            raise
-        finally:
-            os.close(fd)
-        _track(name, True)
+            return mmap.mmap(fd, size)
+
+        name, buffer = _posix_segment(size, mapped)
         return cls(name, size, buffer, True)
 
     @classmethod
@@ -110,19 +127,13 @@ class Segment:
             seg = cls.create(size)
             seg.buffer[: len(data)] = data
             return seg
-        name = f"{PREFIX}{os.getpid()}_{secrets.token_hex(4)}"
-        fd = _posixshmem.shm_open("/" + name, os.O_CREAT | os.O_EXCL | os.O_RDWR, mode=0o600)
-        try:
-            os.ftruncate(fd, size)
+
+        def written(fd):
             done = 0
             while done < len(data):
                 done += os.pwrite(fd, data[done : done + WRITE_BYTES], done)
-        except BaseException:
-            _posixshmem.shm_unlink("/" + name)
-            raise
-        finally:
-            os.close(fd)
-        _track(name, True)
+
+        name, _ = _posix_segment(size, written)
         return cls(name, size, None, True)
 
     @classmethod
