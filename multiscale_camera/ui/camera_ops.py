@@ -74,11 +74,10 @@ class MULTISCALE_OT_camera_move(bpy.types.Operator):
         return {"FINISHED"}
 
 
-class MULTISCALE_OT_camera_select(bpy.types.Operator):
-    """Select this camera in the viewport and make it the active object"""
+class _ListedCamera:
+    """What the select and look-through buttons share: the camera of list item
+    ``index`` (the active one when -1), an error when the item has none."""
 
-    bl_idname = "multiscale.camera_select"
-    bl_label = "Select Camera"
     bl_options = {"REGISTER", "UNDO"}
 
     index: IntProperty(default=-1, options={"SKIP_SAVE"})
@@ -88,7 +87,16 @@ class MULTISCALE_OT_camera_select(bpy.types.Operator):
         if item is None or item.camera is None:
             self.report({"ERROR"}, "This list item has no camera: pick one first")
             return {"CANCELLED"}
-        obj = item.camera
+        return self.act(context, item.camera)
+
+
+class MULTISCALE_OT_camera_select(_ListedCamera, bpy.types.Operator):
+    """Select this camera in the viewport and make it the active object"""
+
+    bl_idname = "multiscale.camera_select"
+    bl_label = "Select Camera"
+
+    def act(self, context, obj):
         layer = context.view_layer
         if layer.objects.get(obj.name) is None:
             self.report({"ERROR"}, f"Camera '{obj.name}' is not in the current view layer")
@@ -103,21 +111,14 @@ class MULTISCALE_OT_camera_select(bpy.types.Operator):
         return {"FINISHED"}
 
 
-class MULTISCALE_OT_camera_view(bpy.types.Operator):
+class MULTISCALE_OT_camera_view(_ListedCamera, bpy.types.Operator):
     """Look through this camera: make it the scene camera and show its view"""
 
     bl_idname = "multiscale.camera_view"
     bl_label = "Look Through"
-    bl_options = {"REGISTER", "UNDO"}
 
-    index: IntProperty(default=-1, options={"SKIP_SAVE"})
-
-    def execute(self, context):
-        item = list_item(context, self.index)
-        if item is None or item.camera is None:
-            self.report({"ERROR"}, "This list item has no camera: pick one first")
-            return {"CANCELLED"}
-        context.scene.camera = item.camera
+    def act(self, context, obj):
+        context.scene.camera = obj
         space = getattr(context, "space_data", None)
         if space is not None and space.type == "VIEW_3D":
             space.region_3d.view_perspective = "CAMERA"
