@@ -18,7 +18,9 @@ import os
 import sys
 from dataclasses import dataclass, replace
 
+import bpy
 import numpy as np
+from mathutils.bvhtree import BVHTree
 
 from ..core.diagnostics import Diagnostics
 from ..core.runtime import Launcher
@@ -29,8 +31,6 @@ TREE_MEMO = "multiscale tree"
 
 def blender_launcher():
     """The runtime's Launcher of render workers (see the module's docstring)."""
-    import bpy
-
     binary = bpy.app.binary_path
     if binary and os.path.isfile(binary):
         prefix = (binary, "-b", "--factory-startup", "-noaudio", "--python-expr")
@@ -57,8 +57,6 @@ class TreeSource:
 
     def build(self):
         """The BVHTree of the triangles (as ``pipeline.scene_tree`` builds it)."""
-        from mathutils.bvhtree import BVHTree
-
         return BVHTree.FromPolygons(
             self.vertices.tolist(), self.triangles.tolist(), all_triangles=True
         )
