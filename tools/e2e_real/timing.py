@@ -6,9 +6,10 @@ Blender window or with ``blender -b`` (tools/e2e_real/timing.sh, ``make e2e-timi
 
 The field cache is cleared first, so the build is a real one. In the window, Compute
 Field runs as its button does (INVOKE_DEFAULT: a background build the window polls) and
-the render as F12 does (INVOKE_DEFAULT); the script waits on timers for each to end and
-quits Blender. Headless, both run as a script would. Writes the seconds, the report's
-headline figures and the machine's load to --out.
+the render as F12 does (INVOKE_DEFAULT), twice (the second with the render workers
+running); the script waits on timers for each to end and quits Blender. Headless, both
+run as a script would. Writes the seconds, the report's headline figures and the
+machine's load to --out.
 """
 
 import argparse
@@ -70,9 +71,10 @@ def background():
     RESULT["compute_seconds"] = round(time.perf_counter() - t, 2)
     RESULT["report"] = report()
     scene.render.filepath = os.path.join(os.path.dirname(ARGS.out), "timing_background.png")
-    t = time.perf_counter()
-    bpy.ops.render.render(write_still=True)
-    RESULT["render_seconds"] = round(time.perf_counter() - t, 2)
+    for key in ("render_seconds", "second_render_seconds"):
+        t = time.perf_counter()
+        bpy.ops.render.render(write_still=True)
+        RESULT[key] = round(time.perf_counter() - t, 2)
     write()
 
 
@@ -105,10 +107,17 @@ def window_steps():
             bpy.ops.render.render("INVOKE_DEFAULT")
         STATE["step"] = "rendering"
         return 0.05
-    if step == "rendering":
+    if step in ("rendering", "rendering again"):
         if "render_end" not in STATE:
             return 0.05
-        RESULT["render_seconds"] = round(STATE["render_end"] - STATE["t1"], 2)
+        key = "render_seconds" if step == "rendering" else "second_render_seconds"
+        RESULT[key] = round(STATE.pop("render_end") - STATE["t1"], 2)
+        if step == "rendering":  # again, its workers running: what a re-render costs
+            with override():
+                STATE["t1"] = time.perf_counter()
+                bpy.ops.render.render("INVOKE_DEFAULT")
+            STATE["step"] = "rendering again"
+            return 0.05
         write()
         bpy.ops.wm.quit_blender()
         return None

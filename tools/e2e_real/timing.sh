@@ -30,7 +30,7 @@ RB_DISPLAY=${RB_DISPLAY:-:99} "$RB/run.sh" --stop-xvfb || true
 python3 - "$OUT/timing-background.json" "$OUT/timing-window.json" <<'PY'
 import json, sys
 bg, win = (json.load(open(p)) for p in sys.argv[1:3])
-for key in ("compute_seconds", "render_seconds"):
+for key in ("compute_seconds", "render_seconds", "second_render_seconds"):
     print(f"{key}: window {win[key]} s, background {bg[key]} s, ratio {win[key] / bg[key]:.2f}")
 print("load averages: background", bg["load_average"], "window", win["load_average"])
 sys.exit(0 if "error" not in win else 1)
