@@ -113,14 +113,19 @@ def window_steps():
         key = "render_seconds" if step == "rendering" else "second_render_seconds"
         RESULT[key] = round(STATE.pop("render_end") - STATE["t1"], 2)
         if step == "rendering":  # again, its workers running: what a re-render costs
-            with override():
-                STATE["t1"] = time.perf_counter()
-                bpy.ops.render.render("INVOKE_DEFAULT")
-            STATE["step"] = "rendering again"
+            STATE["step"] = "render ended"
             return 0.05
         write()
         bpy.ops.wm.quit_blender()
         return None
+    if step == "render ended":
+        if bpy.app.is_job_running("RENDER"):  # the job ends just after render_complete
+            return 0.05
+        with override():
+            STATE["t1"] = time.perf_counter()
+            bpy.ops.render.render("INVOKE_DEFAULT")
+        STATE["step"] = "rendering again"
+        return 0.05
     return None
 
 
