@@ -11,6 +11,7 @@ import functools
 import os
 import shutil
 import subprocess
+import sys
 import tempfile
 from pathlib import Path
 
@@ -55,6 +56,20 @@ def run_blender(
             f"--- stdout ---\n{proc.stdout}\n--- stderr ---\n{proc.stderr}"
         )
     return proc
+
+
+def blender_modules_after(imports: str) -> tuple[int, str]:
+    """Run ``imports`` (Python statements) in a fresh interpreter from the repository
+    root; (exit code, output): non-zero when any of bpy, mathutils, bmesh or gpu got
+    imported (the output names them)."""
+    code = (
+        f"import sys; {imports}; "
+        "bad = sorted(m for m in sys.modules "
+        "if m.split('.')[0] in ('bpy', 'mathutils', 'bmesh', 'gpu')); "
+        "print(bad); sys.exit(1 if bad else 0)"
+    )
+    out = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True)
+    return out.returncode, out.stdout + out.stderr
 
 
 @pytest.fixture(scope="session")

@@ -4,7 +4,7 @@ import time
 
 import bpy
 
-from ..core.diagnostics import Diagnostics, Level
+from ..core.diagnostics import Diagnostics
 from ..core.errors import Cancelled, RigError, SolverDidNotConverge
 from . import cycles, pipeline, viewport, workers
 
@@ -57,11 +57,8 @@ class MultiscaleRenderEngine(bpy.types.RenderEngine):
     def say(self, diag, reported):
         """Report the messages ``diag`` has said since the first ``reported``; returns
         how many it has said in all."""
-        for message in diag.since(reported):
-            level = "ERROR" if message.level == Level.ERROR else "WARNING"
-            if message.level == Level.INFO:
-                level = "INFO"
-            self.report({level}, f"Multiscale: {message.text}")
+        for message in diag.since(reported):  # Level names are Blender's report types
+            self.report({message.level.name}, f"Multiscale: {message.text}")
         return len(diag.messages)
 
     def write_rows(self, passes, row0, row1, height, width):

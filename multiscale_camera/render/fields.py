@@ -115,6 +115,10 @@ class FieldBuild:
         except Exception as err:  # handed to the main thread, reported there
             self.error = err
 
+    def launch(self) -> None:
+        """Start the build's thread."""
+        self._thread.start()
+
     def alive(self) -> bool:
         return self._thread.is_alive()
 
@@ -222,7 +226,7 @@ class FieldService:
                 return running
             running.cancel()
         build = self._build = FieldBuild(request, measure)
-        build._thread.start()
+        build.launch()
         bpy.app.timers.register(self._poll, first_interval=POLL_SECONDS)
         return build
 

@@ -270,7 +270,7 @@ def test_background_build_hands_the_field_back_and_cancels(empty_scene, cache_di
     try:
         job = fields.FieldBuild(request, measure=True)
         job.cancel()  # Esc before the first check: the build stops, nothing is stored
-        job._thread.start()
+        job.launch()
         job._thread.join(60)
         assert job.cancelled and job.field is None
         assert service.finish(job) is None and told == []
