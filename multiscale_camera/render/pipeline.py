@@ -128,8 +128,7 @@ def prepare_frame(depsgraph, diag=None):
     scene = depsgraph.scene
     # volumes first: a missing or unusable volume file stops the render before the build
     volumes, volume_notices = prepare_volumes(depsgraph)
-    field_stage = diag.stage("field")
-    with field_stage, runtime().journal() as runs:  # what the field's workers did
+    with diag.stage("field"), runtime().journal() as runs:  # what the field's workers did
         result = SERVICE.get(SERVICE.request(scene), diag)
     if not result.built:  # said as "field (cached)" in the timings
         diag.seconds["field (cached)"] = diag.seconds.pop("field")
