@@ -3,6 +3,7 @@
 import time
 
 import bpy
+import numpy as np
 
 from ..core.diagnostics import Diagnostics
 from ..core.errors import Cancelled, RigError, SolverDidNotConverge
@@ -34,17 +35,17 @@ class MultiscaleRenderEngine(bpy.types.RenderEngine):
         for name, channels, chan_id, _kind in pipeline.PASSES[1:]:
             self.add_pass(name, channels, chan_id)
         processes = workers.worker_count(frame.processes)
+        shown = ShownRows(height, width)
         try:
             with diag.stage("render"):
                 for (row0, row1), passes in workers.render_tiles(
                     frame, pipeline.tiles(frame), processes, self.test_break
                 ):
-                    # each tile goes into the Render Result as soon as it is done
-                    self.write_rows(passes, row0, row1, height, width)
-                    self.update_progress(row1 / height)
-                    self.update_stats("", stats_line(frame, row1, height, diag))
+                    if shown.add(row0, row1, passes):
+                        self.show(shown, frame, diag)
                     # what the tile loop had to say (workers given up) is said at once
                     reported = self.say(diag, reported)
+                self.show(shown, frame, diag)
         except Cancelled:
             return
         seconds = time.perf_counter() - start
@@ -60,6 +61,17 @@ class MultiscaleRenderEngine(bpy.types.RenderEngine):
         for message in diag.since(reported):  # Level names are Blender's report types
             self.report({message.level.name}, f"Multiscale: {message.text}")
         return len(diag.messages)
+
+    def show(self, shown, frame, diag):
+        """Write the tiles ``shown`` holds into the Render Result, with the progress and
+        the status text."""
+        rows = shown.take()
+        if rows is None:
+            return
+        row0, row1, passes = rows
+        self.write_rows(passes, row0, row1, shown.height, shown.width)
+        self.update_progress(row1 / shown.height)
+        self.update_stats("", stats_line(frame, row1, shown.height, diag))
 
     def write_rows(self, passes, row0, row1, height, width):
         """Write image rows (row 0 at the top) into the Render Result (rows bottom-up)."""
@@ -93,6 +105,47 @@ class MultiscaleRenderEngine(bpy.types.RenderEngine):
     def update_render_passes(self, scene=None, renderlayer=None):
         for name, channels, chan_id, kind in pipeline.PASSES:
             self.register_pass(scene, renderlayer, name, channels, chan_id, kind)
+
+
+# Least seconds between two updates of the Render Result while tiles come in. Blender
+# redraws its window after each update (result, progress or status text); in a window
+# drawn by software OpenGL a redraw costs tens of milliseconds of CPU that the render's
+# workers need (measured on the demo: 0.7 CPU s of drawing per 4 s render at one
+# update a tile, docs/performance.md).
+SHOW_SECONDS = 1.0
+
+
+class ShownRows:
+    """Tiles done but not yet written into the Render Result: ``add`` them as they come
+    (in order, row 0 at the top) and ``take`` the rows they cover, at most once every
+    ``SHOW_SECONDS`` (the first tile at once).
+
+    height, width : int, the image's size in pixels.
+    """
+
+    def __init__(self, height, width, seconds=SHOW_SECONDS):
+        self.height, self.width, self.seconds = height, width, seconds
+        self.pending = []  # [(row0, row1, passes)], in order
+        self.last = None  # time.perf_counter() of the last take
+
+    def add(self, row0, row1, passes):
+        """Keep tile ``row0 .. row1 - 1``'s ``passes`` (dict name -> (rows, W, C)
+        float32); True when it is time to show what is kept."""
+        self.pending.append((row0, row1, passes))
+        now = time.perf_counter()
+        return self.last is None or now - self.last >= self.seconds
+
+    def take(self):
+        """(row0, row1, passes) of every kept tile, joined (None when none is kept)."""
+        if not self.pending:
+            return None
+        self.last = time.perf_counter()
+        tiles, self.pending = self.pending, []
+        if len(tiles) == 1:
+            return tiles[0]
+        names = tiles[0][2].keys()
+        passes = {name: np.concatenate([t[2][name] for t in tiles]) for name in names}
+        return tiles[0][0], tiles[-1][1], passes
 
 
 def stats_line(frame, row, height, diag):

@@ -14,6 +14,7 @@ from fixtures.blender.objects import add_camera, add_mesh, mask_image
 from fixtures.blender.scenes import two_camera_scene
 from multiscale_camera.adapters.masks import mask_from_image
 from multiscale_camera.core.quality import erode
+from multiscale_camera.render.engine import ShownRows
 from multiscale_camera.render.pipeline import MISS_DEPTH
 from tests.exr import read_passes
 
@@ -425,3 +426,24 @@ def test_scene_tree_is_reused_only_for_the_same_triangles(empty_scene):
     assert moved.tree is not first.tree
     hit = moved.tree.ray_cast((0.0, 0.0, 10.0), (0.0, 0.0, -1.0))
     assert abs(hit[0][2] - 2.5) < 1e-5  # the cube's top, moved up by 0.5
+
+
+def test_result_updates_are_joined_tiles_in_order():
+    """The engine shows tiles at most once a second: what it holds in between is written
+    as one block covering exactly the held rows, in order."""
+    rng = np.random.default_rng(3)
+    image = rng.random((10, 4, 3)).astype(np.float32)
+    tiles = [(0, 3), (3, 5), (5, 9), (9, 10)]
+    shown = ShownRows(10, 4, seconds=3600.0)
+    due = [shown.add(r0, r1, {"Combined": image[r0:r1]}) for r0, r1 in tiles[:1]]
+    assert due == [True]  # the first tile at once
+    first = shown.take()
+    assert first[:2] == (0, 3) and np.array_equal(first[2]["Combined"], image[0:3])
+    due = [shown.add(r0, r1, {"Combined": image[r0:r1]}) for r0, r1 in tiles[1:]]
+    assert due == [False, False, False]  # within the hour: held
+    row0, row1, passes = shown.take()
+    assert (row0, row1) == (3, 10)
+    assert np.array_equal(passes["Combined"], image[3:10])
+    assert shown.take() is None
+    eager = ShownRows(10, 4, seconds=0.0)
+    assert all(eager.add(r0, r1, {"Combined": image[r0:r1]}) for r0, r1 in tiles)
