@@ -3,7 +3,9 @@
 # a real Blender 5.2 window (Xvfb) and with `blender -b`, on the same machine
 # (../shared/tools/realblender; needs root). Each run clears the field cache first.
 # Writes out/e2e-real/timing-{window,background}.json and prints both, with the ratio
-# of window to background for the build and the render.
+# of window to background for the build and the renders (RENDERS of them, default 4: the
+# first starts the render workers), and the CPU seconds each render took in Blender's
+# process and in its workers, which the machine's other load does not change.
 set -euo pipefail
 REPO=$(cd "$(dirname "$0")/../.." && pwd)
 RB=${RB:-$(cd "$REPO/../shared/tools/realblender" 2>/dev/null && pwd || echo /work/shared/tools/realblender)}
@@ -19,19 +21,25 @@ rm -rf "$RB_HOME"
 
 echo "== background: $BLEND"
 "$RB/run.sh" -b "$BLEND" --python-exit-code 1 --python "$REPO/tools/e2e_real/timing.py" \
-  -- --out "$OUT/timing-background.json" > "$OUT/timing-background.log" 2>&1 \
+  -- --out "$OUT/timing-background.json" --renders "${RENDERS:-4}" > "$OUT/timing-background.log" 2>&1 \
   || { tail -30 "$OUT/timing-background.log"; exit 1; }
 
 echo "== window: $BLEND"
 RB_DISPLAY=${RB_DISPLAY:-:99} "$RB/run.sh" "$BLEND" --python "$REPO/tools/e2e_real/timing.py" \
-  -- --out "$OUT/timing-window.json" > "$OUT/timing-window.log" 2>&1 || true
+  -- --out "$OUT/timing-window.json" --renders "${RENDERS:-4}" > "$OUT/timing-window.log" 2>&1 || true
 RB_DISPLAY=${RB_DISPLAY:-:99} "$RB/run.sh" --stop-xvfb || true
 
 python3 - "$OUT/timing-background.json" "$OUT/timing-window.json" <<'PY'
 import json, sys
 bg, win = (json.load(open(p)) for p in sys.argv[1:3])
-for key in ("compute_seconds", "render_seconds", "second_render_seconds"):
-    print(f"{key}: window {win[key]} s, background {bg[key]} s, ratio {win[key] / bg[key]:.2f}")
+for key in ("compute_seconds", "render_seconds", "later_render_median_seconds"):
+    if key in win and key in bg:
+        print(f"{key}: window {win[key]} s, background {bg[key]} s, "
+              f"ratio {win[key] / bg[key]:.2f}")
+for name, run in (("background", bg), ("window", win)):
+    for i, r in enumerate(run.get("renders", []), 1):
+        print(f"{name} render {i}: {r['seconds']} s; CPU s: Blender {r['blender_cpu_seconds']}, "
+              f"workers {r['workers_cpu_seconds']}")
 print("load averages: background", bg["load_average"], "window", win["load_average"])
 sys.exit(0 if "error" not in win else 1)
 PY
