@@ -14,19 +14,20 @@ from multiscale_camera.render import pipeline
 
 
 @pytest.mark.slow
-def test_compute_field_writes_a_version_1_report(empty_scene):
+def test_compute_field_writes_a_version_2_report(empty_scene):
     scene = empty_scene
     two_camera_scene(scene)
     pipeline.clear_fields()
     assert bpy.ops.multiscale.compute_field() == {"FINISHED"}
     report = json.loads(scene.multiscale.report)
-    assert report["version"] == 1 and report["method"] == "SCALAR_FIELD"
+    assert report["version"] == 2 and report["method"] == "SCALAR_FIELD"
     assert report["quality"] == "STANDARD" and report["cached"] is False
     assert set(report["seconds"]) >= {"fill", "solve", "tangents", "trace", "total"}
     assert [c["name"] for c in report["cameras"]] == ["C1", "C2"]
     for cam in report["cameras"]:
         assert cam["pixels"] > 0 and set(cam["preserved_px"]) == {"p50", "p95", "max"}
     assert report["solver"]["converged"] and len(report["grids"]) == 1
+    assert report["newton_lost"] == 0 and report["unfinished"] == 0
 
 
 @pytest.mark.slow

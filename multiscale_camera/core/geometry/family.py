@@ -273,7 +273,8 @@ class Family:
         Returns
         -------
         u, v, tau : (P,) float64. tangent : (P, 3) float64, unit and finite.
-        missed : int, points whose tangent is camera 1's direction.
+        missed : int, points whose tangent is camera 1's direction; with
+            ``with_jacobian``, (P,) bool, which points they are.
         jacobian : with ``with_jacobian``, (jac_u, jac_v, dR/dtau, ok): the family's
             Jacobian columns, (P, 3) float64 each, near the solution, and (P,) bool,
             where they hold (Newton converged without a retry).
@@ -313,5 +314,5 @@ class Family:
         if with_jacobian:
             ok = np.ones(len(points), dtype=bool)
             ok[miss] = False
-            return u, v, tau, out, int(lost.sum()), (jac_u, jac_v, raw, ok)
+            return u, v, tau, out, lost, (jac_u, jac_v, raw, ok)
         return u, v, tau, out, int(lost.sum())
