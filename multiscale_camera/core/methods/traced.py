@@ -378,7 +378,7 @@ def substitution_messages(rig, traced, index, lost):
         out.append(
             f"Newton's inversion of camera '{names[i]}''s curved rays failed at {len(at)} "
             f"points of {len(rays)} traced rays{where}: there the field took camera "
-            f"'{names[0]}''s direction instead of '{names[i]}''s; raise the quality"
+            f"'{names[0]}''s direction instead of '{names[i]}''s, so rays there may bend wrongly"
         )
     py, px = np.nonzero(index >= 0)
     rows = index[py, px]
