@@ -26,6 +26,9 @@ def test_compute_field_writes_a_version_2_report(empty_scene):
     assert [c["name"] for c in report["cameras"]] == ["C1", "C2"]
     for cam in report["cameras"]:
         assert cam["pixels"] > 0 and set(cam["preserved_px"]) == {"p50", "p95", "max"}
+        # the first hit is a point of the measured stretch: never worse than its worst
+        assert cam["surface_pixels"] > 0
+        assert 0.0 <= cam["surface_px"]["max"] <= cam["preserved_px"]["max"] + 1e-9
     assert report["solver"]["converged"] and len(report["grids"]) == 1
     assert report["newton_lost"] == 0 and report["unfinished"] == 0
 

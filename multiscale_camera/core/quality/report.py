@@ -146,10 +146,12 @@ def readable(report):
         if err["p95"] is None:
             lines.append(f"'{cam['name']}': not measured ({cam.get('reason', 'no pixel')})")
             continue
+        surface = cam.get("surface_px", {}).get("p95")
         lines.append(
-            f"'{cam['name']}': {cam['pixels']} preserved pixels measured; error p50 "
-            f"{err['p50']:.2f}, p95 {err['p95']:.2f}, max {err['max']:.2f} px; angle p95 "
-            f"{ang['p95']:.2f} deg"
+            f"'{cam['name']}': {cam['pixels']} preserved pixels measured; error along the "
+            f"ray p50 {err['p50']:.2f}, p95 {err['p95']:.2f}, max {err['max']:.2f} px; angle "
+            f"p95 {ang['p95']:.2f} deg"
+            + (f"; at the visible surface p95 {surface:.2f} px" if surface is not None else "")
         )
     s = report.get("seconds", {})
     lines.append("")
