@@ -25,8 +25,9 @@ RETRY_TOLERANCE = 1e-4
 # point falls, at most RETRY_HALVINGS times. Far off a camera's image, where its guides
 # run nearly along its near plane, a full Newton step overshoots and the run diverges:
 # on the 1000x bench rig at 240x135 the retry's plain Newton lost 1,271 points, the
-# damped one far fewer (docs/performance.md).
-RETRY_ITERATIONS = 12
+# damped one none; from far off (a pixel 2,000 wide of camera 1's) halved steps need
+# up to about 24 iterations (docs/performance.md).
+RETRY_ITERATIONS = 24
 RETRY_HALVINGS = 30
 # A point still this far off (fraction of the near distance) after the retry is lost:
 # its tangent becomes camera 1's direction. Closer, Newton's tangent is kept.
