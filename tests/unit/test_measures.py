@@ -203,3 +203,19 @@ def test_no_false_folds_in_the_deepest_preserved_disk_of_the_1000x_rig():
     ]
     assert len(quads) > 200
     assert not brute_force_folds(verts, active, quads).any()
+
+
+def test_a_camera_with_no_measured_pixel_reports_null_and_why():
+    from multiscale_camera.core.quality import build_report, headline, readable
+
+    cams, masks = zoom1000_rig(48, 27)
+    masks = masks.copy()
+    masks[1] = False  # an intermediate camera that only bends rays
+    rep = build_report(prepare_image_blend(Rig(cams, masks)), "STANDARD")
+    middle = rep["cameras"][1]
+    assert rep["version"] == 2 and middle["pixels"] == 0
+    assert middle["preserved_px"] == {"p50": None, "p95": None, "max": None}
+    assert middle["reason"] == "its mask is empty: it only bends rays"
+    assert rep["newton_lost"] == 0 and rep["unfinished"] == 0
+    assert headline(rep).startswith("IMAGE_BLEND: p95 error 0.00 px")
+    assert "'C2': not measured (its mask is empty: it only bends rays)" in readable(rep)

@@ -69,7 +69,7 @@ def measure(fld):
             entry["reason"] = (
                 f"no pixel of its mask is left after eroding it by {ERODE_PX} px"
                 if rig.masks[i].any()
-                else "its mask is empty (it only bends rays)"
+                else "its mask is empty: it only bends rays"
             )
         cameras.append(entry)
     folds, _stride = fold_map(fld)
