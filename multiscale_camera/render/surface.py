@@ -51,3 +51,25 @@ def with_surface(report, fld, depsgraph, should_stop=None):
         for entry, extra in zip(report["cameras"], surface_errors(fld, tree, should_stop))
     ]
     return dict(report, cameras=cameras)
+
+
+def surface_messages(fld, tree, target_px, should_stop=None):
+    """Warnings for the cameras whose preserved pixels show the scene's surface farther
+    than ``target_px`` (their p95, ``surface_errors``) from where the camera itself shows
+    it: what a render says once per built field.
+
+    Returns
+    -------
+    list of str, one per such camera.
+    """
+    out = []
+    for cam, got in zip(fld.rig.cameras, surface_errors(fld, tree, should_stop)):
+        p95 = got["surface_px"]["p95"]
+        if p95 is not None and p95 > target_px:
+            out.append(
+                f"Camera '{cam.name}': its preserved pixels show the surface {p95:.3g} px "
+                f"(p95; at worst {got['surface_px']['max']:.3g} px) from where '{cam.name}' "
+                f"itself shows it, over the {target_px:g} px target of the quality; "
+                "IMAGE_BLEND lays preserved rays out exactly"
+            )
+    return out
