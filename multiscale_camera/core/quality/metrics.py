@@ -95,8 +95,10 @@ def along_ray(vertices, cam, px, py):
         projection of a point of the stretch and (px, py); inf where a ray never reaches
         the stretch.
     angle_deg : (R,) float64, the largest angle between a piece of the stretch (at
-        least ``ANGLE_MIN_FRACTION`` near distances long) and the pinhole direction
-        through (px, py), degrees; inf where none is.
+        least ``ANGLE_MIN_FRACTION`` near distances long, on a segment that starts on or
+        beyond the near plane where there is one: the segment straddling the plane is a
+        chord across the guide's last bend) and the pinhole direction through (px, py),
+        degrees; inf where none is.
     """
     r, k = vertices.shape[:2]
     px, py = np.asarray(px, dtype=np.float64), np.asarray(py, dtype=np.float64)
@@ -143,6 +145,10 @@ def _along_block(vertices, cam, px, py):
     with np.errstate(divide="ignore", invalid="ignore"):
         cos = dot3(seg, ref[:, None]) / length
     long = valid & (length * (hi - lo) >= ANGLE_MIN_FRACTION * near)
+    # the segment that straddles the near plane is a chord across the guide's last bend:
+    # its point counts above, its direction belongs to the bend (unless nothing else does)
+    beyond = long & (sa >= near)
+    long = np.where(beyond.any(axis=1)[:, None], beyond, long)
     ang = np.degrees(np.arccos(np.clip(np.where(long, cos, 1.0), -1.0, 1.0)))
     ang = np.where(long.any(axis=1), np.where(long, ang, -np.inf).max(axis=1), np.inf)
     worst = np.where(np.isfinite(worst), worst, np.inf)
