@@ -268,6 +268,7 @@ class FieldTracer:
         for name in self._TRANSIENT:
             state.pop(name, None)
         state["ready"] = state["seeds"] = None
+        state["lost"] = []  # a worker sends back only what its share lost
         return state
 
     def _forget(self, rays):
