@@ -12,6 +12,7 @@ failure table in docs/methods.md (between its GENERATED markers).
 
 import argparse
 import json
+import os
 import resource
 import subprocess
 import sys
@@ -26,6 +27,7 @@ CHART = ROOT / "docs" / "figures" / "speed_accuracy.png"
 TABLE = ROOT / "docs" / "methods.md"
 RIGS = {
     "zoom_rig": "2 cameras, 4x, turned 20 degrees",
+    "three_camera_rig": "3 cameras, 6x overall",
     "zoom25_rig": "3 cameras, 25x",
     "zoom1000_rig": "3 cameras, 1000x",
     "turn100_rig": "2 cameras turned 100 degrees",
@@ -35,6 +37,8 @@ RIGS = {
 # here with it forced off (one uniform grid); the add-on chooses between them.
 FIELD_METHODS = ("VECTOR_FIELD", "SCALAR_FIELD", "SCALAR_FIELD_NESTED")
 IMAGE_METHODS = ("IMAGE_BLEND", "LINEAR")
+# AUTO, the default: what it builds (IMAGE_BLEND unless its rays fold) and its figures.
+DEFAULT_METHODS = ("AUTO",)
 QUALITIES = ("PREVIEW", "STANDARD", "HIGH")
 # A configuration that runs longer than this is recorded as timed out.
 TIMEOUT_S = 900
@@ -98,6 +102,7 @@ def run_one(rig_name, method, quality, width, height):
         "rig": rig_name,
         "method": method,
         "quality": quality,
+        "built": fld.method,
         "size": [width, height],
         "build_seconds": round(build, 3),
         "report_seconds": round(time.perf_counter() - start - build, 3),
@@ -106,10 +111,18 @@ def run_one(rig_name, method, quality, width, height):
         "traced_rays": int(fld.stats.get("traced", 0)),
         "processes": settings.processes or cores(),
         "commit": _commit(),
+        "load_1min": round(os.getloadavg()[0], 2),
         "cameras": report["cameras"],
-        "worst_p95_px": max(c["preserved_px"]["p95"] for c in report["cameras"]),
+        "worst_p95_px": max(
+            c["preserved_px"]["p95"]
+            for c in report["cameras"]
+            if c["preserved_px"]["p95"] is not None
+        ),
         "folds": report["folds"],
         "stalled": report["stalled"],
+        "newton_lost": report.get("newton_lost", 0),
+        "unfinished": report.get("unfinished", 0),
+        "report_version": report["version"],
         "conflicts": report["conflicts"],
         "warnings": report["warnings"],
         "peak_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
@@ -122,7 +135,7 @@ def run_one(rig_name, method, quality, width, height):
 def configurations(rigs):
     """(rig, method, quality) triples: image methods at STANDARD, field methods at all."""
     for rig in rigs:
-        for method in IMAGE_METHODS:
+        for method in DEFAULT_METHODS + IMAGE_METHODS:
             yield rig, method, "STANDARD"
         for method in FIELD_METHODS:
             for quality in QUALITIES:
@@ -145,14 +158,22 @@ def main():
         help="replace the rows run in results.json, keep the others (same size only)",
     )
     parser.add_argument(
+        "--out",
+        type=Path,
+        default=OUT,
+        help="where the rows go (another file than bench/results.json leaves the chart and "
+        "the failure table of docs/ alone)",
+    )
+    parser.add_argument(
         "--one", nargs=3, metavar=("RIG", "METHOD", "QUALITY"), help=argparse.SUPPRESS
     )
     args = parser.parse_args()
     if args.one:
         print(json.dumps(run_one(*args.one, args.width, args.height)))
         return
+    out = args.out.resolve()
     if args.redraw:
-        results = json.loads(OUT.read_text())
+        results = json.loads(out.read_text())
         chart(results)
         table(results)
         return
@@ -160,7 +181,7 @@ def main():
     header = (
         f"{'rig':17} {'method':13} {'quality':9} {'fill':>6} {'solve':>6} {'tang':>6} "
         f"{'trace':>6} {'build s':>8} {'p95 px':>8} {'max px':>8} {'folds':>6} {'stall':>5} "
-        f"{'MB':>6}"
+        f"{'newton':>6} {'MB':>6}"
     )
     print(header)
     for rig, method, quality in configurations(args.rigs):
@@ -199,31 +220,34 @@ def main():
         if "refused" in row:
             print(f"{rig:17} {method:13} {quality:9} refused: {row['refused'][:60]}")
             continue
-        worst_max = max(c["preserved_px"]["max"] for c in row["cameras"])
+        worst_max = max(
+            c["preserved_px"]["max"] for c in row["cameras"] if c["preserved_px"]["max"] is not None
+        )
         st = row["seconds"]
         print(
             f"{rig:17} {method:13} {quality:9} {st['fill']:6.2f} {st['solve']:6.2f} "
             f"{st['tangents']:6.2f} {st['trace']:6.2f} {row['build_seconds']:8.2f} "
             f"{row['worst_p95_px']:8.3f} {worst_max:8.3f} {row['folds']:6d} {row['stalled']:5d} "
-            f"{row['peak_mb']:6.0f}"
+            f"{row['newton_lost']:6d} {row['peak_mb']:6.0f}"
         )
-    if args.update and OUT.exists():
-        old = json.loads(OUT.read_text())
+    if args.update and out.exists():
+        old = json.loads(out.read_text())
         if old["size"] != [args.width, args.height]:
-            sys.exit(f"--update: {OUT.name} holds {old['size']}, not {args.width}x{args.height}")
+            sys.exit(f"--update: {out.name} holds {old['size']}, not {args.width}x{args.height}")
         ran = {(r["rig"], r["method"], r["quality"]) for r in rows}
         kept = [r for r in old["rows"] if (r["rig"], r["method"], r["quality"]) not in ran]
         rows = sorted(kept + rows, key=_order)
     results = {"size": [args.width, args.height], "rows": rows}
-    OUT.write_text(json.dumps(results, indent=1))
-    print(f"wrote {OUT.relative_to(ROOT)}")
-    chart(results)
-    table(results)
+    out.write_text(json.dumps(results, indent=1))
+    print(f"wrote {out}")
+    if out == OUT.resolve():
+        chart(results)
+        table(results)
 
 
 def _order(row):
     """Sort key: the order ``configurations`` runs rows in."""
-    rigs, methods = list(RIGS), list(IMAGE_METHODS + FIELD_METHODS)
+    rigs, methods = list(RIGS), list(DEFAULT_METHODS + IMAGE_METHODS + FIELD_METHODS)
     return (
         rigs.index(row["rig"]) if row["rig"] in rigs else len(rigs),
         methods.index(row["method"]) if row["method"] in methods else len(methods),
@@ -232,6 +256,7 @@ def _order(row):
 
 
 MARKERS = {
+    "AUTO": "*",
     "LINEAR": "v",
     "IMAGE_BLEND": "s",
     "VECTOR_FIELD": "^",
@@ -324,7 +349,7 @@ def table(results):
         "| method | quality | " + " | ".join(RIGS[r] for r in rigs) + " |",
         "|---|---|" + "---|" * len(rigs),
     ]
-    for method in IMAGE_METHODS + FIELD_METHODS:
+    for method in DEFAULT_METHODS + IMAGE_METHODS + FIELD_METHODS:
         for quality in QUALITIES:
             cells = [
                 next(

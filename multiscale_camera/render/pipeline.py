@@ -19,6 +19,7 @@ from .checks import geometry_cast
 from .fields import SERVICE, WORKERS_GIVEN_UP
 from .raycast import march
 from .shade import shade
+from .surface import surface_messages
 from .volume import FrameVolumes, composite_volumes, prepare_volumes
 
 PASSES = (
@@ -129,7 +130,8 @@ def prepare_frame(depsgraph, diag=None):
     # volumes first: a missing or unusable volume file stops the render before the build
     volumes, volume_notices = prepare_volumes(depsgraph)
     with diag.stage("field"), runtime().journal() as runs:  # what the field's workers did
-        result = SERVICE.get(SERVICE.request(scene), diag)
+        request = SERVICE.request(scene)
+        result = SERVICE.get(request, diag)
     if not result.built:  # said as "field (cached)" in the timings
         diag.seconds["field (cached)"] = diag.seconds.pop("field")
     ray_field = result.field
@@ -153,6 +155,9 @@ def prepare_frame(depsgraph, diag=None):
         diag.extend(said)
         if result.built:  # geometry in the bending stretch hides a camera's view: say so once
             diag.extend(obstruction_messages(rig, geometry_cast(geometry, tree)))
+            # and preserved pixels that show the surface away from their camera's view
+            target = request.settings.accuracy_px
+            diag.extend(surface_messages(ray_field, tree, target, diag.should_stop))
     settings = scene.multiscale
     tol = getattr(settings, "simplify_px", DEFAULT_TOLERANCE_PX)
     processes = processes_of(scene)

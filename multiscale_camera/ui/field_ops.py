@@ -16,6 +16,7 @@ from ..render import pipeline
 from ..render.checks import validate_scene
 from ..render.export import export_rays
 from ..render.fields import SERVICE
+from ..render.surface import with_surface
 from ..render.volume import prepare_volumes
 from .context import evaluated_scene, settings_of
 
@@ -58,7 +59,6 @@ def run_validation(op, context):
     if not messages:
         op.report({"INFO"}, f"The rig of {len(rig.cameras)} cameras is ready to render")
     return True, rig, messages
-
 
 
 class MULTISCALE_OT_compute_field(bpy.types.Operator):
@@ -141,14 +141,14 @@ class MULTISCALE_OT_compute_field(bpy.types.Operator):
         return SERVICE.request(evaluated_scene(context), rig), diag
 
     def _finish(self, context, result, diag):
-        report = result.report
+        # the rays' first hits in this scene: what the picture shows (docs/report.md)
+        report = with_surface(result.report, result.field, context.evaluated_depsgraph_get())
         context.scene.multiscale.report = to_json(report)
         for message in diag.since(self._checked):
             self.report({"WARNING"}, message.text)
         self.report(
             {"INFO"},
-            f"{headline(report)} ({'built' if result.built else 'cached'}, "
-            f"{result.seconds:.1f} s)",
+            f"{headline(report)} ({'built' if result.built else 'cached'}, {result.seconds:.1f} s)",
         )
         return {"FINISHED"}
 

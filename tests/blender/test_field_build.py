@@ -14,19 +14,23 @@ from multiscale_camera.render import pipeline
 
 
 @pytest.mark.slow
-def test_compute_field_writes_a_version_1_report(empty_scene):
+def test_compute_field_writes_a_version_2_report(empty_scene):
     scene = empty_scene
     two_camera_scene(scene)
     pipeline.clear_fields()
     assert bpy.ops.multiscale.compute_field() == {"FINISHED"}
     report = json.loads(scene.multiscale.report)
-    assert report["version"] == 1 and report["method"] == "SCALAR_FIELD"
+    assert report["version"] == 2 and report["method"] == "SCALAR_FIELD"
     assert report["quality"] == "STANDARD" and report["cached"] is False
     assert set(report["seconds"]) >= {"fill", "solve", "tangents", "trace", "total"}
     assert [c["name"] for c in report["cameras"]] == ["C1", "C2"]
     for cam in report["cameras"]:
         assert cam["pixels"] > 0 and set(cam["preserved_px"]) == {"p50", "p95", "max"}
+        # the first hit is a point of the measured stretch: never worse than its worst
+        assert cam["surface_pixels"] > 0
+        assert 0.0 <= cam["surface_px"]["max"] <= cam["preserved_px"]["max"] + 1e-9
     assert report["solver"]["converged"] and len(report["grids"]) == 1
+    assert report["newton_lost"] == 0 and report["unfinished"] == 0
 
 
 @pytest.mark.slow
@@ -83,3 +87,19 @@ def test_compute_field_says_when_its_workers_were_given_up(empty_scene, monkeypa
     rescued, built = pipeline.build_field(scene)
     assert not built
     np.testing.assert_array_equal(rescued.traced.vertices, pooled.traced.vertices)
+
+
+def test_a_render_says_which_cameras_show_the_surface_off_their_view(empty_scene):
+    from multiscale_camera.render.surface import surface_messages
+
+    scene = empty_scene
+    two_camera_scene(scene)
+    scene.multiscale.method = "IMAGE_BLEND"
+    pipeline.clear_fields()
+    frame = pipeline.prepare_frame(bpy.context.evaluated_depsgraph_get())
+    # IMAGE_BLEND's preserved rays are exact: nothing to say at the 0.5 px target
+    assert not [n for n in frame.notices if "preserved pixels show the surface" in n]
+    # at a target below float32 rounding both cameras are named, with their figures
+    said = surface_messages(frame.field, frame.tree, 1e-12)
+    assert [m.split(":")[0] for m in said] == ["Camera 'C1'", "Camera 'C2'"]
+    assert all("over the 1e-12 px target of the quality" in m for m in said)

@@ -255,16 +255,20 @@ class FieldTracer:
         self.cubic = cubic
         self.tangent_seconds = 0.0
         self.missed = 0  # tangent evaluations Newton could not solve (see Family.solve)
+        # where: (camera index, (n, 2) float32 camera-1 pixels of the rays) per evaluation
+        self.lost = []
+        self.seeds = None  # (R, 2) float32 camera-1 pixels of the rays being traced
         self.ready = None  # the Newton state of ``_forget``
 
     # the per-ray state of the last trace stays behind when the tracer goes to workers
-    _TRANSIENT = ("params", "jacobian", "solved_at", "ready")
+    _TRANSIENT = ("params", "jacobian", "solved_at", "ready", "seeds")
 
     def __getstate__(self):
         state = dict(self.__dict__)
         for name in self._TRANSIENT:
             state.pop(name, None)
-        state["ready"] = None
+        state["ready"] = state["seeds"] = None
+        state["lost"] = []  # a worker sends back only what its share lost
         return state
 
     def _forget(self, rays):
@@ -327,7 +331,17 @@ class FieldTracer:
             self.jacobian[i, r, 0], self.jacobian[i, r, 1], self.jacobian[i, r, 2] = ju, jv, jt
             self.solved_at[i, r] = xb
             self.ready[i, r] = ok
-            self.missed += missed
+            if missed.any():
+                self.missed += int(missed.sum())
+                seeds = self.seeds
+                at = (
+                    seeds[r[missed]]
+                    if seeds is not None and len(seeds) == params.shape[1]
+                    else None
+                )
+                self.lost.append(
+                    (i, np.full((int(missed.sum()), 2), np.nan, np.float32) if at is None else at)
+                )
         self.tangent_seconds += time.perf_counter() - start
         return out
 
@@ -431,6 +445,7 @@ class FieldTracer:
         task = partial(_trace_share, self, kind, a, b, step, max_steps, rays)
         parts = runtime().map(task, [(k, n) for k in range(n)], workers, should_stop).results
         self.missed += sum(p[1] for p in parts)
+        self.lost += [entry for p in parts for entry in p[3]]
         self.tangent_seconds += float(np.mean([p[2] for p in parts]))
         return merge([p[0] for p in parts], [np.arange(k, rays, n) for k in range(n)], rays)
 
@@ -492,6 +507,7 @@ class FieldTracer:
         """``trace`` in this process."""
         cam1 = self.rig.cameras[0]
         seeds = cam1.near_points(cam1.directions(u0, v0))
+        self.seeds = np.stack([u0, v0], axis=1).astype(np.float32)
         self.params = np.zeros((len(self.families), len(u0), 3))
         self.params[:, :, 0], self.params[:, :, 1] = u0, v0
         self._forget(len(u0))
@@ -546,13 +562,15 @@ class FieldTracer:
 def _trace_share(tracer, kind, a, b, step, max_steps, rays, share, context):
     """A worker's share of ``FieldTracer.trace`` (``kind`` "trace": ``a, b`` are u0, v0)
     or ``trace_pixels`` ("pixels": ix, iy): rays k, k + n, ... of ``rays`` for
-    ``share`` = (k, n). Returns (Traced, Newton's missed points, tangent seconds) of the
-    share; the tracer's own counts are left as they were (the caller adds these)."""
+    ``share`` = (k, n). Returns (Traced, Newton's missed points, tangent seconds, where
+    Newton missed: ``FieldTracer.lost`` entries) of the share; the tracer's own counts
+    are left as they were (the caller adds these)."""
     k, n = share
     rows = np.arange(k, rays, n)
-    missed, seconds = tracer.missed, tracer.tangent_seconds
+    missed, seconds, lost = tracer.missed, tracer.tangent_seconds, len(tracer.lost)
     here = tracer._trace_here if kind == "trace" else tracer._pixels_here
     traced = here(a[rows], b[rows], step, max_steps, context)
-    counts = tracer.missed - missed, tracer.tangent_seconds - seconds
+    counts = tracer.missed - missed, tracer.tangent_seconds - seconds, tracer.lost[lost:]
     tracer.missed, tracer.tangent_seconds = missed, seconds
+    del tracer.lost[lost:]
     return traced, *counts

@@ -44,7 +44,8 @@ def unit_tangents(family, points):
 
     Returns
     -------
-    (P, 3) float64, unit.
+    (P, 3) float64, unit. lost : int, points Newton missed (``Family.solve``), whose
+    tangent is camera 1's direction.
     """
     first, cam = family.cameras[0], family.cameras[-1]
     straight = dot3(points - cam.eye, cam.forward) >= cam.clip_start
@@ -52,11 +53,12 @@ def unit_tangents(family, points):
     out = points - eye
     out /= np.linalg.norm(out, axis=-1, keepdims=True)
     bend = np.flatnonzero(~straight & (dot3(points - first.eye, first.forward) >= first.clip_start))
+    lost = 0
     if len(bend):
         pts = points[bend]
         u, v, tau = family.start(pts)
-        out[bend] = family.solve(pts, u, v, tau, INVERT_ITERATIONS)[3]
-    return out
+        _u, _v, _tau, out[bend], lost = family.solve(pts, u, v, tau, INVERT_ITERATIONS)
+    return out, lost
 
 
 def constraint_tangents(grid, families, fill):
@@ -67,18 +69,21 @@ def constraint_tangents(grid, families, fill):
 
     Returns
     -------
-    (nx, ny, nz, 3) float32, zero off the constraints.
+    (nx, ny, nz, 3) float32, zero off the constraints. lost : (N,) int, per camera the
+    voxels whose tangent Newton missed (camera 1's direction stands in).
     """
     out = np.zeros((*grid.shape, 3), dtype=np.float32)
     flat = out.reshape(-1, 3)
     owner = fill.values.ravel()
+    lost = np.zeros(len(families), dtype=np.int64)
     for i, fam in enumerate(families):
         idx = np.flatnonzero(owner == i + 1)
         for s in range(0, len(idx), TANGENT_CHUNK):
             sel = idx[s : s + TANGENT_CHUNK]
             pts = grid.origin + grid.cell * np.stack(np.unravel_index(sel, grid.shape), axis=-1)
-            flat[sel] = unit_tangents(fam, pts)
-    return out
+            flat[sel], missed = unit_tangents(fam, pts)
+            lost[i] += missed
+    return out, lost
 
 
 class VectorFieldTracer(FieldTracer):
@@ -133,7 +138,7 @@ def prepare_vector_field(rig, settings=None, diag=None):
         families = [Family(rig.cameras, i, rig.beta) for i in range(len(rig.cameras))]
         fill = fill_membership(rig, grid, families)
     with run.stage("tangents"):
-        tangents = constraint_tangents(grid, families, fill)
+        tangents, lost = constraint_tangents(grid, families, fill)
     solves = []
     with run.stage("solve"):
         for values in (fill.values, tangents[..., 0], tangents[..., 1], tangents[..., 2]):
@@ -152,6 +157,13 @@ def prepare_vector_field(rig, settings=None, diag=None):
     with run.stage("trace"):
         trace_field(fld, tracer, fill, settings, run)
     record_seconds(fld, run.seconds)
+    fld.stats["newton_lost"] = fld.stats.get("newton_lost", 0) + int(lost.sum())
+    fld.warnings += [
+        f"Newton's inversion of camera '{cam.name}''s curved rays failed at {n} constraint "
+        f"voxels: there the field holds camera '{rig.cameras[0].name}''s direction instead"
+        for cam, n in zip(rig.cameras, lost.tolist())
+        if n
+    ]
     fld.solver.update(
         iterations=max(s.iterations for s in solves),
         residual=max((s.residuals[-1] for s in solves if s.residuals), default=0.0),

@@ -5,16 +5,18 @@ Built on ``geometry`` and ``field``; it measures any ray field through its ``ray
 alone, so it needs none of the methods.
 """
 
+from .folds import quad_folds, section_points
 from .metrics import (
     ERODE_PX,
     MAX_MEASURED,
+    UNBOUNDED_NEAR_DISTANCES,
     Preserved,
+    along_ray,
     bending_active,
     erode,
+    far_depth,
     measured_pixels,
-    plane_crossing,
     preserved_error,
-    quad_folds,
 )
 from .report import build_report, fold_map, headline, measure, readable, to_json
 from .validate import (
@@ -38,6 +40,8 @@ __all__ = [
     "MAX_MEASURED",
     "MAX_TURN_DEG",
     "Preserved",
+    "UNBOUNDED_NEAR_DISTANCES",
+    "along_ray",
     "bending_active",
     "bending_paths",
     "build_report",
@@ -46,6 +50,7 @@ __all__ = [
     "crossing_messages",
     "empty_mask_messages",
     "erode",
+    "far_depth",
     "fold_map",
     "guard_message",
     "guard_messages",
@@ -54,12 +59,12 @@ __all__ = [
     "measure",
     "measured_pixels",
     "obstruction_messages",
-    "plane_crossing",
     "preflight",
     "preserved_error",
     "quad_folds",
     "readable",
     "sample_pixels",
+    "section_points",
     "to_json",
     "turn_deg",
 ]

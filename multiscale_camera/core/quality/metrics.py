@@ -1,14 +1,12 @@
 """The report's measures of a ray bundle (docs/report.md).
 
-- Preserved-ray error of camera i (i >= 2) at a pixel of its mask eroded by 2 pixels:
-  where the ray the pixel renders beyond camera i's near plane meets that plane
-  (``plane_crossing``), projected into camera i, minus the pixel centre, in camera i's
-  pixels; and the angle between that ray and the pinhole direction v_i. For camera 1
-  the ray's point and direction where it leaves the modelled volume (the end of its
-  bending stretch) are used instead.
-- Folds: a 2x2 quad of neighbouring rays folds when the signed area of its four points,
-  projected on the plane normal to their mean direction, changes sign along the
-  bending stretch (from camera 1's near plane to the last camera's near plane).
+- Preserved-ray error of camera i at a pixel of its mask eroded by 2 pixels: the worst,
+  over the ray the pixel renders from camera i's near plane out to its clip end, of the
+  distance in camera i's pixels between the ray's points projected into camera i and
+  the pixel centre (``along_ray``); and the worst angle between the ray and camera i's
+  pinhole direction along the same stretch.
+- Folds (``folds``): quads of neighbouring rays whose orientation flips in sections
+  across the bundle.
 """
 
 from dataclasses import dataclass
@@ -58,41 +56,103 @@ def measured_pixels(mask, limit=MAX_MEASURED):
     return ix, iy
 
 
-def plane_crossing(vertices, cam):
-    """The ray each polyline renders beyond a camera's near plane, met with that plane.
+# Far end of the measured stretch of a camera whose clip end is unbounded (infinite),
+# in near distances (docs/report.md).
+UNBOUNDED_NEAR_DISTANCES = 1000.0
+# A segment whose part inside the measured stretch is shorter than this fraction of the
+# camera's near distance lends it no angle: a float32 vertex a hair past the near plane
+# would otherwise lend it the direction of the chord across the guide's last bend.
+ANGLE_MIN_FRACTION = 1e-3
+# Ray vertices measured together by ``along_ray`` (a dozen float64 temporaries of them).
+ALONG_BLOCK_VERTICES = 1 << 19
 
-    The polyline's first segment that starts on or beyond the plane carries the ray on
-    into camera i's preserved view; its line, extended back to the plane, gives the
-    point, and the segment the direction. (The segment that straddles the plane is a
-    chord across the guide's last bend and shows nothing beyond the plane.) A ray whose
-    last vertex is the first beyond the plane uses the straddling segment instead.
+
+def far_depth(cam):
+    """Depth along ``cam``'s view axis where its measured stretch ends: its clip end, or
+    ``UNBOUNDED_NEAR_DISTANCES`` near distances for an unbounded one (world units)."""
+    end = float(cam.clip_end)
+    return end if np.isfinite(end) else UNBOUNDED_NEAR_DISTANCES * float(cam.clip_start)
+
+
+def along_ray(vertices, cam, px, py):
+    """Worst deviation of rendered rays from ``cam``'s pinhole rays beyond its near plane.
+
+    Each polyline, with its last segment run on to the far depth (``far_depth``) as the
+    renderer runs it on, is clipped to the slab between ``cam``'s near plane and its far
+    depth (depth along the view axis). Projected into ``cam``, a straight piece in front
+    of the eye is a straight piece of the image, whose distance to a fixed point is
+    largest at one of its ends: the worst over the ends of the clipped pieces is the
+    worst over the whole stretch, exactly.
 
     Parameters
     ----------
-    vertices : (R, K, 3) float array. cam : PinholeCamera.
+    vertices : (R, K, 3) float array, K >= 2, world units. cam : PinholeCamera.
+    px, py : (R,) float, the pixel centres the rays serve, in ``cam``'s pixels.
 
     Returns
     -------
-    point : (R, 3) float64, world units (NaN where a ray never crosses).
-    direction : (R, 3) float64, unit.
+    error_px : (R,) float64, the largest distance, in ``cam``'s pixels, between the
+        projection of a point of the stretch and (px, py); inf where a ray never reaches
+        the stretch.
+    angle_deg : (R,) float64, the largest angle between a piece of the stretch (at
+        least ``ANGLE_MIN_FRACTION`` near distances long, on a segment that starts on or
+        beyond the near plane where there is one: the segment straddling the plane is a
+        chord across the guide's last bend) and the pinhole direction through (px, py),
+        degrees; inf where none is.
     """
+    r, k = vertices.shape[:2]
+    px, py = np.asarray(px, dtype=np.float64), np.asarray(py, dtype=np.float64)
+    error = np.empty(r)
+    angle = np.empty(r)
+    block = max(1, ALONG_BLOCK_VERTICES // (k + 1))
+    for s in range(0, r, block):
+        sl = slice(s, s + block)
+        error[sl], angle[sl] = _along_block(vertices[sl], cam, px[sl], py[sl])
+    return error, angle
+
+
+def _along_block(vertices, cam, px, py):
     v = vertices.astype(np.float64)
-    s = dot3(v - cam.eye, cam.forward) - cam.clip_start
-    ahead = s >= 0
-    k = np.argmax(ahead, axis=1)
-    crosses = ahead.any(axis=1) & (k > 0)
-    k = np.maximum(k, 1)
-    r = np.arange(len(v))
-    k1 = np.minimum(k + 1, v.shape[1] - 1)
-    a = np.where((k1 > k)[:, None], v[r, k], v[r, k - 1])
-    b = np.where((k1 > k)[:, None], v[r, k1], v[r, k])
-    d = b - a
-    d /= np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-30)
-    sa = dot3(a - cam.eye, cam.forward) - cam.clip_start
-    with np.errstate(invalid="ignore", divide="ignore"):
-        point = a - d * (sa / dot3(d, cam.forward))[:, None]
-    point[~crosses] = np.nan
-    return point, d
+    near, far = float(cam.clip_start), far_depth(cam)
+    f = cam.forward
+    s = dot3(v - cam.eye, f)
+    last = v[:, -1] - v[:, -2]
+    rate = dot3(last, f)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        run = np.where(rate > 0, np.maximum((far - s[:, -1]) / rate, 0.0), 0.0)
+    end = v[:, -1] + last * run[:, None]
+    v = np.concatenate([v, end[:, None]], axis=1)
+    s = np.concatenate([s, dot3(end - cam.eye, f)[:, None]], axis=1)
+    a, b = v[:, :-1], v[:, 1:]
+    sa, ds = s[:, :-1], s[:, 1:] - s[:, :-1]
+    lo = np.where((sa >= near) & (sa <= far), 0.0, 1.0)
+    hi = np.where((sa >= near) & (sa <= far), 1.0, 0.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        tn, tf = (near - sa) / ds, (far - sa) / ds
+    up, down = ds > 0, ds < 0
+    lo = np.where(up, np.maximum(tn, 0.0), np.where(down, np.maximum(tf, 0.0), lo))
+    hi = np.where(up, np.minimum(tf, 1.0), np.where(down, np.minimum(tn, 1.0), hi))
+    valid = lo <= hi
+    seg = b - a
+    centre = np.stack([px, py], axis=-1)[:, None]
+    worst = np.full(len(v), -np.inf)
+    for t in (lo, hi):
+        pix, _depth = cam.project(a + seg * np.clip(t, 0.0, 1.0)[..., None])
+        err = np.sqrt(((pix - centre) ** 2).sum(-1))
+        worst = np.maximum(worst, np.where(valid, err, -np.inf).max(axis=1))
+    length = np.sqrt(dot3(seg, seg))
+    ref = cam.directions(px, py)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        cos = dot3(seg, ref[:, None]) / length
+    long = valid & (length * (hi - lo) >= ANGLE_MIN_FRACTION * near)
+    # the segment that straddles the near plane is a chord across the guide's last bend:
+    # its point counts above, its direction belongs to the bend (unless nothing else does)
+    beyond = long & (sa >= near)
+    long = np.where(beyond.any(axis=1)[:, None], beyond, long)
+    ang = np.degrees(np.arccos(np.clip(np.where(long, cos, 1.0), -1.0, 1.0)))
+    ang = np.where(long.any(axis=1), np.where(long, ang, -np.inf).max(axis=1), np.inf)
+    worst = np.where(np.isfinite(worst), worst, np.inf)
+    return worst, ang
 
 
 @dataclass(frozen=True)
@@ -108,11 +168,12 @@ class Preserved:
     angle_deg: np.ndarray
 
     def summary(self):
-        """{"p50", "p95", "max"} of the error and of the angle (NaN-free; NaN counts as inf)."""
+        """{"p50", "p95", "max"} of the error and of the angle (NaN counts as inf); each
+        None when no pixel was measured."""
 
         def stats(a):
             if len(a) == 0:
-                return {"p50": 0.0, "p95": 0.0, "max": 0.0}
+                return {"p50": None, "p95": None, "max": None}
             a = np.where(np.isfinite(a), a, np.inf)
             return {
                 k: float(np.percentile(a, q)) for k, q in (("p50", 50), ("p95", 95), ("max", 100))
@@ -121,113 +182,25 @@ class Preserved:
         return stats(self.error_px), stats(self.angle_deg)
 
 
-def preserved_error(cameras, i, bundle, exit_index=None):
-    """Preserved-ray error of camera ``i`` (0-based) over the rays of ``bundle``.
+def preserved_error(cameras, i, bundle):
+    """Preserved-ray error of camera ``i`` (0-based) over the rays of ``bundle``: the
+    worst deviation along each ray from camera i's near plane out to its clip end
+    (``along_ray``).
 
     Parameters
     ----------
     cameras : sequence of PinholeCamera. i : int.
     bundle : RayBundle whose rays serve pixels of camera i's eroded mask.
-    exit_index : (R,) int, for camera 1: the vertex where each ray leaves the modelled
-        volume (default: the last vertex).
 
     Returns
     -------
     Preserved
     """
-    cam = cameras[i]
     v = bundle.vertices
-    px = bundle.pixels[:, 0] + 0.5
-    py = bundle.pixels[:, 1] + 0.5
     if len(v) == 0:
         return Preserved(0, np.zeros(0), np.zeros(0))
-    if i == 0:
-        r = np.arange(len(v))
-        k = (
-            np.full(len(v), v.shape[1] - 1)
-            if exit_index is None
-            else np.clip(exit_index, 1, v.shape[1] - 1)
-        )
-        point = v[r, k].astype(np.float64)
-        d = point - v[r, k - 1]
-        d /= np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-30)
-    else:
-        point, d = plane_crossing(v, cam)
-    pix, _depth = cam.project(point)
-    err = np.hypot(pix[:, 0] - px, pix[:, 1] - py)
-    ref = cam.directions(px, py)
-    cos = np.clip((d * ref).sum(-1), -1.0, 1.0)
-    return Preserved(len(v), err, np.degrees(np.arccos(cos)))
-
-
-def _chord_lengths(v):
-    """(R, K) float64: arc length along each polyline of ``v`` (R, K, 3) at its vertices."""
-    seg = np.sqrt(np.einsum("rkc,rkc->rk", np.diff(v, axis=1), np.diff(v, axis=1)))
-    return np.concatenate([np.zeros((len(v), 1)), np.cumsum(seg, axis=1)], axis=1)
-
-
-def _at_lengths(v, cum, targets):
-    """Points of polylines ``v`` (R, K, 3) at arc lengths ``targets`` (R, M), clamped
-    to each polyline's ends: (R, M, 3) float64, and (R, M) int, the vertex before each."""
-    r, k = cum.shape
-    span = max(float(cum[:, -1].max()), float(np.max(targets, initial=0.0))) + 1.0
-    offset = span * np.arange(r)[:, None]
-    flat = (cum + offset).ravel()
-    want = np.clip(targets, 0.0, cum[:, -1:]) + offset
-    hi = np.searchsorted(flat, want.ravel(), side="right").reshape(targets.shape)
-    hi = np.clip(hi - np.arange(r)[:, None] * k, 1, k - 1)
-    rows = np.arange(r)[:, None]
-    c0, c1 = cum[rows, hi - 1], cum[rows, hi]
-    w = ((want - offset - c0) / np.maximum(c1 - c0, 1e-300))[..., None]
-    return v[rows, hi - 1] * (1 - w) + v[rows, hi] * w, hi - 1
-
-
-def quad_folds(vertices, active):
-    """Quads of neighbouring rays that fold along the bending stretch.
-
-    The quad of pixels (y, x), (y, x+1), (y+1, x+1), (y+1, x) is compared at equal arc
-    lengths from camera 1's near plane: at each vertex of ray (y, x), the points of the
-    other three rays as far along their own polylines. (Vertex k of neighbouring rays
-    need not lie at the same arc length: with nested grids the step follows the local
-    cell, and a ray that heads for a smaller camera takes shorter steps.)
-
-    Parameters
-    ----------
-    vertices : (Hy, Wx, K, 3) float array: rays on a pixel lattice.
-    active : (Hy, Wx, K) bool: whether vertex k is inside the bending stretch.
-
-    Returns
-    -------
-    (Hy - 1, Wx - 1) bool: True where the quad's orientation ever differs from its
-    orientation on camera 1's near plane.
-    """
-    hy, wx, k = vertices.shape[:3]
-    v = vertices.astype(np.float64)
-    cum = _chord_lengths(v.reshape(-1, k, 3)).reshape(hy, wx, k)
-
-    def at(sl_y, sl_x):
-        """The rays of one corner of every quad, at the arc lengths of corner a."""
-        rays = v[sl_y, sl_x].reshape(-1, k, 3)
-        pts, idx = _at_lengths(rays, cum[sl_y, sl_x].reshape(-1, k), ref)
-        on = np.take_along_axis(active[sl_y, sl_x].reshape(-1, k), idx, axis=1)
-        return pts.reshape(hy - 1, wx - 1, k, 3), on.reshape(hy - 1, wx - 1, k)
-
-    a = v[:-1, :-1]
-    ref = cum[:-1, :-1].reshape(-1, k)
-    (b, on_b), (c, on_c), (d, on_d) = (
-        at(slice(None, -1), slice(1, None)),
-        at(slice(1, None), slice(1, None)),
-        at(slice(1, None), slice(None, -1)),
-    )
-    live = active[:-1, :-1] & on_b & on_c & on_d
-    tangent = np.zeros_like(a)
-    for p in (a, b, c, d):
-        step = np.diff(p, axis=2, append=p[:, :, -1:] + (p[:, :, -1:] - p[:, :, -2:-1]))
-        tangent += step / np.maximum(np.linalg.norm(step, axis=-1, keepdims=True), 1e-30)
-    area = (np.cross(c - a, d - b) * tangent).sum(-1)
-    sign0 = np.sign(area[:, :, :1])
-    flipped = (np.sign(area) != sign0) & (area != 0) & live
-    return flipped.any(axis=-1)
+    err, angle = along_ray(v, cameras[i], bundle.pixels[:, 0] + 0.5, bundle.pixels[:, 1] + 0.5)
+    return Preserved(len(v), err, angle)
 
 
 def bending_active(vertices, last_cam, counts=None):

@@ -1,18 +1,22 @@
-"""The build report (docs/report.md, schema version 1), measured on the rays a field
+"""The build report (docs/report.md, schema version 2), measured on the rays a field
 actually hands to the renderer."""
 
 import json
 
 import numpy as np
 
-from .metrics import bending_active, measured_pixels, preserved_error, quad_folds
+from .folds import quad_folds
+from .metrics import ERODE_PX, bending_active, measured_pixels, preserved_error
 
-VERSION = 1
+# 2: preserved_px and angle_deg are the worst along the whole preserved ray (from the
+# camera's near plane to its clip end), no longer where it meets the near plane; folds
+# are counted in sections across the bundle; newton_lost and unfinished are counted.
+VERSION = 2
 
 
-# Ray vertices per chunk when counting folds: bounds memory (quad_folds holds about ten
-# float64 (rays, K, 3) arrays: about half a GB at this size, whatever K is).
-FOLD_CHUNK_VERTICES = 1 << 21
+# Ray vertices per chunk when counting folds: bounds memory (quad_folds holds about a
+# dozen float64 (rays, K, 3) arrays: about half a GB at this size, whatever K is).
+FOLD_CHUNK_VERTICES = 1 << 20
 # Images up to this many pixels are checked quad by quad; larger ones on every other
 # pixel in each direction (a fold narrower than two pixels is then missed).
 FULL_FOLD_PIXELS = 1 << 20
@@ -58,19 +62,22 @@ def measure(fld):
     cameras = []
     for i, cam in enumerate(rig.cameras):
         ix, iy = measured_pixels(rig.masks[i])
-        bundle = fld.rays(ix, iy)
-        exit_index = fld.exit_index(ix, iy) if i == 0 else None
-        pres = preserved_error(rig.cameras, i, bundle, exit_index)
+        pres = preserved_error(rig.cameras, i, fld.rays(ix, iy))
         err, angle = pres.summary()
-        cameras.append(
-            {"name": cam.name, "pixels": pres.pixels, "preserved_px": err, "angle_deg": angle}
-        )
+        entry = {"name": cam.name, "pixels": pres.pixels, "preserved_px": err, "angle_deg": angle}
+        if not pres.pixels:
+            entry["reason"] = (
+                f"no pixel of its mask is left after eroding it by {ERODE_PX} px"
+                if rig.masks[i].any()
+                else "its mask is empty: it only bends rays"
+            )
+        cameras.append(entry)
     folds, _stride = fold_map(fld)
     return cameras, int(folds.sum())
 
 
 def build_report(fld, quality, total_seconds=None):
-    """The report of a prepared field as a dict of schema version 1.
+    """The report of a prepared field as a dict of schema version 2.
 
     Parameters
     ----------
@@ -95,6 +102,10 @@ def build_report(fld, quality, total_seconds=None):
         "folds": folds,
         "stalled": int(fld.stats.get("stalled", 0)),
         "conflicts": int(fld.stats.get("conflicts", 0)),
+        # added in version 2: tangent evaluations where Newton's inversion of a ray family
+        # failed (the point took camera 1's direction), rays the trace's step limit cut
+        "newton_lost": int(fld.stats.get("newton_lost", 0)),
+        "unfinished": int(fld.stats.get("unfinished", 0)),
         "warnings": list(fld.warnings),
         # added keys: why AUTO chose the method (absent otherwise); grid levels (1 for one
         # uniform grid, more for nested grids, 0 without a 3D grid)
@@ -105,7 +116,14 @@ def build_report(fld, quality, total_seconds=None):
 
 def headline(report):
     """One line for the panel: worst p95 error, folds, time."""
-    worst = max((c["preserved_px"]["p95"] for c in report["cameras"]), default=0.0)
+    worst = max(
+        (
+            c["preserved_px"]["p95"]
+            for c in report["cameras"]
+            if c["preserved_px"]["p95"] is not None
+        ),
+        default=0.0,
+    )
     return (
         f"{report['method']}: p95 error {worst:.2f} px, {report['folds']} folds, "
         f"{report['seconds']['total']:.1f} s"
@@ -125,10 +143,15 @@ def readable(report):
     lines = [headline(report), ""]
     for cam in report.get("cameras", []):
         err, ang = cam["preserved_px"], cam["angle_deg"]
+        if err["p95"] is None:
+            lines.append(f"'{cam['name']}': not measured ({cam.get('reason', 'no pixel')})")
+            continue
+        surface = cam.get("surface_px", {}).get("p95")
         lines.append(
-            f"'{cam['name']}': {cam['pixels']} preserved pixels measured; error p50 "
-            f"{err['p50']:.2f}, p95 {err['p95']:.2f}, max {err['max']:.2f} px; angle p95 "
-            f"{ang['p95']:.2f} deg"
+            f"'{cam['name']}': {cam['pixels']} preserved pixels measured; error along the "
+            f"ray p50 {err['p50']:.2f}, p95 {err['p95']:.2f}, max {err['max']:.2f} px; angle "
+            f"p95 {ang['p95']:.2f} deg"
+            + (f"; at the visible surface p95 {surface:.2f} px" if surface is not None else "")
         )
     s = report.get("seconds", {})
     lines.append("")
@@ -148,7 +171,8 @@ def readable(report):
     )
     lines.append(
         f"Folds: {report.get('folds', 0)} (quads of neighbouring rays that cross)"
-        f"; stalled rays: {report.get('stalled', 0)}"
+        f"; stalled rays: {report.get('stalled', 0)}; Newton failures: "
+        f"{report.get('newton_lost', 0)}"
     )
     warnings = report.get("warnings", [])
     if warnings:
