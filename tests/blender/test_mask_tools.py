@@ -1,0 +1,239 @@
+"""The artist's mask tools headless: New Mask keeps a painted mask to put back, the guide
+is remade when the camera moves, masks from the selected objects' silhouette and from
+soft shapes."""
+
+import math
+
+import bpy
+import numpy as np
+import pytest
+
+from fixtures.blender.scenes import two_camera_scene
+from multiscale_camera.ui.mask_ops import guide_state, painted
+
+
+def operator_error(op, **kw):
+    with pytest.raises(RuntimeError) as info:
+        op(**kw)
+    return str(info.value)
+
+
+def pixels(image):
+    """(h, w, 4) float32 of ``image``, row 0 at the top."""
+    w, h = image.size
+    buf = np.empty(w * h * 4, np.float32)
+    image.pixels.foreach_get(buf)
+    return buf.reshape(h, w, 4)[::-1]
+
+
+def straight_cast(scene, cam, width, height, wanted):
+    """Independent reference: (height, width) bool, True where Blender's own
+    scene.ray_cast from ``cam``'s eye through the pixel centre on its view frame hits
+    one of the objects ``wanted`` first (row 0 at the top)."""
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    frame = [cam.matrix_world @ v for v in cam.data.view_frame(scene=scene)]
+    tr, br, bl, tl = frame  # view_frame: top-right, bottom-right, bottom-left, top-left
+    eye = cam.matrix_world.translation
+    out = np.zeros((height, width), bool)
+    for y in range(height):
+        for x in range(width):
+            u, v = (x + 0.5) / width, (y + 0.5) / height
+            point = tl.lerp(tr, u).lerp(bl.lerp(br, u), v)
+            hit, _loc, _n, _i, obj, _m = scene.ray_cast(depsgraph, eye, (point - eye).normalized())
+            out[y, x] = hit and obj.name in wanted
+    return out
+
+
+def distance_to(mask):
+    """(h, w) Euclidean distance in pixels from each pixel centre to the nearest True
+    pixel centre of ``mask`` (brute force over its pixels)."""
+    h, w = mask.shape
+    ys, xs = np.nonzero(mask)
+    gy, gx = np.mgrid[0:h, 0:w]
+    d = np.full((h, w), np.inf)
+    for y, x in zip(ys, xs):
+        d = np.minimum(d, np.hypot(gx - x, gy - y))
+    return d
+
+
+# --- New Mask keeps a painted mask ---------------------------------------------------
+
+
+def test_new_mask_keeps_a_painted_mask_recoverable(empty_scene):
+    scene = empty_scene
+    two_camera_scene(scene)  # camera 2's mask, "C2 mask", is a painted disk
+    scene.multiscale.active_index = 1
+    item = scene.multiscale.cameras[1]
+    painted_before = pixels(item.mask).copy()
+    assert painted(item.mask) and painted_before[..., 0].max() == 1.0
+    assert bpy.ops.multiscale.mask_new(guide=False) == {"FINISHED"}
+    assert item.mask.name == "C2 mask" and pixels(item.mask)[..., :3].max() == 0.0
+    kept = item.previous_mask
+    assert kept is not None and kept.name == "C2 mask (previous)" and kept.use_fake_user
+    np.testing.assert_array_equal(pixels(kept), painted_before)
+    # New Mask on the blank mask replaces it without keeping anything more
+    assert not painted(item.mask)
+    assert bpy.ops.multiscale.mask_new(guide=False) == {"FINISHED"}
+    assert item.previous_mask == kept
+    # put back: the painted mask is the mask again, the blank one kept in its place
+    assert bpy.ops.multiscale.mask_restore() == {"FINISHED"}
+    assert item.mask.name == "C2 mask" and item.previous_mask.name == "C2 mask (previous)"
+    np.testing.assert_array_equal(pixels(item.mask), painted_before)
+    assert pixels(item.previous_mask)[..., :3].max() == 0.0
+
+
+def test_kept_mask_survives_save_and_reload(empty_scene, tmp_path):
+    scene = empty_scene
+    two_camera_scene(scene)
+    scene.multiscale.active_index = 1
+    before = pixels(scene.multiscale.cameras[1].mask).copy()
+    bpy.ops.multiscale.mask_new(guide=False)
+    path = tmp_path / "kept.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(path))
+    bpy.ops.wm.open_mainfile(filepath=str(path))
+    item = bpy.context.scene.multiscale.cameras[1]
+    np.testing.assert_array_equal(pixels(item.previous_mask), before)
+
+
+def test_mask_restore_needs_a_replaced_mask(empty_scene):
+    two_camera_scene(empty_scene)
+    msg = "This camera has no replaced mask to put back"
+    assert msg in operator_error(bpy.ops.multiscale.mask_restore)
+
+
+# --- the guide ------------------------------------------------------------------------
+
+
+def test_guide_is_remade_after_the_camera_moves(empty_scene):
+    scene = empty_scene
+    _c1, c2 = two_camera_scene(scene)
+    scene.multiscale.active_index = 1
+    item = scene.multiscale.cameras[1]
+    assert guide_state(item, scene) == "missing"  # a mask not made by New Mask
+    assert bpy.ops.multiscale.guide_update() == {"FINISHED"}
+    assert guide_state(item, scene) == "ok"
+    before = pixels(item.guide).copy()
+    c2.location.x += 0.6  # the sphere moves left in camera 2's view
+    bpy.context.view_layer.update()
+    assert guide_state(item, scene) == "stale"
+    assert bpy.ops.multiscale.guide_update() == {"FINISHED"}
+    assert guide_state(item, scene) == "ok"
+    after = pixels(item.guide)
+    gh, gw = after.shape[:2]
+    # the sphere (blue) in the remade guide is where Blender's own ray_cast sees it now
+    blue = after[..., 2] > after[..., 0] + 0.05
+    sphere = straight_cast(scene, c2, gw, gh, {"Sphere"})
+    assert sphere.sum() > 20
+    assert (blue == sphere).mean() > 0.97, (blue.sum(), sphere.sum())
+    assert not np.array_equal(before, after)
+    scene.render.resolution_percentage = 50
+    assert guide_state(item, scene) == "stale"
+    c2.data.lens = 35.0
+    bpy.ops.multiscale.guide_update()
+    assert guide_state(item, scene) == "ok"
+
+
+# --- masks from the scene -------------------------------------------------------------
+
+
+@pytest.mark.parametrize("margin", [0, 2])
+def test_mask_from_selected_matches_a_straight_cast_silhouette(empty_scene, margin):
+    scene = empty_scene
+    _c1, c2 = two_camera_scene(scene, 40, 30)
+    scene.multiscale.active_index = 1
+    item = scene.multiscale.cameras[1]
+    item.mask = None  # made from the silhouette alone
+    sphere = bpy.data.objects["Sphere"]
+    bpy.ops.object.select_all(action="DESELECT")
+    sphere.select_set(True)
+    assert bpy.ops.multiscale.mask_from_selected(margin=margin) == {"FINISHED"}
+    got = pixels(item.mask)[..., 0] >= 0.5
+    assert item.mask.name == "C2 mask" and got.shape == (30, 40)
+    want = straight_cast(scene, c2, 40, 30, {"Sphere"})
+    assert want.sum() > 30
+    # within 1 px (plus the margin) of the reference silhouette, and covering it
+    # but for its 1 px rim
+    assert distance_to(want)[got].max() <= margin + 1.0 + 1e-9
+    assert distance_to(got)[want].max() <= 1.0 + 1e-9
+    if margin:
+        assert got.sum() > want.sum()
+
+
+def test_mask_from_selected_extends_the_mask(empty_scene):
+    scene = empty_scene
+    two_camera_scene(scene, 40, 30)
+    scene.multiscale.active_index = 1
+    item = scene.multiscale.cameras[1]
+    before = pixels(item.mask)[..., 0] >= 0.5
+    bpy.ops.object.select_all(action="DESELECT")
+    bpy.data.objects["Cube"].select_set(True)
+    assert bpy.ops.multiscale.mask_from_selected(margin=0) == {"FINISHED"}
+    after = pixels(item.mask)[..., 0] >= 0.5
+    assert after[before].all() and after.sum() > before.sum()
+
+
+def test_mask_from_selected_says_what_is_missing(empty_scene):
+    scene = empty_scene
+    two_camera_scene(scene)
+    scene.multiscale.active_index = 1
+    bpy.ops.object.select_all(action="DESELECT")
+    msg = "Select the objects whose silhouette makes the mask"
+    assert msg in operator_error(bpy.ops.multiscale.mask_from_selected)
+    scene.multiscale.cameras.add()
+    scene.multiscale.active_index = 2
+    assert "Pick a camera in the Multiscale list first" in operator_error(
+        bpy.ops.multiscale.mask_from_selected
+    )
+
+
+def _soft_reference(kind, w, h, cx, cy, sw, sh, radius, feather):
+    """Per-pixel reference of a feathered shape, written from its definition."""
+    out = np.zeros((h, w))
+    a, b = sw / 2, sh / 2
+    for y in range(h):
+        for x in range(w):
+            px, py = x + 0.5 - cx, y + 0.5 - cy
+            if kind == "CIRCLE":
+                d = math.hypot(px, py) - min(a, b)
+            elif kind == "ELLIPSE":
+                # along the line from the centre: to the edge point in that direction
+                r = math.hypot(px, py)
+                edge = 1.0 / math.sqrt((px / r / a) ** 2 + (py / r / b) ** 2) if r else 0
+                d = r - edge if r else -min(a, b)
+            else:
+                qx, qy = abs(px) - (a - radius), abs(py) - (b - radius)
+                if qx > 0 and qy > 0:
+                    d = math.hypot(qx, qy) - radius
+                else:
+                    d = max(qx, qy) - radius
+            t = min(max(0.5 - d / feather, 0.0), 1.0)
+            out[y, x] = t * t * (3 - 2 * t)
+    return out
+
+
+@pytest.mark.parametrize("kind", ["CIRCLE", "ELLIPSE", "ROUNDED_RECT"])
+def test_soft_shapes_write_the_feathered_shape(empty_scene, kind):
+    scene = empty_scene
+    two_camera_scene(scene, 40, 30)
+    scene.multiscale.active_index = 0
+    item = scene.multiscale.cameras[0]
+    bpy.ops.multiscale.mask_new(guide=False)  # black; camera 1's painted one kept
+    assert bpy.ops.multiscale.mask_shape(
+        shape=kind, centre=(0.45, 0.6), size=(0.5, 0.6), corner_radius=4.0, feather=5.0
+    ) == {"FINISHED"}
+    got = pixels(item.mask)[..., 0]
+    # centre 0.6 from the bottom: 0.4 of the height from the top
+    want = _soft_reference(kind, 40, 30, 0.45 * 40, 0.4 * 30, 20, 18, 4.0, 5.0)
+    assert np.abs(got - want).max() <= 1 / 255 + 1e-6
+    assert (want > 0.99).sum() > 50 and ((want > 0.01) & (want < 0.99)).sum() > 20
+    # subtracting the same shape leaves no pixel of the mask claimed
+    bpy.ops.multiscale.mask_shape(
+        shape=kind,
+        centre=(0.45, 0.6),
+        size=(0.5, 0.6),
+        corner_radius=4.0,
+        feather=5.0,
+        mode="SUBTRACT",
+    )
+    assert pixels(item.mask)[..., 0].max() <= 0.5 + 1 / 255
+
