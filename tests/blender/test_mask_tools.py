@@ -237,3 +237,21 @@ def test_soft_shapes_write_the_feathered_shape(empty_scene, kind):
     )
     assert pixels(item.mask)[..., 0].max() <= 0.5 + 1 / 255
 
+
+# --- the Image Editor's overlay ---------------------------------------------------------
+
+
+def test_overlay_reads_every_listed_mask_and_finds_the_shown_one(empty_scene):
+    from multiscale_camera.ui.mask_overlay import rig_masks, shown_index
+
+    scene = empty_scene
+    two_camera_scene(scene, 40, 30)
+    items = scene.multiscale.cameras
+    assert shown_index(scene, items[1].mask) == 1
+    assert shown_index(scene, bpy.data.images.new("other", 4, 4)) == -1
+    masks = rig_masks(scene, (20, 15))  # half size: pixel centres 1, 3, 5, ...
+    for item, mask in zip(items, masks):
+        full = pixels(item.mask)[..., 0] >= 0.5
+        np.testing.assert_array_equal(mask, full[1::2, 1::2])
+    items.add()  # an item without a mask: an empty one
+    assert len(rig_masks(scene, (20, 15))) == 3 and not rig_masks(scene, (20, 15))[2].any()
