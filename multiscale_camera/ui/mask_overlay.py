@@ -102,8 +102,8 @@ class MaskOverlay:
         x1, y1 = region.view2d.view_to_region(1.0, 1.0, clip=False)
         _draw_texture(self.texture, (x0, y0, x1, y1))
         blf.size(0, 13)
-        for k, text in enumerate(self.messages):
-            blf.position(0, 12, region.height - 24 - 18 * k, 0)
+        for k, text in enumerate(self.messages):  # top left, under the header
+            blf.position(0, 12, region.height - 30 - 18 * k, 0)
             blf.color(0, 1.0, 0.85, 0.2, 1.0)
             blf.draw(0, text)
 

@@ -132,7 +132,7 @@ def mask_warnings(masks):
     return overlap, touch, messages
 
 
-def overlay_rgba(masks, shown, opacity=0.45):
+def overlay_rgba(masks, shown, opacity=0.35):
     """The Image Editor's overlay over camera ``shown``'s mask.
 
     Parameters

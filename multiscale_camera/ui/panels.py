@@ -174,9 +174,9 @@ def draw_camera_settings(layout, context, item):
     row.operator("multiscale.mask_shape", icon="MESH_CIRCLE")
     draw_guide_state(layout, context, item)
     if item.previous_mask is not None:
-        row = layout.row(align=True)
-        row.label(text=f"Replaced: {item.previous_mask.name}", icon="FILE_BACKUP")
-        row.operator("multiscale.mask_restore", text="Restore", icon="LOOP_BACK")
+        col = layout.column(align=True)
+        col.label(text=f"Kept: {item.previous_mask.name}", icon="FILE_BACKUP")
+        col.operator("multiscale.mask_restore", icon="LOOP_BACK")
     draw_transfer_function(layout, item)
 
 

@@ -186,7 +186,7 @@ class MultiscaleSettings(bpy.types.PropertyGroup):
     )
     overlay_opacity: FloatProperty(
         name="Overlay Opacity",
-        default=0.45,
+        default=0.35,
         min=0.0,
         max=1.0,
         subtype="FACTOR",
