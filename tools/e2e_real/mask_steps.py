@@ -1,0 +1,222 @@
+"""Run inside a real Blender window on the demo scene: the mask tools step by step on
+timers, a screenshot of the whole screen after each (ImageMagick's ``import``).
+
+1. Paint Mask on camera 2's own (ring) mask: its view is drawn over it, the other
+   masks and the transition bands over that (mask_guide.png).
+2. Camera 3's mask made from the teapot's silhouette (New Mask, then Mask from
+   Selected), painted over its view with the overlay (mask_from_selected.png).
+3. A soft ellipse added to camera 2's mask, reaching into camera 1's: the overlap and
+   the missing gap are drawn where they are (mask_shape.png).
+4. New Mask on camera 3's painted mask asks first (mask_confirm.png), then the
+   3D viewport's panel offers to put the replaced mask back (mask_restore.png).
+
+    SHOT_DIR=docs/images E2E_LOG=out/mask-log.json \\
+      ../shared/tools/realblender/run.sh sample_blends/demo.blend \\
+      --python tools/e2e_real/mask_steps.py
+
+Quits Blender when done; a step that fails is logged and ends the run.
+"""
+
+import json
+import os
+import subprocess
+import time
+import traceback
+
+import bpy
+
+OUT = os.environ.get("SHOT_DIR", ".")
+LOG = os.environ.get("E2E_LOG", os.path.join(OUT, "mask_log.json"))
+log = {"version": bpy.app.version_string, "steps": []}
+T0 = time.time()
+
+
+def note(step, **info):
+    log["steps"].append({"step": step, "time": round(time.time() - T0, 1), **info})
+    with open(LOG, "w") as f:
+        json.dump(log, f, indent=1)
+    print("E2E", step, info, flush=True)
+
+
+def shot(name):
+    subprocess.run(["import", "-window", "root", os.path.join(OUT, name)], check=True)
+    note("screenshot", file=name)
+
+
+def window():
+    return bpy.context.window_manager.windows[0]
+
+
+def area_of(kind):
+    areas = [a for a in window().screen.areas if a.type == kind]
+    return max(areas, key=lambda a: a.width * a.height) if areas else None
+
+
+def override(kind="VIEW_3D"):
+    """A context of the biggest area of ``kind``, else (the Image Editor maximised) of
+    the Image Editor."""
+    area = area_of(kind) or area_of("IMAGE_EDITOR")
+    region = next(r for r in area.regions if r.type == "WINDOW")
+    return bpy.context.temp_override(window=window(), area=area, region=region)
+
+
+def sidebar(kind):
+    """Show the area's sidebar on its Multiscale tab."""
+    area = area_of(kind)
+    area.spaces.active.show_region_ui = True
+    for region in area.regions:
+        if region.type == "UI":
+            try:
+                region.active_panel_category = "Multiscale"
+            except (AttributeError, TypeError):
+                pass
+    area.tag_redraw()
+
+
+def fit_image():
+    with override("IMAGE_EDITOR"):
+        bpy.ops.image.view_all(fit_view=True)
+    sidebar("IMAGE_EDITOR")
+
+
+def maximise():
+    """The Image Editor over the whole window (back_to_previous undoes it)."""
+    with override("IMAGE_EDITOR"):
+        bpy.ops.screen.screen_full_area()
+
+
+def restore_screen():
+    with override("IMAGE_EDITOR"):
+        bpy.ops.screen.back_to_previous()
+
+
+# Distance of the 3D viewport's Multiscale tab's middle from the top of its sidebar,
+# pixels (the fourth tab at Blender's default UI scale), as tools/e2e_real/gui_steps.py.
+TAB_OFFSET = int(os.environ.get("E2E_TAB_OFFSET", "215"))
+
+
+def click_tab():
+    """Show the 3D viewport's sidebar on its Multiscale tab: set it, else click it."""
+    sidebar("VIEW_3D")
+    area = area_of("VIEW_3D")
+    ui = next(r for r in area.regions if r.type == "UI")
+    if getattr(ui, "active_panel_category", "") != "Multiscale":
+        x = ui.x + ui.width - 8
+        y = window().height - (ui.y + ui.height) + TAB_OFFSET
+        subprocess.run(["xdotool", "mousemove", str(x), str(y), "click", "1"], check=False)
+
+
+def overlay_note():
+    from bl_ext.user_default.multiscale_camera.ui import mask_overlay
+
+    return mask_overlay.OVERLAY.messages if mask_overlay.OVERLAY else None
+
+
+def paint(index):
+    settings = bpy.context.scene.multiscale
+    settings.active_index = index
+    with override():
+        bpy.ops.multiscale.mask_paint()
+    item = settings.cameras[index]
+    note("paint", camera=item.camera.name, mask=item.mask.name, guide=item.guide.name)
+
+
+def setup():
+    sidebar("VIEW_3D")
+    paint(1)
+
+
+def guide_shot():
+    fit_image()
+    note("overlay", warnings=overlay_note())
+
+
+def from_teapot():
+    settings = bpy.context.scene.multiscale
+    settings.active_index = 2
+    with override():
+        bpy.ops.object.select_all(action="DESELECT")
+        for obj in bpy.data.objects:
+            if obj.name.startswith("Teapot"):
+                obj.select_set(True)
+        bpy.ops.multiscale.mask_new(guide=False)
+        result = bpy.ops.multiscale.mask_from_selected(margin=4)
+    paint(2)
+    note("from selected", result=sorted(result))
+
+
+def ellipse():
+    with override():
+        bpy.context.scene.multiscale.active_index = 1
+        bpy.ops.multiscale.mask_shape(
+            shape="ELLIPSE", centre=(0.25, 0.72), size=(0.2, 0.14), feather=12.0
+        )
+    paint(1)
+
+
+def confirm():
+    settings = bpy.context.scene.multiscale
+    settings.active_index = 2
+    area = area_of("VIEW_3D")
+    x = area.x + area.width // 3
+    y = window().height - (area.y + area.height // 2)
+    subprocess.run(["xdotool", "mousemove", str(x), str(y)], check=False)
+    with override():
+        result = bpy.ops.multiscale.mask_new("INVOKE_DEFAULT")
+    note("new mask asked", result=sorted(result))
+
+
+def accept():
+    subprocess.run(["xdotool", "key", "Return"], check=False)
+
+
+def restored():
+    item = bpy.context.scene.multiscale.cameras[2]
+    note(
+        "replaced",
+        mask=item.mask.name if item.mask else None,
+        previous=item.previous_mask.name if item.previous_mask else None,
+    )
+
+
+STEPS = [
+    ("setup", setup, 3.0),
+    ("sidebar", lambda: sidebar("IMAGE_EDITOR"), 1.0),
+    ("maximise", maximise, 2.0),
+    ("fit", guide_shot, 2.0),
+    ("guide shot", lambda: shot("mask_guide.png"), 1.0),
+    ("from teapot", from_teapot, 3.0),
+    ("fit 3", guide_shot, 2.0),
+    ("teapot shot", lambda: shot("mask_from_selected.png"), 1.0),
+    ("ellipse", ellipse, 3.0),
+    ("fit 2", guide_shot, 2.0),
+    ("ellipse shot", lambda: shot("mask_shape.png"), 1.0),
+    ("screen back", restore_screen, 2.0),
+    ("confirm", confirm, 1.5),
+    ("confirm shot", lambda: shot("mask_confirm.png"), 1.0),
+    ("accept", accept, 2.0),
+    ("replaced", restored, 1.0),
+    ("tab", click_tab, 2.0),
+    ("restore shot", lambda: shot("mask_restore.png"), 1.0),
+]
+state = {"i": 0}
+
+
+def tick():
+    i = state["i"]
+    if i >= len(STEPS):
+        note("done")
+        bpy.ops.wm.quit_blender()
+        return None
+    name, fn, wait = STEPS[i]
+    try:
+        fn()
+    except Exception:
+        note("failed", at=name, error=traceback.format_exc())
+        bpy.ops.wm.quit_blender()
+        return None
+    state["i"] += 1
+    return wait
+
+
+bpy.app.timers.register(tick, first_interval=4.0)
