@@ -1,7 +1,8 @@
 """The Image Editor while a listed camera's mask is shown: every other camera's mask in
 its own colour, the transition bands (no mask claims them) and the guidelines' warnings
 (``mask_shapes.overlay_rgba``, drawn with the ``gpu`` module over the mask and its
-guide), and the sidebar tab "Multiscale" with the guide's opacity and the mask tools.
+guide), the guide made again when it is stale (a timer), and the sidebar tab
+"Multiscale" with the guide's opacity and the mask tools.
 
 Drawing needs a GPU context, which background Blender lacks: there the panel registers
 and nothing is drawn.
@@ -17,7 +18,7 @@ from gpu_extras.batch import batch_for_shader
 
 from ..adapters.masks import mask_from_image
 from ..render.guide import guide_size
-from .mask_ops import guide_state
+from .mask_ops import guide_key, guide_state, make_guide
 from .mask_shapes import overlay_rgba
 from .preview_lines import PALETTE
 
@@ -25,6 +26,8 @@ from .preview_lines import PALETTE
 # at most this often while painting, seconds.
 OVERLAY_MAX_WIDTH = 480
 REFRESH_SECONDS = 1.0
+# How often shown masks' guides are checked for staleness, seconds.
+GUIDE_CHECK_SECONDS = 1.0
 COLOUR_NAMES = ("blue", "green", "orange", "purple", "yellow")
 
 
@@ -36,6 +39,51 @@ def shown_index(scene, image):
         if item.mask is not None and item.mask == image:
             return i
     return -1
+
+
+def guides_due(scene, images, failed=None):
+    """List items whose mask is one of ``images`` (those shown in Image Editors) and
+    whose guide is missing or stale, but for those whose last remake for the same camera
+    state failed (``failed``: camera name -> ``guide_key``)."""
+    failed = failed or {}
+    due = []
+    for item in scene.multiscale.cameras:
+        if item.mask is None or not any(item.mask == image for image in images):
+            continue
+        if guide_state(item, scene) not in {"missing", "stale"}:
+            continue
+        if failed.get(item.camera.name) == guide_key(item.camera, scene):
+            continue
+        due.append(item)
+    return due
+
+
+# Camera name -> the guide_key whose guide could not be made (not tried again).
+_FAILED = {}
+
+
+def _guide_timer():
+    """Timer: remake the missing or stale guides of masks shown in Image Editors."""
+    context = bpy.context
+    scene = context.scene
+    wm = context.window_manager
+    if scene is None or not hasattr(scene, "multiscale") or wm is None:
+        return GUIDE_CHECK_SECONDS
+    if not scene.multiscale.auto_guide or bpy.app.is_job_running("RENDER"):
+        return GUIDE_CHECK_SECONDS
+    for window in wm.windows:
+        areas = [a for a in window.screen.areas if a.type == "IMAGE_EDITOR"]
+        images = [a.spaces.active.image for a in areas]
+        for item in guides_due(scene, [i for i in images if i is not None], _FAILED):
+            try:
+                with context.temp_override(window=window):
+                    make_guide(bpy.context, item)
+            except Exception as err:  # say it once, in the console and the panel's state
+                _FAILED[item.camera.name] = guide_key(item.camera, scene)
+                print(f"Multiscale: no guide for '{item.camera.name}' ({err})")
+            for area in areas:
+                area.tag_redraw()
+    return GUIDE_CHECK_SECONDS
 
 
 def rig_masks(scene, size):
@@ -161,7 +209,9 @@ class MULTISCALE_PT_image_masks(bpy.types.Panel):
         item = settings.cameras[shown]
         name = item.camera.name if item.camera else "no camera"
         layout.label(text=f"Camera {shown + 1}: {name}", icon="CAMERA_DATA")
-        layout.prop(settings, "guide_opacity")
+        row = layout.row(align=True)
+        row.prop(settings, "guide_opacity")
+        row.prop(settings, "auto_guide", text="", icon="FILE_REFRESH")
         state = guide_state(item, scene)
         if state in {"stale", "missing"}:
             col = layout.column(align=True)
@@ -197,10 +247,14 @@ def register():
     bpy.utils.register_class(MULTISCALE_PT_image_masks)
     OVERLAY = MaskOverlay()
     OVERLAY.start()
+    if not bpy.app.background:
+        bpy.app.timers.register(_guide_timer, first_interval=GUIDE_CHECK_SECONDS, persistent=True)
 
 
 def unregister():
     global OVERLAY
+    if bpy.app.timers.is_registered(_guide_timer):
+        bpy.app.timers.unregister(_guide_timer)
     if OVERLAY is not None:
         OVERLAY.stop()
     OVERLAY = None

@@ -178,6 +178,12 @@ class MultiscaleSettings(bpy.types.PropertyGroup):
         subtype="FACTOR",
         description="Opacity of the camera's view drawn over its mask in the Image Editor",
     )
+    auto_guide: BoolProperty(
+        name="Update Guide Automatically",
+        default=True,
+        description="Remake the guide of a mask shown in an Image Editor about a second "
+        "after its camera, lens or the render size changed",
+    )
     show_mask_overlay: BoolProperty(
         name="Other Masks",
         default=True,

@@ -255,3 +255,24 @@ def test_overlay_reads_every_listed_mask_and_finds_the_shown_one(empty_scene):
         np.testing.assert_array_equal(mask, full[1::2, 1::2])
     items.add()  # an item without a mask: an empty one
     assert len(rig_masks(scene, (20, 15))) == 3 and not rig_masks(scene, (20, 15))[2].any()
+
+
+def test_guides_due_are_the_shown_masks_with_a_missing_or_stale_guide(empty_scene):
+    from multiscale_camera.ui.mask_ops import guide_key
+    from multiscale_camera.ui.mask_overlay import guides_due
+
+    scene = empty_scene
+    c1, c2 = two_camera_scene(scene)
+    items = scene.multiscale.cameras
+    shown = [items[1].mask]
+    assert list(guides_due(scene, shown)) == [items[1]]  # missing
+    scene.multiscale.active_index = 1
+    bpy.ops.multiscale.guide_update()
+    assert guides_due(scene, shown) == []
+    c2.rotation_euler.z += 0.05
+    c1.location.z += 1.0  # camera 1's mask is not shown: not due
+    bpy.context.view_layer.update()
+    assert list(guides_due(scene, shown)) == [items[1]]  # stale
+    failed = {"C2": guide_key(c2, scene)}  # failed for this very state: not again
+    assert guides_due(scene, shown, failed) == []
+    assert list(guides_due(scene, shown + [items[0].mask])) == [items[0], items[1]]

@@ -2,7 +2,8 @@
 timers, a screenshot of the whole screen after each (ImageMagick's ``import``).
 
 1. Paint Mask on camera 2's own (ring) mask: its view is drawn over it, the other
-   masks and the transition bands over that (mask_guide.png).
+   masks and the transition bands over that (mask_guide.png). Camera 2 turned: its
+   guide is made again within about a second (and again when it turns back).
 2. Camera 3's mask made from the teapot's silhouette (New Mask, then Mask from
    Selected), painted over its view with the overlay (mask_from_selected.png).
 3. A soft ellipse added to camera 2's mask, reaching into camera 1's: the overlap and
@@ -131,6 +132,30 @@ def guide_shot():
     note("overlay", warnings=overlay_note())
 
 
+def turn_camera(angle):
+    """Turn camera 2 about its up axis; remember its guide's state and key."""
+    from bl_ext.user_default.multiscale_camera.ui.mask_ops import guide_state
+
+    scene = bpy.context.scene
+    item = scene.multiscale.cameras[1]
+    state["key"] = item.guide_key
+    item.camera.rotation_euler.z += angle
+    bpy.context.view_layer.update()
+    note("camera turned", angle=angle, guide=guide_state(item, scene))
+
+
+def guide_remade():
+    """The timer has made camera 2's guide again for its new direction."""
+    from bl_ext.user_default.multiscale_camera.ui.mask_ops import guide_state
+
+    scene = bpy.context.scene
+    item = scene.multiscale.cameras[1]
+    remade = guide_state(item, scene) == "ok" and item.guide_key != state["key"]
+    note("guide after the turn", state=guide_state(item, scene), remade=remade)
+    if not remade:
+        raise RuntimeError("the guide was not remade after the camera turned")
+
+
 def from_teapot():
     settings = bpy.context.scene.multiscale
     settings.active_index = 2
@@ -185,6 +210,10 @@ STEPS = [
     ("maximise", maximise, 2.0),
     ("fit", guide_shot, 2.0),
     ("guide shot", lambda: shot("mask_guide.png"), 1.0),
+    ("turn", lambda: turn_camera(0.05), 2.5),
+    ("remade", guide_remade, 0.5),
+    ("turn back", lambda: turn_camera(-0.05), 2.5),
+    ("remade back", guide_remade, 0.5),
     ("from teapot", from_teapot, 3.0),
     ("fit 3", guide_shot, 2.0),
     ("teapot shot", lambda: shot("mask_from_selected.png"), 1.0),
