@@ -1,9 +1,12 @@
-"""Operators that make masks from the scene and from shapes, remake a camera's guide and
+"""Operators that make masks from the scene and from shapes (given, or dragged in the
+Image Editor), remake a camera's guide and
 put a replaced mask back. Every mask stays an ordinary image, to be painted further."""
 
 import bpy
+import gpu
 import numpy as np
 from bpy.props import EnumProperty, FloatProperty, FloatVectorProperty, IntProperty
+from gpu_extras.batch import batch_for_shader
 
 from ..adapters.cameras import pinhole_from_object, render_size
 from ..adapters.masks import mask_values, new_mask_image, write_mask_values
@@ -11,7 +14,7 @@ from ..render.checks import scene_tree
 from ..render.guide import silhouette
 from .context import list_item
 from .mask_ops import MASK_SUFFIX, PREVIOUS_SUFFIX, make_guide
-from .mask_shapes import dilate, soft_shape
+from .mask_shapes import dilate, drag_box, outline, soft_shape
 
 MODE_ITEMS = [
     ("ADD", "Add", "Keep the camera's view where the shape is (white), on top of the mask"),
@@ -104,13 +107,8 @@ class MULTISCALE_OT_mask_from_selected(_CameraItemOperator, bpy.types.Operator):
         return {"FINISHED"}
 
 
-class MULTISCALE_OT_mask_shape(_CameraItemOperator, bpy.types.Operator):
-    """Add (or cut) a soft shape to the active camera's mask: a circle, an ellipse or a
-    rounded rectangle with a feathered edge"""
-
-    bl_idname = "multiscale.mask_shape"
-    bl_label = "Add Mask Shape"
-    bl_options = {"REGISTER"}
+class _ShapeProperties:
+    """The parameters of a soft shape."""
 
     shape: EnumProperty(name="Shape", items=SHAPE_ITEMS, default="ELLIPSE")
     centre: FloatVectorProperty(
@@ -146,10 +144,8 @@ class MULTISCALE_OT_mask_shape(_CameraItemOperator, bpy.types.Operator):
     )
     mode: EnumProperty(name="Mode", items=MODE_ITEMS, default="ADD")
 
-    def invoke(self, context, event):
-        return context.window_manager.invoke_props_dialog(self)
-
-    def execute(self, context):
+    def write_shape(self, context):
+        """Write the shape into the active item's mask; returns the mask."""
         item = list_item(context)
         image, values = mask_target(item, context.scene)
         h, w = values.shape
@@ -159,8 +155,107 @@ class MULTISCALE_OT_mask_shape(_CameraItemOperator, bpy.types.Operator):
             self.shape, w, h, centre, size, radius=self.corner_radius, feather=self.feather
         )
         write_mask_values(image, combine(values, shape, self.mode))
+        return image
+
+
+class MULTISCALE_OT_mask_shape(_ShapeProperties, _CameraItemOperator, bpy.types.Operator):
+    """Add (or cut) a soft shape to the active camera's mask: a circle, an ellipse or a
+    rounded rectangle with a feathered edge"""
+
+    bl_idname = "multiscale.mask_shape"
+    bl_label = "Add Mask Shape"
+    bl_options = {"REGISTER"}
+
+    def invoke(self, context, event):
+        return context.window_manager.invoke_props_dialog(self)
+
+    def execute(self, context):
+        image = self.write_shape(context)
         self.report({"INFO"}, f"Mask '{image.name}': {self.shape.lower()} ({self.mode.lower()})")
         return {"FINISHED"}
+
+
+class MULTISCALE_OT_mask_shape_drag(_ShapeProperties, bpy.types.Operator):
+    """Drag a box over the active camera's mask in the Image Editor: the soft shape
+    fills it (Esc or right click cancels)"""
+
+    bl_idname = "multiscale.mask_shape_drag"
+    bl_label = "Drag a Shape"
+
+    @classmethod
+    def poll(cls, context):
+        item = list_item(context)
+        space = context.space_data
+        if item is None or item.camera is None or item.mask is None:
+            cls.poll_message_set("Make a mask for the active camera first (New Mask)")
+            return False
+        if (
+            context.area is None
+            or context.area.type != "IMAGE_EDITOR"
+            or (space.image != item.mask)
+        ):
+            cls.poll_message_set("Show the active camera's mask in an Image Editor (Paint Mask)")
+            return False
+        return True
+
+    def invoke(self, context, event):
+        # the editor's image region (the button may be in its sidebar)
+        self._region = next(r for r in context.area.regions if r.type == "WINDOW")
+        self._start = self._end = None
+        self._handler = bpy.types.SpaceImageEditor.draw_handler_add(
+            self._draw, (), "WINDOW", "POST_PIXEL"
+        )
+        context.window_manager.modal_handler_add(self)
+        context.workspace.status_text_set("Drag a box for the shape; Esc or right click cancels")
+        return {"RUNNING_MODAL"}
+
+    def modal(self, context, event):
+        context.area.tag_redraw()
+        region = self._region
+        here = (event.mouse_x - region.x, event.mouse_y - region.y)
+        if event.type == "LEFTMOUSE" and event.value == "PRESS":
+            self._start = self._end = here
+        elif event.type in {"MOUSEMOVE", "INBETWEEN_MOUSEMOVE"} and self._start is not None:
+            self._end = here
+        elif event.type == "LEFTMOUSE" and event.value == "RELEASE" and self._start:
+            self._end = here
+            self._finish(context)
+            view = region.view2d
+            centre, size = drag_box(
+                view.region_to_view(*self._start), view.region_to_view(*self._end)
+            )
+            if min(abs(self._start[0] - here[0]), abs(self._start[1] - here[1])) < 3:
+                self.report({"WARNING"}, "Drag a box (a few pixels at least) for the shape")
+                return {"CANCELLED"}
+            self.centre, self.size = centre, size
+            image = self.write_shape(context)
+            self.report(
+                {"INFO"}, f"Mask '{image.name}': {self.shape.lower()} ({self.mode.lower()})"
+            )
+            return {"FINISHED"}
+        elif event.type in {"ESC", "RIGHTMOUSE"}:
+            self._finish(context)
+            return {"CANCELLED"}
+        elif event.type in {"WHEELUPMOUSE", "WHEELDOWNMOUSE", "MIDDLEMOUSE"}:
+            return {"PASS_THROUGH"}  # zoom and pan while placing
+        return {"RUNNING_MODAL"}
+
+    def _finish(self, context):
+        if self._handler is not None:
+            bpy.types.SpaceImageEditor.draw_handler_remove(self._handler, "WINDOW")
+            self._handler = None
+        context.workspace.status_text_set(None)
+        context.area.tag_redraw()
+
+    def _draw(self):
+        if self._start is None or self._end is None:
+            return
+        points = outline(self.shape, self._start, self._end)
+        shader = gpu.shader.from_builtin("UNIFORM_COLOR")
+        batch = batch_for_shader(shader, "LINE_STRIP", {"pos": points.tolist()})
+        shader.bind()
+        shader.uniform_float("color", (1.0, 0.85, 0.2, 1.0))
+        batch.draw(shader)
 
 
 class MULTISCALE_OT_guide_update(_CameraItemOperator, bpy.types.Operator):
@@ -219,6 +314,7 @@ class MULTISCALE_OT_mask_restore(bpy.types.Operator):
 CLASSES = (
     MULTISCALE_OT_mask_from_selected,
     MULTISCALE_OT_mask_shape,
+    MULTISCALE_OT_mask_shape_drag,
     MULTISCALE_OT_guide_update,
     MULTISCALE_OT_mask_restore,
 )

@@ -28,6 +28,11 @@ OVERLAY_MAX_WIDTH = 480
 REFRESH_SECONDS = 1.0
 # How often shown masks' guides are checked for staleness, seconds.
 GUIDE_CHECK_SECONDS = 1.0
+SHAPE_ICONS = (
+    ("CIRCLE", "MESH_CIRCLE"),
+    ("ELLIPSE", "SPHERECURVE"),
+    ("ROUNDED_RECT", "MESH_PLANE"),
+)
 COLOUR_NAMES = ("blue", "green", "orange", "purple", "yellow")
 
 
@@ -236,6 +241,10 @@ class MULTISCALE_PT_image_masks(bpy.types.Panel):
             col = layout.column(align=True)
             col.operator("multiscale.mask_from_selected", icon="SELECT_SET")
             col.operator("multiscale.mask_shape", icon="MESH_CIRCLE")
+            row = layout.row(align=True)
+            row.label(text="Drag:")
+            for shape, icon in SHAPE_ICONS:
+                row.operator("multiscale.mask_shape_drag", text="", icon=icon).shape = shape
 
 
 # The overlay of this session: made in register(), None while unregistered.

@@ -77,6 +77,36 @@ def soft_shape(kind, width, height, centre, size, radius=0.0, feather=0.0):
     return smoothstep(0.5 - d / feather).astype(np.float32)
 
 
+def drag_box(start, end):
+    """(centre, size) of the box dragged from ``start`` to ``end``, both (u, v) in the
+    image's own coordinates (0 to 1 from its bottom-left corner)."""
+    (u0, v0), (u1, v1) = start, end
+    return ((u0 + u1) / 2.0, (v0 + v1) / 2.0), (abs(u1 - u0), abs(v1 - v0))
+
+
+def outline(kind, start, end, count=64):
+    """A closed outline, (count + 1, 2) float, of the shape filling the box from
+    ``start`` to ``end`` (region pixels), to draw while dragging: the circle of the
+    box's smaller side, the ellipse, or the box itself for the rounded rectangle."""
+    (x0, y0), (x1, y1) = start, end
+    cx, cy = (x0 + x1) / 2.0, (y0 + y1) / 2.0
+    a, b = abs(x1 - x0) / 2.0, abs(y1 - y0) / 2.0
+    if kind == "ROUNDED_RECT":
+        return np.array(
+            [
+                (cx - a, cy - b),
+                (cx + a, cy - b),
+                (cx + a, cy + b),
+                (cx - a, cy + b),
+                (cx - a, cy - b),
+            ]
+        )
+    if kind == "CIRCLE":
+        a = b = min(a, b)
+    t = np.linspace(0.0, 2.0 * np.pi, count + 1)
+    return np.stack([cx + a * np.cos(t), cy + b * np.sin(t)], axis=1)
+
+
 def dilate(mask, margin):
     """``mask`` (bool (h, w)) grown by ``margin`` pixels: every pixel whose centre lies
     within ``margin`` of a pixel centre of the mask (a disk, not a square)."""

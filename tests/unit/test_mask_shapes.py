@@ -10,7 +10,9 @@ from multiscale_camera.ui.mask_shapes import (
     TOUCH_COLOUR,
     WARNING_ALPHA,
     dilate,
+    drag_box,
     mask_warnings,
+    outline,
     overlay_rgba,
     soft_shape,
 )
@@ -101,3 +103,22 @@ def test_overlay_frames_an_empty_last_mask():
     red = np.all(np.isclose(rgba, (*OVERLAP_COLOUR[:3], WARNING_ALPHA)), axis=-1)
     assert red[0].all() and red[-1].all() and red[:, 0].all() and red[:, -1].all()
     assert not red[1:-1, 1:-1].any()
+
+
+def test_drag_box_is_the_box_between_the_two_corners_either_way():
+    for a, b in [((0.2, 0.7), (0.6, 0.5)), ((0.6, 0.5), (0.2, 0.7))]:
+        centre, size = drag_box(a, b)
+        np.testing.assert_allclose([*centre, *size], [0.4, 0.6, 0.4, 0.2])
+
+
+@pytest.mark.parametrize("kind", ["CIRCLE", "ELLIPSE", "ROUNDED_RECT"])
+def test_outline_lies_on_the_shape_it_previews(kind):
+    pts = outline(kind, (10.0, 20.0), (50.0, 44.0), count=32)
+    assert np.allclose(pts[0], pts[-1])  # closed
+    x, y = pts[:, 0] - 30.0, pts[:, 1] - 32.0
+    if kind == "CIRCLE":
+        np.testing.assert_allclose(np.hypot(x, y), 12.0)
+    elif kind == "ELLIPSE":
+        np.testing.assert_allclose((x / 20.0) ** 2 + (y / 12.0) ** 2, 1.0)
+    else:
+        np.testing.assert_allclose(np.maximum(np.abs(x) / 20.0, np.abs(y) / 12.0), 1.0)

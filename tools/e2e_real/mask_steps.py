@@ -2,13 +2,15 @@
 timers, a screenshot of the whole screen after each (ImageMagick's ``import``).
 
 1. Paint Mask on camera 2's own (ring) mask: its view is drawn over it, the other
-   masks and the transition bands over that (mask_guide.png). Camera 2 turned: its
-   guide is made again within about a second (and again when it turns back).
+   masks and the transition bands over that (mask_guide.png).
 2. Camera 3's mask made from the teapot's silhouette (New Mask, then Mask from
    Selected), painted over its view with the overlay (mask_from_selected.png).
-3. A soft ellipse added to camera 2's mask, reaching into camera 1's: the overlap and
-   the missing gap are drawn where they are (mask_shape.png).
-4. New Mask on camera 3's painted mask asks first (mask_confirm.png), then the
+3. A soft ellipse dragged onto camera 2's mask (mask_drag.png while dragging), reaching
+   into camera 1's: the overlap and the missing gap are drawn where they are
+   (mask_shape.png).
+4. Camera 2 turned: its guide is made again within about a second (and again when it
+   turns back).
+5. New Mask on camera 3's painted mask asks first (mask_confirm.png), then the
    3D viewport's panel offers to put the replaced mask back (mask_restore.png).
 
     SHOT_DIR=docs/images E2E_LOG=out/mask-log.json \\
@@ -170,13 +172,58 @@ def from_teapot():
     note("from selected", result=sorted(result))
 
 
-def ellipse():
-    with override():
-        bpy.context.scene.multiscale.active_index = 1
-        bpy.ops.multiscale.mask_shape(
-            shape="ELLIPSE", centre=(0.25, 0.72), size=(0.2, 0.14), feather=12.0
-        )
-    paint(1)
+def screen_point(u, v):
+    """Screen pixel (x from the left, y from the top) of image point (u, v) in the
+    Image Editor."""
+    area = area_of("IMAGE_EDITOR")
+    region = next(r for r in area.regions if r.type == "WINDOW")
+    x, y = region.view2d.view_to_region(u, v, clip=False)
+    return region.x + x, window().height - (region.y + y)
+
+
+def claimed(index):
+    import numpy as np
+
+    image = bpy.context.scene.multiscale.cameras[index].mask
+    px = np.empty(image.size[0] * image.size[1] * 4, np.float32)
+    image.pixels.foreach_get(px)
+    return int((px.reshape(-1, 4)[:, 0] >= 0.5).sum())
+
+
+def drag_start():
+    """Drag a Shape (an ellipse) on camera 2's mask: the mouse to the first corner."""
+    settings = bpy.context.scene.multiscale
+    settings.active_index = 1
+    state["claimed"] = claimed(1)
+    with override("IMAGE_EDITOR"):
+        result = bpy.ops.multiscale.mask_shape_drag("INVOKE_DEFAULT", shape="ELLIPSE", feather=12.0)
+    state["from"], state["to"] = screen_point(0.14, 0.80), screen_point(0.36, 0.64)
+    x, y = state["from"]
+    subprocess.run(["xdotool", "mousemove", str(int(x)), str(int(y))], check=False)
+    note("drag started", result=sorted(result))
+
+
+def press():
+    subprocess.run(["xdotool", "mousedown", "1"], check=False)
+
+
+def move(k, steps=4):
+    """The k-th of ``steps`` moves towards the second corner (Blender takes each event
+    between timer steps, as from a hand)."""
+    (x0, y0), (x1, y1) = state["from"], state["to"]
+    x, y = x0 + (x1 - x0) * k / steps, y0 + (y1 - y0) * k / steps
+    subprocess.run(["xdotool", "mousemove", str(int(x)), str(int(y))], check=False)
+
+
+def drag_end():
+    subprocess.run(["xdotool", "mouseup", "1"], check=False)
+
+
+def dragged():
+    now = claimed(1)
+    note("dragged", claimed_before=state["claimed"], claimed_after=now)
+    if now <= state["claimed"]:
+        raise RuntimeError("the dragged ellipse added nothing to the mask")
 
 
 def confirm():
@@ -210,17 +257,26 @@ STEPS = [
     ("maximise", maximise, 2.0),
     ("fit", guide_shot, 2.0),
     ("guide shot", lambda: shot("mask_guide.png"), 1.0),
+    ("from teapot", from_teapot, 3.0),
+    ("fit 3", guide_shot, 2.0),
+    ("teapot shot", lambda: shot("mask_from_selected.png"), 1.0),
+    ("paint 2", lambda: paint(1), 2.0),
+    ("fit 2", guide_shot, 2.0),
+    ("drag", drag_start, 1.0),
+    ("press", press, 0.5),
+    ("move 1", lambda: move(1), 0.3),
+    ("move 2", lambda: move(2), 0.3),
+    ("move 3", lambda: move(3), 0.3),
+    ("move 4", lambda: move(4), 1.0),
+    ("drag shot", lambda: shot("mask_drag.png"), 0.5),
+    ("release", drag_end, 1.5),
+    ("dragged", dragged, 1.0),
+    ("ellipse shot", lambda: shot("mask_shape.png"), 1.0),
+    ("screen back", restore_screen, 2.0),
     ("turn", lambda: turn_camera(0.05), 2.5),
     ("remade", guide_remade, 0.5),
     ("turn back", lambda: turn_camera(-0.05), 2.5),
     ("remade back", guide_remade, 0.5),
-    ("from teapot", from_teapot, 3.0),
-    ("fit 3", guide_shot, 2.0),
-    ("teapot shot", lambda: shot("mask_from_selected.png"), 1.0),
-    ("ellipse", ellipse, 3.0),
-    ("fit 2", guide_shot, 2.0),
-    ("ellipse shot", lambda: shot("mask_shape.png"), 1.0),
-    ("screen back", restore_screen, 2.0),
     ("confirm", confirm, 1.5),
     ("confirm shot", lambda: shot("mask_confirm.png"), 1.0),
     ("accept", accept, 2.0),
