@@ -276,3 +276,28 @@ def test_guides_due_are_the_shown_masks_with_a_missing_or_stale_guide(empty_scen
     failed = {"C2": guide_key(c2, scene)}  # failed for this very state: not again
     assert guides_due(scene, shown, failed) == []
     assert list(guides_due(scene, shown + [items[0].mask])) == [items[0], items[1]]
+
+
+def test_pixel_window_bounds_the_projected_points(empty_scene):
+    from multiscale_camera.adapters.cameras import pinhole_from_object
+    from multiscale_camera.render.guide import pixel_window
+
+    scene = empty_scene
+    _c1, c2 = two_camera_scene(scene, 40, 30)
+    cam = pinhole_from_object(c2, scene)
+    rng = np.random.default_rng(5)
+    points = np.array([0.6, -0.6, 2.3]) + rng.normal(0, 0.1, (50, 3))  # about the sphere
+    pix, depth = cam.project(points)
+    assert (depth > 0).all()
+    for size in [(40, 30), (20, 15)]:
+        x0, y0, x1, y1 = pixel_window(cam, points, size, pad=0)
+        scaled = pix * (size[0] / 40)
+        # every point's pixel is inside, and the box is no bigger than one pixel more
+        assert (scaled[:, 0] >= x0).all() and (scaled[:, 0] <= x1).all()
+        assert (scaled[:, 1] >= y0).all() and (scaled[:, 1] <= y1).all()
+        assert x1 - x0 <= np.ptp(scaled[:, 0]) + 2 and y1 - y0 <= np.ptp(scaled[:, 1]) + 2
+    behind = np.array(c2.matrix_world.translation) - 3 * np.array(cam.forward)
+    assert pixel_window(cam, np.vstack([points, behind]), (40, 30)) == (0, 0, 40, 30)
+    aside = cam.eye + 5 * cam.forward + 50 * np.cross(cam.forward, [0, 0, 1])
+    assert pixel_window(cam, aside[None], (40, 30)) is None
+    assert pixel_window(cam, np.zeros((0, 3)), (40, 30)) is None
