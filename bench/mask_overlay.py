@@ -6,9 +6,11 @@
 The overlay: three cameras' masks (the rings of ``fixtures.masks.rings``) as Blender
 images at the render size, read and resampled to the overlay's size (at most 480 px
 wide) and turned into its picture (``ui.mask_overlay.rig_masks`` and
-``ui.mask_shapes.overlay_rgba``); the upload to the GPU is not included (background
-Blender has none). Mask from Selected: the two-camera test scene at the render size,
-the sphere selected, margin 4. Prints the median of the repeats, milliseconds, as JSON.
+``ui.mask_shapes.overlay_rgba``); "painting": the refresh while one mask is painted,
+which reads that mask alone (``MaskOverlay.masks_for``). The upload to the GPU is not
+included (background Blender has none). Mask from Selected: the two-camera test scene
+at the render size, the sphere selected, margin 4. Prints the median of the repeats,
+milliseconds, as JSON.
 """
 
 import argparse
@@ -27,7 +29,11 @@ from fixtures.blender.objects import mask_image  # noqa: E402
 from fixtures.blender.scenes import two_camera_scene  # noqa: E402
 from fixtures.masks import rings  # noqa: E402
 from multiscale_camera.render.guide import guide_size  # noqa: E402
-from multiscale_camera.ui.mask_overlay import OVERLAY_MAX_WIDTH, rig_masks  # noqa: E402
+from multiscale_camera.ui.mask_overlay import (  # noqa: E402
+    OVERLAY_MAX_WIDTH,
+    MaskOverlay,
+    rig_masks,
+)
 from multiscale_camera.ui.mask_shapes import overlay_rgba  # noqa: E402
 
 
@@ -58,6 +64,11 @@ def main():
         item.mask = mask_image(f"ring {k + 1}", mask)
     size = guide_size(w, h, max_width=OVERLAY_MAX_WIDTH)
     overlay = median_ms(lambda: overlay_rgba(rig_masks(scene, size), 1), args.repeats)
+    cached = MaskOverlay()
+    cached.masks_for(scene, 1, size, 0.0)
+    painting = median_ms(
+        lambda: overlay_rgba(cached.masks_for(scene, 1, size, 1.0), 1), args.repeats
+    )
 
     scene.multiscale.active_index = 1
     bpy.ops.object.select_all(action="DESELECT")
@@ -69,6 +80,7 @@ def main():
                 "render_size": [w, h],
                 "overlay_size": list(size),
                 "overlay_refresh_ms": overlay,
+                "overlay_refresh_painting_ms": painting,
                 "mask_from_selected_ms": silhouette,
                 "repeats": args.repeats,
             }

@@ -301,3 +301,24 @@ def test_pixel_window_bounds_the_projected_points(empty_scene):
     aside = cam.eye + 5 * cam.forward + 50 * np.cross(cam.forward, [0, 0, 1])
     assert pixel_window(cam, aside[None], (40, 30)) is None
     assert pixel_window(cam, np.zeros((0, 3)), (40, 30)) is None
+
+
+def test_overlay_reads_the_shown_mask_each_time_the_others_every_few_seconds(empty_scene):
+    from multiscale_camera.adapters.masks import write_mask_values
+    from multiscale_camera.ui.mask_overlay import OTHERS_SECONDS, MaskOverlay, rig_masks
+
+    scene = empty_scene
+    two_camera_scene(scene, 40, 30)
+    items = scene.multiscale.cameras
+    overlay = MaskOverlay()
+    first = overlay.masks_for(scene, 1, (40, 30), 100.0)
+    for got, want in zip(first, rig_masks(scene, (40, 30))):
+        np.testing.assert_array_equal(got, want)
+    for item in items:  # both masks painted all white
+        write_mask_values(item.mask, np.ones((30, 40), np.float32))
+    again = overlay.masks_for(scene, 1, (40, 30), 101.0)
+    assert again[1].all()  # the shown one: read again
+    np.testing.assert_array_equal(again[0], first[0])  # the other: kept
+    later = overlay.masks_for(scene, 1, (40, 30), 101.0 + OTHERS_SECONDS)
+    assert later[0].all() and later[1].all()
+    assert overlay.masks_for(scene, 0, (20, 15), 102.0 + OTHERS_SECONDS)[1].shape == (15, 20)
