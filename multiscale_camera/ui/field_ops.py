@@ -60,6 +60,7 @@ def run_validation(op, context):
     return True, rig, messages
 
 
+
 class MULTISCALE_OT_compute_field(bpy.types.Operator):
     """Build the ray field of the camera list (or reuse the cached one) and measure it:
     preserved-ray error per camera, folds, timings. The report is kept in the scene.
@@ -146,7 +147,8 @@ class MULTISCALE_OT_compute_field(bpy.types.Operator):
             self.report({"WARNING"}, message.text)
         self.report(
             {"INFO"},
-            f"{headline(report)} ({'built' if result.built else 'cached'}, {result.seconds:.1f} s)",
+            f"{headline(report)} ({'built' if result.built else 'cached'}, "
+            f"{result.seconds:.1f} s)",
         )
         return {"FINISHED"}
 
