@@ -83,3 +83,27 @@ def new_mask_image(name, width, height):
     rgba = np.zeros((height, width, 4), dtype=np.float32)
     rgba[..., 3] = 1.0
     return image_from_rgba(name, rgba, colorspace="Non-Color")
+
+
+def mask_values(image):
+    """(H, W) float32 luminance of a mask image in [0, 1], row 0 at the top; None when
+    the image has no pixels."""
+    rgba = image_pixels(image)
+    if rgba is None:
+        return None
+    return np.clip(rgba[..., :3] @ LUMINANCE, 0.0, 1.0).astype(np.float32)
+
+
+def write_mask_values(image, grey):
+    """Write (H, W) grey values in [0, 1] (row 0 at the top, the image's size) into every
+    colour channel of ``image``, alpha 1; packed again if it was packed or generated, so
+    the change survives save and reload."""
+    w, h = image.size
+    if grey.shape != (h, w):
+        raise ValueError(f"Mask values are {grey.shape[1]}x{grey.shape[0]}, the image {w}x{h}")
+    rgba = np.ones((h, w, image.channels), dtype=np.float32)
+    rgba[..., : min(3, image.channels)] = grey[..., None]
+    image.pixels.foreach_set(np.ascontiguousarray(rgba[::-1]).ravel())
+    image.update()
+    if image.packed_file is not None or image.source == "GENERATED":
+        image.pack()

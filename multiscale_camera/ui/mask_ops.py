@@ -1,5 +1,7 @@
-"""Operators for masks: a new mask with a picture of the camera's view to paint over,
-painting it in an Image Editor, and keeping painted masks when the file is saved."""
+"""Operators for masks: a new mask with a picture of the camera's view to paint over
+(asking first before it replaces a painted one, which is kept to be put back), painting
+it in an Image Editor over that picture (made or remade on demand), and keeping painted
+masks when the file is saved."""
 
 import bpy
 import gpu
@@ -8,13 +10,88 @@ from bpy.props import BoolProperty
 
 from ..adapters.cameras import pinhole_from_object, render_size
 from ..adapters.lights import world_colour
-from ..adapters.masks import image_from_rgba, new_mask_image
+from ..adapters.masks import image_from_rgba, image_pixels, new_mask_image
 from ..render.checks import scene_tree
 from ..render.guide import guide_size, solid_view
 from .context import list_item
 
 MASK_SUFFIX = " mask"
 GUIDE_SUFFIX = " guide"
+PREVIOUS_SUFFIX = " mask (previous)"
+
+
+def painted(image):
+    """True when ``image`` has a pixel that is not black: replacing it would lose work."""
+    rgba = image_pixels(image) if image is not None else None
+    return rgba is not None and bool((rgba[..., :3] > 0.0).any())
+
+
+def keep_previous(item):
+    """Before a new mask replaces a painted one: keep the old mask as ``<camera> mask
+    (previous)`` (a fake user and packed pixels keep it through save and reload) in
+    ``item.previous_mask``, dropping an older previous one no list item uses.
+    Returns the kept image, or None when nothing painted was there."""
+    old = item.mask
+    if not painted(old):
+        return None
+    prev = item.previous_mask
+    if prev is not None and prev != old and not _in_use(prev):
+        bpy.data.images.remove(prev)
+    old.name = item.camera.name + PREVIOUS_SUFFIX
+    old.use_fake_user = True
+    if old.is_dirty and (old.packed_file or old.source == "GENERATED"):
+        old.pack()
+    item.previous_mask = old
+    return old
+
+
+def _in_use(image):
+    """Whether a listed camera of any scene uses ``image`` as its mask."""
+    return any(
+        item.mask == image
+        for scene in bpy.data.scenes
+        if hasattr(scene, "multiscale")
+        for item in scene.multiscale.cameras
+    )
+
+
+def guide_key(obj, scene):
+    """What a camera's guide depends on, as a string: the camera's placement, its lens
+    and sensor, its clipping and the render's size and pixel aspect."""
+    cam, r = obj.data, scene.render
+    values = (
+        *np.asarray(obj.matrix_world, dtype=np.float64).ravel(),
+        cam.lens,
+        cam.sensor_width,
+        cam.sensor_height,
+        cam.shift_x,
+        cam.shift_y,
+        cam.clip_start,
+        cam.clip_end,
+        *render_size(scene),
+        r.pixel_aspect_x,
+        r.pixel_aspect_y,
+    )
+    return f"{cam.type} {cam.sensor_fit} " + " ".join(f"{v:.6g}" for v in values)
+
+
+def guide_state(item, scene):
+    """ "missing", "stale" (the camera, lens or resolution changed since it was made) or
+    "ok" for the guide of a list item with a camera; "" without a camera."""
+    obj = item.camera
+    if obj is None or obj.type != "CAMERA":
+        return ""
+    if item.guide is None:
+        return "missing"
+    return "ok" if item.guide_key == guide_key(obj, scene) else "stale"
+
+
+def make_guide(context, item):
+    """(Re)make the guide of ``item``'s camera; returns how it was drawn."""
+    scene = context.scene
+    item.guide, how = _render_guide(context, item.camera, scene)
+    item.guide_key = guide_key(item.camera, scene)
+    return how
 
 
 def _render_guide(context, obj, scene):
@@ -98,6 +175,26 @@ class MULTISCALE_OT_mask_new(bpy.types.Operator):
             return False
         return True
 
+    def invoke(self, context, event):
+        item = list_item(context)
+        if item.camera is None or not painted(item.mask):
+            return self.execute(context)
+        message = (
+            f"'{item.mask.name}' is painted. It will be kept as "
+            f"'{item.camera.name}{PREVIOUS_SUFFIX}' (Restore Previous Mask puts it back)"
+        )
+        try:
+            return context.window_manager.invoke_confirm(
+                self,
+                event,
+                title="Replace the painted mask?",
+                message=message,
+                confirm_text="New Mask",
+                icon="WARNING",
+            )
+        except TypeError:  # a Blender whose invoke_confirm takes no texts
+            return context.window_manager.invoke_confirm(self, event)
+
     def execute(self, context):
         scene = context.scene
         item = list_item(context)
@@ -106,24 +203,26 @@ class MULTISCALE_OT_mask_new(bpy.types.Operator):
             self.report({"ERROR"}, f"'{obj.name}' is not a camera; pick a camera object")
             return {"CANCELLED"}
         width, height = render_size(scene)
+        kept = keep_previous(item)
         item.mask = new_mask_image(obj.name + MASK_SUFFIX, width, height)
         how = "no guide"
         if self.guide:
             try:
-                item.guide, how = _render_guide(context, obj, scene)
+                how = make_guide(context, item)
             except Exception as err:  # the mask is made; only the picture failed
                 self.report({"WARNING"}, f"No guide picture for '{obj.name}': {err}")
+        kept_note = f"; the painted one is kept as '{kept.name}'" if kept is not None else ""
         self.report(
             {"INFO"},
             f"Mask '{item.mask.name}' ({width}x{height}) made for '{obj.name}' ({how}); "
-            "paint white where its view is kept",
+            f"paint white where its view is kept{kept_note}",
         )
         return {"FINISHED"}
 
 
 class MULTISCALE_OT_mask_paint(bpy.types.Operator):
-    """Open the active camera's mask in an Image Editor in Paint mode, white brush, its
-    guide shown underneath"""
+    """Open the active camera's mask in an Image Editor in Paint mode, white brush, the
+    camera's view shown over it (made, or remade when stale, first)"""
 
     bl_idname = "multiscale.mask_paint"
     bl_label = "Paint Mask"
@@ -145,12 +244,20 @@ class MULTISCALE_OT_mask_paint(bpy.types.Operator):
         if area is None:
             self.report({"ERROR"}, "No area could be turned into an Image Editor")
             return {"CANCELLED"}
+        note = ""
+        if guide_state(item, context.scene) in {"missing", "stale"}:
+            try:
+                note = f"; its view ({make_guide(context, item)}) is drawn over it"
+            except Exception as err:  # painting works without the picture
+                self.report({"WARNING"}, f"No guide picture for '{item.camera.name}': {err}")
         space = area.spaces.active
         space.image = item.mask
         space.ui_mode = "PAINT"
         _white_brush(context, area)
         area.tag_redraw()
-        self.report({"INFO"}, f"Painting '{item.mask.name}': white keeps the view, black hides")
+        self.report(
+            {"INFO"}, f"Painting '{item.mask.name}': white keeps the view, black hides{note}"
+        )
         return {"FINISHED"}
 
 
@@ -242,7 +349,7 @@ def repack_masks(*_args):
     for scene in bpy.data.scenes:
         settings = getattr(scene, "multiscale", None)
         for item in settings.cameras if settings is not None else ():
-            for image in (item.mask, item.guide):
+            for image in (item.mask, item.guide, item.previous_mask):
                 if image is None:
                     continue
                 if image.is_dirty and (image.packed_file or image.source == "GENERATED"):

@@ -1,12 +1,12 @@
 """Operators ``multiscale.*``, registered together: the camera list (``camera_ops``),
-masks (``mask_ops``), and the rig check, field, render, export and report
+masks (``mask_ops``, ``mask_make``), and the rig check, field, render, export and report
 (``field_ops``)."""
 
 import bpy
 
-from . import camera_ops, field_ops, mask_ops
+from . import camera_ops, field_ops, mask_make, mask_ops
 
-CLASSES = camera_ops.CLASSES + field_ops.CLASSES + mask_ops.CLASSES
+CLASSES = camera_ops.CLASSES + field_ops.CLASSES + mask_ops.CLASSES + mask_make.CLASSES
 
 
 def register():

@@ -9,6 +9,7 @@ from ..adapters.cameras import pinhole_from_object
 from ..core.quality import guard_pairs, headline
 from ..render import cycles
 from . import preview
+from .mask_ops import guide_state
 from .volume import draw_transfer_function
 
 
@@ -168,9 +169,29 @@ def draw_camera_settings(layout, context, item):
     row = layout.row(align=True)
     row.operator("multiscale.mask_new", icon="FILE_NEW")
     row.operator("multiscale.mask_paint", icon="BRUSH_DATA")
-    if item.guide is not None:
-        layout.label(text=f"Guide: {item.guide.name}", icon="IMAGE_REFERENCE")
+    row = layout.row(align=True)
+    row.operator("multiscale.mask_from_selected", icon="SELECT_SET")
+    row.operator("multiscale.mask_shape", icon="MESH_CIRCLE")
+    draw_guide_state(layout, context, item)
+    if item.previous_mask is not None:
+        col = layout.column(align=True)
+        col.label(text=f"Kept: {item.previous_mask.name}", icon="FILE_BACKUP")
+        col.operator("multiscale.mask_restore", icon="LOOP_BACK")
     draw_transfer_function(layout, item)
+
+
+def draw_guide_state(layout, context, item):
+    """The guide's name, and a warning with Update Guide when it is stale."""
+    state = guide_state(item, context.scene)
+    if state == "stale":
+        col = layout.column(align=True)
+        col.alert = True
+        col.label(text="Guide is stale: camera, lens or size changed", icon="ERROR")
+        col.operator("multiscale.guide_update", icon="FILE_REFRESH")
+    elif state == "ok":
+        layout.label(text=f"Guide: {item.guide.name}", icon="IMAGE_REFERENCE")
+    elif state == "missing" and item.mask is not None:
+        layout.label(text="No guide yet: Paint Mask makes one", icon="INFO")
 
 
 def _validation(settings):

@@ -6,7 +6,8 @@
   frusta of the cameras (eye to near plane, near plane to the next near plane), and
   folds among the drawn rays marked in red. Redrawn from the newest field after each
   build.
-- In the Image Editor: a camera's guide (its own view) over its mask at half opacity
+- In the Image Editor: a camera's guide (its own view) over its mask at the opacity
+  ``scene.multiscale.guide_opacity``
   while the mask is shown, so the mask can be painted over the picture.
 
 Lines are computed with numpy (``preview_lines``, a module without bpy); drawing needs a GPU
@@ -20,7 +21,7 @@ from gpu_extras.batch import batch_for_shader
 
 from ..adapters.scene import rig_from_scene
 from ..render.fields import SERVICE
-from .preview_lines import FOLD_COLOUR, GUIDE_ALPHA, frustum_lines, preview_lines
+from .preview_lines import FOLD_COLOUR, frustum_lines, preview_lines
 
 # --- Blender side ------------------------------------------------------------------------
 
@@ -219,7 +220,7 @@ def _draw_image_guide():
     gpu.state.blend_set("ALPHA")
     shader.bind()
     if name == "IMAGE_COLOR":
-        shader.uniform_float("color", (1.0, 1.0, 1.0, GUIDE_ALPHA))
+        shader.uniform_float("color", (1.0, 1.0, 1.0, scene.multiscale.guide_opacity))
     shader.uniform_sampler("image", texture)
     batch.draw(shader)
     gpu.state.blend_set("NONE")

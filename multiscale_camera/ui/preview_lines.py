@@ -20,7 +20,6 @@ PALETTE = np.array(
 FOLD_COLOUR = (1.0, 0.1, 0.1, 1.0)
 FRUSTUM_ALPHA = 0.8
 RAY_ALPHA = 0.9
-GUIDE_ALPHA = 0.5
 # Drawn ray vertices per ray at most (every k-th vertex of long rays).
 MAX_VERTICES = 96
 

@@ -87,6 +87,17 @@ class MultiscaleCameraItem(bpy.types.PropertyGroup):
         type=bpy.types.Image,
         description="This camera's own view, shown under the mask while it is painted",
     )
+    guide_key: StringProperty(
+        name="Guide Key",
+        default="",
+        description="The camera, lens and resolution the guide was made for (stale when "
+        "they change)",
+    )
+    previous_mask: PointerProperty(
+        name="Previous Mask",
+        type=bpy.types.Image,
+        description="The mask New Mask replaced, kept to be put back",
+    )
 
 
 class MultiscaleSettings(bpy.types.PropertyGroup):
@@ -158,6 +169,34 @@ class MultiscaleSettings(bpy.types.PropertyGroup):
         min=16,
         max=1 << 20,
         description="Size limit of the field cache on disk, megabytes (oldest fields go first)",
+    )
+    guide_opacity: FloatProperty(
+        name="Guide Opacity",
+        default=0.5,
+        min=0.0,
+        max=1.0,
+        subtype="FACTOR",
+        description="Opacity of the camera's view drawn over its mask in the Image Editor",
+    )
+    auto_guide: BoolProperty(
+        name="Update Guide Automatically",
+        default=True,
+        description="Remake the guide of a mask shown in an Image Editor about a second "
+        "after its camera, lens or the render size changed",
+    )
+    show_mask_overlay: BoolProperty(
+        name="Other Masks",
+        default=True,
+        description="Draw the other cameras' masks, the transition bands and the mask "
+        "warnings over the mask in the Image Editor",
+    )
+    overlay_opacity: FloatProperty(
+        name="Overlay Opacity",
+        default=0.35,
+        min=0.0,
+        max=1.0,
+        subtype="FACTOR",
+        description="Opacity of the other cameras' masks and the transition bands",
     )
     show_preview: BoolProperty(
         name="Ray Preview",
