@@ -33,8 +33,13 @@ def field_settings(scene):
     return replace(settings_for(s.quality, s.accuracy_px), processes=processes_of(scene))
 
 
-def rig_from_scene(scene):
+def rig_from_scene(scene, depsgraph=None):
     """Build the rig from ``scene.multiscale``.
+
+    With ``depsgraph`` (a render's, or any evaluated depsgraph) every camera is read as
+    that depsgraph evaluated it: its transform, lens, sensor, shift and clipping at the
+    depsgraph's frame. The list's pointers name the original objects, whose state is the
+    one of the last frame the main window evaluated, not the frame being rendered.
 
     Returns
     -------
@@ -61,7 +66,7 @@ def rig_from_scene(scene):
                 f"Camera list item {number}: '{obj.name}' is not a camera but a "
                 f"{obj.type.lower()}; pick a camera object"
             )
-        cameras.append(pinhole_from_object(obj, scene))
+        cameras.append(pinhole_from_object(evaluated(obj, depsgraph), scene))
         mask, said = mask_from_image(item.mask, width, height)
         masks.append(mask)
         notices += said
@@ -70,3 +75,12 @@ def rig_from_scene(scene):
         raise RigError("A camera appears twice in the camera list; each camera may appear once")
     masks, said = resolve_conflicts(np.stack(masks), names)
     return Rig(tuple(cameras), masks, beta=float(settings.beta), notices=tuple(notices + said))
+
+
+def evaluated(obj, depsgraph):
+    """``obj`` as ``depsgraph`` evaluated it (``obj`` itself without a depsgraph, or when
+    the depsgraph does not hold it: a camera outside the view layer keeps its own
+    state)."""
+    if depsgraph is None or obj.is_evaluated:
+        return obj
+    return obj.evaluated_get(depsgraph)

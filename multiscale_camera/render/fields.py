@@ -147,12 +147,14 @@ class FieldService:
 
     # --- requests ------------------------------------------------------------------
 
-    def request(self, scene, rig: Rig | None = None) -> FieldRequest:
+    def request(self, scene, rig: Rig | None = None, depsgraph=None) -> FieldRequest:
         """The field request of ``scene`` (main thread; an evaluated scene, so that
         object matrices are current), for ``rig`` when the caller has read it already.
-        Raises RigError when the rig cannot render."""
+        With ``depsgraph`` (a render's) the cameras are read as it evaluated them, at
+        its frame (``adapters.scene.rig_from_scene``). Raises RigError when the rig
+        cannot render."""
         group = scene.multiscale
-        rig = rig if rig is not None else rig_from_scene(scene)
+        rig = rig if rig is not None else rig_from_scene(scene, depsgraph)
         settings = field_settings(scene)
         notices = tuple(rig.notices) + tuple(empty_mask_messages(rig))
         notices += tuple(crossing_messages(rig))

@@ -129,7 +129,7 @@ def prepare_frame(depsgraph, diag=None):
     # volumes first: a missing or unusable volume file stops the render before the build
     volumes, volume_notices = prepare_volumes(depsgraph)
     with diag.stage("field"), runtime().journal() as runs:  # what the field's workers did
-        result = SERVICE.get(SERVICE.request(scene), diag)
+        result = SERVICE.get(SERVICE.request(scene, depsgraph=depsgraph), diag)
     if not result.built:  # said as "field (cached)" in the timings
         diag.seconds["field (cached)"] = diag.seconds.pop("field")
     ray_field = result.field

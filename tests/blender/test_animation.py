@@ -1,0 +1,167 @@
+"""Animated rigs: every frame of an animation render is rendered with that frame's
+cameras (transform and lens as the render's depsgraph evaluates them), in
+``render(animation=True)`` and in ``blender -b file -s A -e B -a``; a static rig renders
+identical frames.
+
+The reference is written here, independently of the extension: for each frame and each
+camera, Blender's own ``view_frame`` of the camera evaluated at that frame and
+``scene.ray_cast`` along its straight pinhole rays from the near plane, one pixel at a
+time; the object it hits is compared with the render's IndexOB in the camera's mask
+eroded by 2 px (the hidden-surface agreement of docs/report.md's metrics)."""
+
+import bpy
+import numpy as np
+import pytest
+from mathutils import Vector
+
+from fixtures.blender.scenes import two_camera_scene
+from multiscale_camera.adapters.scene import rig_from_scene
+from multiscale_camera.core.quality import erode
+from tests.conftest import REPO
+from tests.exr import read_passes
+
+WIDTH, HEIGHT = 48, 36
+FRAMES = (1, 2, 3)
+REGISTER = (
+    f"import sys; sys.path.insert(0, {str(REPO)!r}); import multiscale_camera; "
+    "multiscale_camera.register()"
+)
+
+
+def animated_rig(scene):
+    """The two-camera scene with both cameras keyframed over ``FRAMES``: C1 slides
+    sideways, C2 moves, turns and zooms (lens 50 -> 65), so every frame sees a
+    different picture."""
+    c1, c2 = two_camera_scene(scene, WIDTH, HEIGHT)
+    scene.frame_start, scene.frame_end = FRAMES[0], FRAMES[-1]
+    first, last = FRAMES[0], FRAMES[-1]
+    for obj, frame in ((c1, first), (c2, first)):
+        obj.keyframe_insert("location", frame=frame)
+        obj.keyframe_insert("rotation_euler", frame=frame)
+    c2.data.keyframe_insert("lens", frame=first)
+    c1.location.x += 1.5
+    c2.location += Vector((0.6, 0.4, -0.3))
+    c2.rotation_euler.z += 0.12
+    c2.data.lens = 65.0
+    for obj in (c1, c2):
+        obj.keyframe_insert("location", frame=last)
+        obj.keyframe_insert("rotation_euler", frame=last)
+    c2.data.keyframe_insert("lens", frame=last)
+    scene.frame_set(first)
+    return c1, c2
+
+
+def straight_index(scene, cam):
+    """(HEIGHT, WIDTH) int: pass index of the object ``cam``'s straight pinhole ray
+    through each pixel centre hits (0: none), at the scene's current frame; the ray
+    starts on the near plane, as the camera's own does."""
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    cam = cam.evaluated_get(depsgraph)
+    tr, br, bl, tl = (cam.matrix_world @ v for v in cam.data.view_frame(scene=scene))
+    eye = cam.matrix_world.translation
+    axis = (cam.matrix_world.to_quaternion() @ Vector((0, 0, -1))).normalized()
+    index = np.zeros((HEIGHT, WIDTH), dtype=np.float32)
+    for y in range(HEIGHT):
+        fy = (y + 0.5) / HEIGHT
+        left, right = tl.lerp(bl, fy), tr.lerp(br, fy)
+        for x in range(WIDTH):
+            d = (left.lerp(right, (x + 0.5) / WIDTH) - eye).normalized()
+            origin = eye + d * (cam.data.clip_start / d.dot(axis))
+            hit, _loc, _nor, _face, obj, _m = scene.ray_cast(depsgraph, origin, d)
+            index[y, x] = obj.pass_index if hit else 0
+    return index
+
+
+def agreement(scene, cams, frame, index):
+    """{camera name: (share of eroded-mask pixels whose IndexOB is the object the
+    camera's own straight ray hits at ``frame``, pixels compared)}."""
+    scene.frame_set(frame)
+    masks = rig_from_scene(scene).masks  # the masks as the rig resolves them
+    out = {}
+    for cam, mask in zip(cams, masks, strict=True):
+        kept = erode(mask, 2)
+        out[cam.name] = (
+            float((index[kept] == straight_index(scene, cam)[kept]).mean()),
+            int(kept.sum()),
+        )
+    return out
+
+
+def assert_each_frame_its_cameras(scene, cams, renders):
+    """``renders`` {frame: passes}: >= 99% hidden-surface agreement everywhere, and the
+    check has teeth: the frames differ, and frame 1's cameras do not explain the last."""
+    for frame, passes in renders.items():
+        for name, (agree, pixels) in agreement(
+            scene, cams, frame, passes["IndexOB"][..., 0]
+        ).items():
+            print(f"frame {frame} {name}: {agree:.4f} of {pixels} px")
+            assert pixels >= 40, f"frame {frame} {name}: only {pixels} px to compare"
+            assert agree >= 0.99, f"frame {frame} {name}: {agree:.2%} of the mask agrees"
+    first, last = renders[FRAMES[0]], renders[FRAMES[-1]]
+    assert not np.array_equal(first["IndexOB"], last["IndexOB"])
+    stale = agreement(scene, cams, FRAMES[0], last["IndexOB"][..., 0])
+    assert min(a for a, _n in stale.values()) < 0.97, stale
+
+
+def render_animation(scene, folder):
+    """{frame: passes} of ``render(animation=True)`` into ``folder``."""
+    scene.render.image_settings.media_type = "MULTI_LAYER_IMAGE"
+    scene.render.filepath = str(folder / "frame_####")
+    bpy.ops.render.render(animation=True)
+    return {f: read_passes(folder / f"frame_{f:04d}.exr") for f in FRAMES}
+
+
+@pytest.mark.slow
+def test_animation_render_reads_each_frames_cameras(empty_scene, tmp_path):
+    """render(animation=True) with keyframed cameras once gave frames 1 and 2 the same
+    picture: the render read the cameras' original objects, not the frame's."""
+    scene = empty_scene
+    cams = animated_rig(scene)
+    renders = render_animation(scene, tmp_path)
+    assert_each_frame_its_cameras(scene, cams, renders)
+
+
+@pytest.mark.slow
+def test_static_rig_renders_identical_frames(empty_scene, tmp_path):
+    scene = empty_scene
+    two_camera_scene(scene, WIDTH, HEIGHT)
+    scene.frame_start, scene.frame_end = 1, 2
+    scene.render.image_settings.media_type = "MULTI_LAYER_IMAGE"
+    scene.render.filepath = str(tmp_path / "frame_####")
+    bpy.ops.render.render(animation=True)
+    one, two = (read_passes(tmp_path / f"frame_{f:04d}.exr") for f in (1, 2))
+    for name in ("Combined", "Depth", "Normal", "IndexOB", "Membership"):
+        np.testing.assert_array_equal(one[name], two[name], err_msg=name)
+
+
+@pytest.mark.slow
+@pytest.mark.e2e
+def test_command_line_animation_reads_each_frames_cameras(empty_scene, tmp_path, run_blender):
+    """``blender -b file.blend -s 1 -e 3 -a``, as render farms run it."""
+    scene = empty_scene
+    cams = animated_rig(scene)
+    scene.frame_start, scene.frame_end = 7, 9  # -s and -e set the range to render
+    scene.render.image_settings.media_type = "MULTI_LAYER_IMAGE"
+    blend = tmp_path / "animated.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(blend))
+    out = tmp_path / "out"
+    run_blender(
+        [
+            "-b",
+            blend,
+            "--python-exit-code",
+            "1",
+            "--python-expr",
+            REGISTER,
+            "-o",
+            out / "frame_####",
+            "-s",
+            str(FRAMES[0]),
+            "-e",
+            str(FRAMES[-1]),
+            "-a",
+        ]
+    )
+    assert sorted(p.name for p in out.iterdir()) == [f"frame_{f:04d}.exr" for f in FRAMES]
+    renders = {f: read_passes(out / f"frame_{f:04d}.exr") for f in FRAMES}
+    assert_each_frame_its_cameras(scene, cams, renders)
