@@ -1,7 +1,9 @@
 """A Blender scene's multiscale settings -> a checked core ``Rig``."""
 
+import os
 from dataclasses import replace
 
+import bpy
 import numpy as np
 
 from ..core.errors import RigError
@@ -25,6 +27,26 @@ def processes_of(scene):
     allocator)."""
     render = scene.render
     return int(render.threads) if render.threads_mode == "FIXED" else 0
+
+
+UNSAVED_CACHE = (
+    "The scene's field cache folder '{folder}' is relative to the .blend file, which is "
+    "not saved yet: fields are kept in the extension's user folder until it is"
+)
+
+
+def cache_folder_of(scene):
+    """(absolute folder or None, notice or None): the scene's own field cache folder
+    (Multiscale > Preview and Cache > Cache Folder; '//' is the .blend's folder, so it
+    travels with the file onto a render farm's shared storage). None: the default
+    folder, also when a '//' path has no saved .blend to be relative to (the notice
+    says so)."""
+    folder = getattr(scene.multiscale, "cache_folder", "").strip()
+    if not folder:
+        return None, None
+    if folder.startswith("//") and not bpy.data.filepath:
+        return None, UNSAVED_CACHE.format(folder=folder)
+    return os.path.normpath(bpy.path.abspath(folder)), None
 
 
 def field_settings(scene):

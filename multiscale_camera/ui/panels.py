@@ -226,6 +226,7 @@ class MULTISCALE_PT_preview(bpy.types.Panel):
         row = layout.row(align=True)
         row.prop(settings, "cache_limit_mb", text="Cache (MB)")
         row.operator("multiscale.cache_clear", icon="TRASH")
+        layout.prop(settings, "cache_folder", text="Folder")
 
 
 CLASSES = (

@@ -89,6 +89,10 @@ class MultiscaleCameraItem(bpy.types.PropertyGroup):
     )
 
 
+# Paths that may start with "//" (Blender 5 warns without the option, which older ones may lack).
+BLEND_RELATIVE = {"PATH_SUPPORTS_BLEND_RELATIVE"} if bpy.app.version >= (5, 0, 0) else set()
+
+
 class MultiscaleSettings(bpy.types.PropertyGroup):
     cameras: CollectionProperty(type=MultiscaleCameraItem)
     active_index: IntProperty(name="Active Camera", default=0, min=0)
@@ -158,6 +162,14 @@ class MultiscaleSettings(bpy.types.PropertyGroup):
         min=16,
         max=1 << 20,
         description="Size limit of the field cache on disk, megabytes (oldest fields go first)",
+    )
+    cache_folder: StringProperty(
+        name="Cache Folder",
+        default="",
+        subtype="DIR_PATH",
+        options=BLEND_RELATIVE,
+        description="Folder of this scene's field cache ('//' = the .blend's folder, so "
+        "render farm workers share it with the file); empty: the extension's user folder",
     )
     show_preview: BoolProperty(
         name="Ray Preview",
