@@ -36,6 +36,9 @@ DEFAULT_LIMIT_MB = 2048
 # Environment variable that overrides the cache folder (scripts, tests, farms).
 FOLDER_ENV = "MULTISCALE_CACHE_DIR"
 SUFFIX = ".npz"
+# Fields read or written this recently are in use (a farm's other workers may be about
+# to read them): trimming leaves them, seconds.
+IN_USE_SECONDS = 600.0
 # One JSON line per field built into a folder: {"key", "host", "pid", "time", "seconds"}.
 BUILDS_LOG = "builds.jsonl"
 
@@ -109,10 +112,14 @@ class FieldCache:
 
     def build_lock(self, key):
         """The ``io.locks.BuildLock`` of ``key``'s field in the folder (created), or
-        None without a disk cache."""
+        None without a disk cache or when the folder cannot be made (the field is then
+        built here, and ``put`` says why it is not kept)."""
         if not self.folder:
             return None
-        os.makedirs(self.folder, exist_ok=True)
+        try:
+            os.makedirs(self.folder, exist_ok=True)
+        except OSError:
+            return None
         return BuildLock(self.folder, key)
 
     def record_build(self, key, seconds):
@@ -223,14 +230,17 @@ class FieldCache:
 
     def trim(self, limit_mb=None):
         """Remove the least recently used disk entries until the cache fits its limit
-        (the newest entry stays even if it alone is larger). Returns the files removed."""
+        (the newest entry stays even if it alone is larger, and so do the entries used
+        in the last ``IN_USE_SECONDS``: in a folder shared by a farm's workers, fields
+        a running job still needs). Returns the files removed."""
         limit = (self.limit_mb if limit_mb is None else float(limit_mb)) * 1e6
         entries = self.entries()
         total = sum(e[1] for e in entries)
         removed = 0
-        for p, size, _t in entries[:-1]:
-            if total <= limit:
-                break
+        now = time.time()
+        for p, size, used in entries[:-1]:
+            if total <= limit or now - used < IN_USE_SECONDS:
+                break  # oldest first: the rest are newer still
             try:
                 os.remove(p)
             except OSError:

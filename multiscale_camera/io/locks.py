@@ -60,7 +60,8 @@ class BuildLock:
 
     def acquire(self) -> bool:
         """Take the lock if it is free (a stale one is removed first); False when a
-        live holder has it."""
+        live holder has it. A folder where no lock can be written (read-only, gone)
+        counts as free: nobody can share it, so this process builds on its own."""
         for _ in range(2):
             try:
                 fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
@@ -69,6 +70,8 @@ class BuildLock:
                     return False
                 self.break_stale()
                 continue
+            except OSError:
+                return True
             with os.fdopen(fd, "w") as out:
                 json.dump({**holder_id(), "started": time.time()}, out)
             self._start_heartbeat()
@@ -114,7 +117,7 @@ class BuildLock:
             self._stop = self._thread = None
         try:
             os.remove(self.path)
-        except FileNotFoundError:
+        except OSError:  # gone, or never written (an unusable folder)
             pass
 
     def _start_heartbeat(self) -> None:
