@@ -9,16 +9,19 @@ camera, Blender's own ``view_frame`` of the camera evaluated at that frame and
 time; the object it hits is compared with the render's IndexOB in the camera's mask
 eroded by 2 px (the hidden-surface agreement of docs/report.md's metrics)."""
 
+import math
+
 import bpy
 import numpy as np
 import pytest
 from mathutils import Vector
 
+from fixtures.blender import samples
 from fixtures.blender.scenes import two_camera_scene
 from multiscale_camera.adapters.masks import ANIMATED_MASK
 from multiscale_camera.adapters.scene import rig_from_scene
 from multiscale_camera.core.quality import erode
-from multiscale_camera.render import pipeline
+from multiscale_camera.render import fields, pipeline
 from multiscale_camera.render.raycast import march
 from tests.conftest import REPO
 from tests.exr import read_passes
@@ -235,3 +238,25 @@ def test_an_image_sequence_mask_is_said_not_read(empty_scene, tmp_path):
     said = ANIMATED_MASK.format(name=sequence.name, kind="an image sequence")
     assert said in rig.notices
     assert not rig.masks[0].any()
+
+
+def test_dolly_sample_moves_uniformly(empty_scene):
+    """sample_blends/dolly.blend's scene: camera 3 from 2.4 m to 1.8 m from the teapot
+    in equal steps, camera 2 panning 6 degrees, so every frame asks for its own field."""
+    scene = empty_scene
+    samples.build_dolly(scene)
+    cam2, cam3 = scene.objects["Cam2 Stall"], scene.objects["Cam3 Object"]
+    teapot = Vector(samples.TEAPOT)
+    distance, yaw, keys = {}, {}, set()
+    for frame in (1, 2, 48):
+        scene.frame_set(frame)
+        depsgraph = bpy.context.evaluated_depsgraph_get()
+        distance[frame] = (cam3.evaluated_get(depsgraph).matrix_world.translation - teapot).length
+        yaw[frame] = math.degrees(cam2.evaluated_get(depsgraph).matrix_world.to_euler().z)
+        keys.add(fields.SERVICE.request(depsgraph.scene, depsgraph=depsgraph).key)
+    assert (scene.frame_start, scene.frame_end) == (1, 48)
+    assert distance[1] == pytest.approx(2.4, abs=1e-5)
+    assert distance[48] == pytest.approx(1.8, abs=1e-5)
+    assert distance[1] - distance[2] == pytest.approx(0.6 / 47, abs=1e-5)
+    assert yaw[48] - yaw[1] == pytest.approx(6.0, abs=1e-3)
+    assert len(keys) == 3
