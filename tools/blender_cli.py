@@ -11,6 +11,7 @@ As in Blender, the settings flags act first wherever they stand (``-b``/``--back
                                 (0, the default: print the traceback and go on)
     -E/--engine ENGINE          set the scene's render engine
     -o/--render-output PATH     set the render output path ('//' = blend folder, '#' = frame)
+    -F/--render-format FORMAT   set the output format (PNG, OPEN_EXR_MULTILAYER, FFMPEG, ...)
     -f/--render-frame N[,M..]   render frames and save them to the output path (N..M ranges)
     -s/--frame-start N          set the scene's first frame (+N/-N: relative to it)
     -e/--frame-end N            set the scene's last frame (+N/-N: relative to it)
@@ -41,6 +42,7 @@ ALIASES = {
     "-P": "--python",
     "-E": "--engine",
     "-o": "--render-output",
+    "-F": "--render-format",
     "-f": "--render-frame",
     "-s": "--frame-start",
     "-e": "--frame-end",
@@ -48,6 +50,10 @@ ALIASES = {
     "-a": "--render-anim",
 }
 NO_VALUE = {"--render-anim"}
+# -F's names that differ from the file_format property's (BKE_imtype_from_arg), and the
+# media type Blender 5 sets with them (BKE_image_format_set).
+FORMAT_NAMES = {"TGA": "TARGA", "RAWTGA": "TARGA_RAW", "JP2": "JPEG2000"}
+MEDIA_TYPES = {"OPEN_EXR_MULTILAYER": "MULTI_LAYER_IMAGE", "FFMPEG": "VIDEO"}
 # Blender's frame limits (MINAFRAME, MAXFRAME): -s, -e and -f clamp to them.
 MIN_FRAME, MAX_FRAME = -1048574, 1048574
 WITH_VALUE = {
@@ -57,6 +63,7 @@ WITH_VALUE = {
     "--python-exit-code",
     "--engine",
     "--render-output",
+    "--render-format",
     "--render-frame",
     "--frame-start",
     "--frame-end",
@@ -217,6 +224,22 @@ def set_frames(scene, span, flag, value):
         span.set(scene, "start" if flag == "--frame-start" else "end", value)
 
 
+def set_format(scene, name):
+    """-F: the output format by Blender's argument name; False when unknown."""
+    settings = scene.render.image_settings
+    file_format = FORMAT_NAMES.get(name, name)
+    media = getattr(settings, "media_type", None)
+    if media is not None:  # Blender 5: the kind of output first
+        settings.media_type = MEDIA_TYPES.get(file_format, "IMAGE")
+    try:
+        settings.file_format = file_format
+    except TypeError:
+        if media is not None:
+            settings.media_type = media  # unknown: the output stays as it was
+        return False
+    return True
+
+
 def main(args):
     try:
         settings, actions = parse(args)
@@ -267,6 +290,13 @@ def main(args):
                 return 1
         elif flag == "--render-output":
             bpy.context.scene.render.filepath = value
+        elif flag == "--render-format":
+            if not set_format(bpy.context.scene, value):
+                print(
+                    "\nError: Format from '-F / --render-format' not known or not compiled in "
+                    "this release.",
+                    file=sys.stderr,
+                )
         elif flag == "--render-frame":
             render_frames(bpy, value, span)
         elif flag in ("--frame-start", "--frame-end", "--frame-jump"):

@@ -252,3 +252,29 @@ def test_bad_frame_number_is_reported(run_blender, small_blend, tmp_path):
     proc = run_blender(["-b", small_blend, "-s", "x", "-o", tmp_path / "b_#", "-f", "1"])
     assert "Error: not a number '-s / --frame-start x'." in proc.stderr
     assert frame_files(tmp_path, "b_") == ["b_1.png"]
+
+
+def test_render_format_and_frame_chunks_as_flamenco_runs_them(run_blender, small_blend, tmp_path):
+    """Flamenco's Simple Blender Render: --render-output, --render-format and a chunk
+    of frames as --render-frame A..B."""
+    run_blender(
+        [
+            "-b",
+            small_blend,
+            "--render-output",
+            tmp_path / "c_####",
+            "--render-format",
+            "OPEN_EXR_MULTILAYER",
+            "--render-frame",
+            "2..3",
+        ]
+    )
+    assert frame_files(tmp_path, "c_") == ["c_0002.exr", "c_0003.exr"]
+    with open(tmp_path / "c_0002.exr", "rb") as f:
+        assert f.read(4) == b"v/1\x01"  # OpenEXR's magic number
+
+
+def test_unknown_render_format_is_reported(run_blender, small_blend, tmp_path):
+    proc = run_blender(["-b", small_blend, "-F", "NOPE", "-o", tmp_path / "u_#", "-f", "1"])
+    assert "Error: Format from '-F / --render-format' not known" in proc.stderr
+    assert frame_files(tmp_path, "u_") == ["u_1.png"]
