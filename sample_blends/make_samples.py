@@ -4,9 +4,10 @@
     tools/blender -b --factory-startup --python-exit-code 1 \
         --python sample_blends/make_samples.py -- --out DIR --only two_camera
 
-Writes demo.blend, two_camera.blend, galleon.blend and volume_demo.blend (compressed, masks packed;
-the volume demo's voxels in volume_demo_phantom.nrrd beside it) next to this script,
-or into --out. The scenes are those of fixtures/blender/samples.py.
+Writes demo.blend, dolly.blend (the demo animated), two_camera.blend, galleon.blend and
+volume_demo.blend (compressed, masks packed; the volume demo's voxels in
+volume_demo_phantom.nrrd beside it) next to this script, or into --out. The scenes are
+those of fixtures/blender/samples.py.
 """
 
 import argparse
@@ -24,6 +25,7 @@ from fixtures.blender import samples  # noqa: E402
 # name -> builder(scene, out_dir): the folder the .blend (and any data file) goes to
 BUILDERS = {
     "demo": lambda scene, _out: samples.build_demo(scene),
+    "dolly": lambda scene, _out: samples.build_dolly(scene),
     "two_camera": lambda scene, _out: samples.build_two_camera(scene),
     "galleon": lambda scene, _out: samples.build_galleon(scene),
     "volume_demo": samples.build_volume_demo,

@@ -11,7 +11,20 @@ As in Blender, the settings flags act first wherever they stand (``-b``/``--back
                                 (0, the default: print the traceback and go on)
     -E/--engine ENGINE          set the scene's render engine
     -o/--render-output PATH     set the render output path ('//' = blend folder, '#' = frame)
+    -F/--render-format FORMAT   set the output format (PNG, OPEN_EXR_MULTILAYER, FFMPEG, ...)
     -f/--render-frame N[,M..]   render frames and save them to the output path (N..M ranges)
+    -s/--frame-start N          set the scene's first frame (+N/-N: relative to it)
+    -e/--frame-end N            set the scene's last frame (+N/-N: relative to it)
+    -j/--frame-jump N           set the frame step (at least 1)
+    -a/--render-anim            render frames start..end (every step-th) and save them
+
+Rendering is Blender's own (``render.render(animation=True)``, the RE_RenderAnim of the
+bpy wheel), so its output naming ('#' runs become the zero-padded frame number, else
+the number is appended), its placeholders (Output > Placeholders: an empty file written
+before a frame renders) and its no-overwrite (Output > Overwrite off: frames whose file
+exists are skipped) are Blender's. As in Blender, -s and -e write the range as given:
+a start after the end renders nothing (the scene's own properties would move the other
+end along; the emulator keeps the range it was given for -a and -f's relative frames).
     --                          end of Blender's arguments; scripts read the rest
 
 ``sys.argv`` is ``["blender", *arguments]``. Without ``--factory-startup`` the user's
@@ -25,7 +38,24 @@ import sys
 import traceback
 
 SETTINGS = {"-b", "--background", "--factory-startup", "-v", "--version"}
-ALIASES = {"-P": "--python", "-E": "--engine", "-o": "--render-output", "-f": "--render-frame"}
+ALIASES = {
+    "-P": "--python",
+    "-E": "--engine",
+    "-o": "--render-output",
+    "-F": "--render-format",
+    "-f": "--render-frame",
+    "-s": "--frame-start",
+    "-e": "--frame-end",
+    "-j": "--frame-jump",
+    "-a": "--render-anim",
+}
+NO_VALUE = {"--render-anim"}
+# -F's names that differ from the file_format property's (BKE_imtype_from_arg), and the
+# media type Blender 5 sets with them (BKE_image_format_set).
+FORMAT_NAMES = {"TGA": "TARGA", "RAWTGA": "TARGA_RAW", "JP2": "JPEG2000"}
+MEDIA_TYPES = {"OPEN_EXR_MULTILAYER": "MULTI_LAYER_IMAGE", "FFMPEG": "VIDEO"}
+# Blender's frame limits (MINAFRAME, MAXFRAME): -s, -e and -f clamp to them.
+MIN_FRAME, MAX_FRAME = -1048574, 1048574
 WITH_VALUE = {
     "--addons",
     "--python",
@@ -33,7 +63,11 @@ WITH_VALUE = {
     "--python-exit-code",
     "--engine",
     "--render-output",
+    "--render-format",
     "--render-frame",
+    "--frame-start",
+    "--frame-end",
+    "--frame-jump",
 }
 
 
@@ -57,6 +91,8 @@ def parse(args):
             if value is None:
                 raise UsageError(f"{arg} needs a value")
             actions.append((flag, value))
+        elif flag in NO_VALUE:
+            actions.append((flag, None))
         elif arg.startswith("-"):
             raise UsageError(f"unknown argument {arg}")
         else:
@@ -97,26 +133,111 @@ def run_python(code, filename):
     return True
 
 
-def frames(spec):
-    """'3', '1,5', '2..4' -> [3], [1, 5], [2, 3, 4]."""
+def relative(text, plus, minus):
+    """Blender's frame argument: 'N', '+N' (``plus`` + N) or '-N' (``minus`` - N + 1),
+    clamped to Blender's frame limits."""
+    if text.startswith("+"):
+        value = plus + int(text[1:])
+    elif text.startswith("-"):
+        value = minus - int(text[1:]) + 1
+    else:
+        value = int(text)
+    return min(max(value, MIN_FRAME), MAX_FRAME)
+
+
+def frames(spec, start=1, end=250):
+    """'3', '1,5', '2..4' -> [3], [1, 5], [2, 3, 4]; '+N' counts from ``start``, '-N'
+    back from ``end`` (as `blender -f`)."""
     result = []
     for part in spec.split(","):
         first, _, last = part.partition("..")
-        result += range(int(first), int(last or first) + 1)
+        first = relative(first, start, end)
+        result += range(first, (relative(last, start, end) if last else first) + 1)
     return result
 
 
-def render_frames(bpy, spec):
-    """Render and save each frame as `blender -f` does (frame number in the file name)."""
+class FrameRange:
+    """The scene's frame range as -s, -e and -j gave it (Blender writes them as given,
+    a start after the end included); None: the scene's own."""
+
+    def __init__(self):
+        self.start = self.end = None
+
+    def of(self, scene):
+        start = scene.frame_start if self.start is None else self.start
+        end = scene.frame_end if self.end is None else self.end
+        return start, end
+
+    def set(self, scene, which, text):
+        start, end = self.of(scene)
+        if which == "start":
+            self.start = start = relative(text, start, start - 1)
+        else:
+            self.end = end = relative(text, end, end - 1)
+        # the scene's properties keep start <= end by moving the other end along
+        scene.frame_start = start
+        if end >= start:
+            scene.frame_end = end
+
+
+def render_range(bpy, first, last):
+    """Render and save frames ``first .. last`` (every frame_step-th) as Blender's
+    RE_RenderAnim does: placeholders and no-overwrite included."""
+    if first > last:
+        return
     scene = bpy.context.scene
     start, end = scene.frame_start, scene.frame_end
     try:
-        for frame in frames(spec):
-            # Setting the start moves the end along (and the reverse), so this order is safe.
-            scene.frame_start, scene.frame_end = frame, frame
-            bpy.ops.render.render(animation=True)
+        # Setting the start moves the end along (and the reverse), so this order is safe.
+        scene.frame_start, scene.frame_end = first, first
+        scene.frame_end = last
+        bpy.ops.render.render(animation=True)
     finally:
         scene.frame_start, scene.frame_end = start, end
+
+
+def render_frames(bpy, spec, span):
+    """Render and save each frame as `blender -f` does (frame number in the file name)."""
+    scene = bpy.context.scene
+    step = scene.frame_step
+    try:
+        scene.frame_step = 1  # -f renders every frame it names
+        for frame in frames(spec, *span.of(scene)):
+            render_range(bpy, frame, frame)
+    finally:
+        scene.frame_step = step
+
+
+FRAME_FLAGS = {
+    "--frame-start": "-s / --frame-start",
+    "--frame-end": "-e / --frame-end",
+    "--frame-jump": "-j / --frame-jump",
+}
+
+
+def set_frames(scene, span, flag, value):
+    """-s, -e or -j; ValueError when ``value`` is not a number (Blender says so and goes
+    on)."""
+    if flag == "--frame-jump":
+        scene.frame_step = min(max(int(value), 1), MAX_FRAME)
+    else:
+        span.set(scene, "start" if flag == "--frame-start" else "end", value)
+
+
+def set_format(scene, name):
+    """-F: the output format by Blender's argument name; False when unknown."""
+    settings = scene.render.image_settings
+    file_format = FORMAT_NAMES.get(name, name)
+    media = getattr(settings, "media_type", None)
+    if media is not None:  # Blender 5: the kind of output first
+        settings.media_type = MEDIA_TYPES.get(file_format, "IMAGE")
+    try:
+        settings.file_format = file_format
+    except TypeError:
+        if media is not None:
+            settings.media_type = media  # unknown: the output stays as it was
+        return False
+    return True
 
 
 def main(args):
@@ -135,6 +256,7 @@ def main(args):
     load_startup(bpy, factory="--factory-startup" in settings)
 
     exit_code_on_error = 0
+    span = FrameRange()
     for flag, value in actions:
         ok = True
         if flag == "blend":
@@ -143,6 +265,7 @@ def main(args):
             except RuntimeError:
                 print(f"Error: file could not be loaded, exiting! {value}", file=sys.stderr)
                 return 1
+            span = FrameRange()
         elif flag == "--addons":
             from _bpy_internal.addons.cli import set_from_cli
 
@@ -167,8 +290,22 @@ def main(args):
                 return 1
         elif flag == "--render-output":
             bpy.context.scene.render.filepath = value
+        elif flag == "--render-format":
+            if not set_format(bpy.context.scene, value):
+                print(
+                    "\nError: Format from '-F / --render-format' not known or not compiled in "
+                    "this release.",
+                    file=sys.stderr,
+                )
         elif flag == "--render-frame":
-            render_frames(bpy, value)
+            render_frames(bpy, value, span)
+        elif flag in ("--frame-start", "--frame-end", "--frame-jump"):
+            try:
+                set_frames(bpy.context.scene, span, flag, value)
+            except ValueError:
+                print(f"\nError: not a number '{FRAME_FLAGS[flag]} {value}'.", file=sys.stderr)
+        elif flag == "--render-anim":
+            render_range(bpy, *span.of(bpy.context.scene))
         if not ok and exit_code_on_error:
             print(f"\nError: script failed, {flag} '{value}', exiting.", file=sys.stderr)
             return exit_code_on_error

@@ -6,6 +6,19 @@ import numpy as np
 # Rec. 709 luminance weights: white (preserved) is luminance >= 0.5.
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
 THRESHOLD = 0.5
+# Image sources whose pixels change with the frame.
+ANIMATED_SOURCES = {"SEQUENCE": "an image sequence", "MOVIE": "a movie"}
+ANIMATED_MASK = (
+    "Mask '{name}' is {kind}: animated masks are not read yet, so the camera is treated "
+    "as preserving nothing; give it a still image (Image Editor > Image > Source: "
+    "Single Image) or key the camera instead"
+)
+
+
+def animated_kind(image):
+    """'an image sequence' or 'a movie' when ``image``'s pixels change with the frame,
+    else None."""
+    return None if image is None else ANIMATED_SOURCES.get(getattr(image, "source", ""))
 
 
 def image_pixels(image):
@@ -42,6 +55,10 @@ def mask_from_image(image, width, height):
     """
     if image is None:
         return np.zeros((height, width), dtype=bool), []
+    kind = animated_kind(image)
+    if kind is not None:
+        notice = ANIMATED_MASK.format(name=image.name, kind=kind)
+        return np.zeros((height, width), dtype=bool), [notice]
     rgba = image_pixels(image)
     if rgba is None:
         return np.zeros((height, width), dtype=bool), [

@@ -1,7 +1,9 @@
 """A Blender scene's multiscale settings -> a checked core ``Rig``."""
 
+import os
 from dataclasses import replace
 
+import bpy
 import numpy as np
 
 from ..core.errors import RigError
@@ -27,14 +29,39 @@ def processes_of(scene):
     return int(render.threads) if render.threads_mode == "FIXED" else 0
 
 
+UNSAVED_CACHE = (
+    "The scene's field cache folder '{folder}' is relative to the .blend file, which is "
+    "not saved yet: fields are kept in the extension's user folder until it is"
+)
+
+
+def cache_folder_of(scene):
+    """(absolute folder or None, notice or None): the scene's own field cache folder
+    (Multiscale > Preview and Cache > Cache Folder; '//' is the .blend's folder, so it
+    travels with the file onto a render farm's shared storage). None: the default
+    folder, also when a '//' path has no saved .blend to be relative to (the notice
+    says so)."""
+    folder = getattr(scene.multiscale, "cache_folder", "").strip()
+    if not folder:
+        return None, None
+    if folder.startswith("//") and not bpy.data.filepath:
+        return None, UNSAVED_CACHE.format(folder=folder)
+    return os.path.normpath(bpy.path.abspath(folder)), None
+
+
 def field_settings(scene):
     """The core ``Settings`` of the scene's quality, accuracy target and threads."""
     s = scene.multiscale
     return replace(settings_for(s.quality, s.accuracy_px), processes=processes_of(scene))
 
 
-def rig_from_scene(scene):
+def rig_from_scene(scene, depsgraph=None):
     """Build the rig from ``scene.multiscale``.
+
+    With ``depsgraph`` (a render's, or any evaluated depsgraph) every camera is read as
+    that depsgraph evaluated it: its transform, lens, sensor, shift and clipping at the
+    depsgraph's frame. The list's pointers name the original objects, whose state is the
+    one of the last frame the main window evaluated, not the frame being rendered.
 
     Returns
     -------
@@ -61,7 +88,7 @@ def rig_from_scene(scene):
                 f"Camera list item {number}: '{obj.name}' is not a camera but a "
                 f"{obj.type.lower()}; pick a camera object"
             )
-        cameras.append(pinhole_from_object(obj, scene))
+        cameras.append(pinhole_from_object(evaluated(obj, depsgraph), scene))
         mask, said = mask_from_image(item.mask, width, height)
         masks.append(mask)
         notices += said
@@ -70,3 +97,12 @@ def rig_from_scene(scene):
         raise RigError("A camera appears twice in the camera list; each camera may appear once")
     masks, said = resolve_conflicts(np.stack(masks), names)
     return Rig(tuple(cameras), masks, beta=float(settings.beta), notices=tuple(notices + said))
+
+
+def evaluated(obj, depsgraph):
+    """``obj`` as ``depsgraph`` evaluated it (``obj`` itself without a depsgraph, or when
+    the depsgraph does not hold it: a camera outside the view layer keeps its own
+    state)."""
+    if depsgraph is None or obj.is_evaluated:
+        return obj
+    return obj.evaluated_get(depsgraph)

@@ -9,17 +9,25 @@ without a rebuild, and a field built yesterday is still good today. Fields live
   extension's user folder (``bpy.utils.extension_path_user(__package__, "cache")``),
   the least recently used removed first once the folder outgrows its size limit.
 
+A scene may name its own folder (``use_folder``), such as one beside the .blend on a
+render farm's shared storage; there several processes share it: ``build_lock`` gives
+one of them the build of a field (``io.locks``), and ``record_build`` notes in
+``builds.jsonl`` who built which field, when and in how many seconds.
+
 The field service (``render.fields.SERVICE``) owns the one cache every caller uses.
 Only ``default_folder`` touches bpy; the rest is plain Python and numpy.
 """
 
+import json
 import os
 import tempfile
+import time
 import zipfile
 
 import numpy as np
 
 from .fields import field_from_arrays, field_to_arrays
+from .locks import BuildLock, holder_id
 
 # Fields kept in memory, newest last: two covers a render after a preview build.
 KEEP_IN_MEMORY = 2
@@ -28,6 +36,11 @@ DEFAULT_LIMIT_MB = 2048
 # Environment variable that overrides the cache folder (scripts, tests, farms).
 FOLDER_ENV = "MULTISCALE_CACHE_DIR"
 SUFFIX = ".npz"
+# Fields read or written this recently are in use (a farm's other workers may be about
+# to read them): trimming leaves them, seconds.
+IN_USE_SECONDS = 600.0
+# One JSON line per field built into a folder: {"key", "host", "pid", "time", "seconds"}.
+BUILDS_LOG = "builds.jsonl"
 
 
 def default_folder():
@@ -67,15 +80,68 @@ class FieldCache:
     def __init__(self, folder=None, limit_mb=DEFAULT_LIMIT_MB, lazy_folder=False):
         self._folder = folder
         self._lazy = lazy_folder and folder is None
+        self._chosen = None  # use_folder's, e.g. a scene's folder beside its .blend
         self.limit_mb = float(limit_mb)
         self.memory = {}
         self.hits = self.misses = self.disk_hits = 0
 
     @property
     def folder(self):
+        """The folder in use: the one ``use_folder`` chose, else the default."""
+        if self._chosen:
+            return self._chosen
         if self._folder is None and self._lazy:
             self._folder = default_folder()
         return self._folder
+
+    def use_folder(self, folder):
+        """Keep fields in ``folder`` from now on (None or "": the default folder again).
+        The fields in memory stay: their keys say what they are, wherever they came
+        from."""
+        self._chosen = folder or None
+
+    def peek(self, key, rig):
+        """The field under ``key`` on disk, or None, without counting a hit or a miss
+        (a process waiting for another one's build looks again and again)."""
+        if key in self.memory:
+            return self.memory[key]
+        fld = self._read(key, rig) if self.folder else None
+        if fld is not None:
+            self._remember(key, fld)
+        return fld
+
+    def build_lock(self, key):
+        """The ``io.locks.BuildLock`` of ``key``'s field in the folder (created), or
+        None without a disk cache or when the folder cannot be made (the field is then
+        built here, and ``put`` says why it is not kept)."""
+        if not self.folder:
+            return None
+        try:
+            os.makedirs(self.folder, exist_ok=True)
+        except OSError:
+            return None
+        return BuildLock(self.folder, key)
+
+    def record_build(self, key, seconds):
+        """Note in ``builds.jsonl`` that this process built ``key``'s field (one
+        appended line: concurrent writers do not interleave). Errors are ignored: the
+        note is for people reading the folder."""
+        if not self.folder:
+            return
+        line = json.dumps({"key": key, **holder_id(), "time": time.time(), "seconds": seconds})
+        try:
+            with open(os.path.join(self.folder, BUILDS_LOG), "a") as out:
+                out.write(line + "\n")
+        except OSError:
+            pass
+
+    def builds(self):
+        """[dict] of ``builds.jsonl``, oldest first ([] without one)."""
+        try:
+            with open(os.path.join(self.folder, BUILDS_LOG)) as f:
+                return [json.loads(line) for line in f if line.strip()]
+        except (OSError, TypeError):
+            return []
 
     def path(self, key):
         return os.path.join(self.folder, key + SUFFIX)
@@ -164,14 +230,17 @@ class FieldCache:
 
     def trim(self, limit_mb=None):
         """Remove the least recently used disk entries until the cache fits its limit
-        (the newest entry stays even if it alone is larger). Returns the files removed."""
+        (the newest entry stays even if it alone is larger, and so do the entries used
+        in the last ``IN_USE_SECONDS``: in a folder shared by a farm's workers, fields
+        a running job still needs). Returns the files removed."""
         limit = (self.limit_mb if limit_mb is None else float(limit_mb)) * 1e6
         entries = self.entries()
         total = sum(e[1] for e in entries)
         removed = 0
-        for p, size, _t in entries[:-1]:
-            if total <= limit:
-                break
+        now = time.time()
+        for p, size, used in entries[:-1]:
+            if total <= limit or now - used < IN_USE_SECONDS:
+                break  # oldest first: the rest are newer still
             try:
                 os.remove(p)
             except OSError:

@@ -59,7 +59,7 @@ def validate_scene(depsgraph):
     RigError for a rig that cannot render (the message says what to change).
     """
     scene = depsgraph.scene
-    rig = rig_from_scene(scene)
+    rig = rig_from_scene(scene, depsgraph)
     messages = list(rig.notices) + preflight(rig)
     geometry, tree = scene_tree(depsgraph)
     messages += obstruction_messages(rig, geometry_cast(geometry, tree))

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import bpy
 
-from ..adapters.scene import field_settings, rig_from_scene
+from ..adapters.scene import cache_folder_of, field_settings, rig_from_scene
 from ..adapters.volumes import VolumeGridCache
 from ..core.diagnostics import Diagnostics, Level
 from ..core.errors import Cancelled
@@ -31,6 +31,7 @@ from ..core.methods import Settings, field_key, prepare
 from ..core.quality import build_report, crossing_messages, empty_mask_messages
 from ..core.runtime import gave_up, runtime
 from ..io.cache import DEFAULT_LIMIT_MB, FieldCache
+from ..io.locks import POLL_SECONDS as LOCK_POLL_SECONDS
 
 # Worker processes of a build, the simplification or the ray tables gave way.
 WORKERS_GIVEN_UP = (
@@ -51,6 +52,7 @@ class FieldRequest:
     notices : tuple of str, what reading the scene adjusted (resampled masks, shared
         pixels) and the checks every build gets (empty masks, crossing frusta).
     limit_mb : float, the disk cache's size limit.
+    folder : str or None, the scene's own cache folder (absolute), None: the default.
     """
 
     rig: Rig
@@ -60,6 +62,7 @@ class FieldRequest:
     key: str
     notices: tuple[str, ...]
     limit_mb: float = DEFAULT_LIMIT_MB
+    folder: str | None = None
 
 
 @dataclass(frozen=True)
@@ -147,15 +150,19 @@ class FieldService:
 
     # --- requests ------------------------------------------------------------------
 
-    def request(self, scene, rig: Rig | None = None) -> FieldRequest:
+    def request(self, scene, rig: Rig | None = None, depsgraph=None) -> FieldRequest:
         """The field request of ``scene`` (main thread; an evaluated scene, so that
         object matrices are current), for ``rig`` when the caller has read it already.
-        Raises RigError when the rig cannot render."""
+        With ``depsgraph`` (a render's) the cameras are read as it evaluated them, at
+        its frame (``adapters.scene.rig_from_scene``). Raises RigError when the rig
+        cannot render."""
         group = scene.multiscale
-        rig = rig if rig is not None else rig_from_scene(scene)
+        rig = rig if rig is not None else rig_from_scene(scene, depsgraph)
         settings = field_settings(scene)
         notices = tuple(rig.notices) + tuple(empty_mask_messages(rig))
         notices += tuple(crossing_messages(rig))
+        folder, said = cache_folder_of(scene)
+        notices += (said,) if said else ()
         _ = self.cache.folder  # found on the main thread (it asks bpy)
         return FieldRequest(
             rig=rig,
@@ -165,6 +172,7 @@ class FieldService:
             key=field_key(rig, group.method, settings),
             notices=notices,
             limit_mb=float(getattr(group, "cache_limit_mb", DEFAULT_LIMIT_MB)),
+            folder=folder,
         )
 
     def cached(self, request: FieldRequest, memory_only: bool = False):
@@ -172,7 +180,7 @@ class FieldService:
         or None."""
         if memory_only:
             return self.cache.memory.get(request.key)
-        self.cache.limit_mb = request.limit_mb
+        self._use(request)
         return self.cache.get(request.key, request.rig)
 
     # --- getting a field -------------------------------------------------------------
@@ -202,15 +210,15 @@ class FieldService:
         diag = diag if diag is not None else Diagnostics()
         start = time.perf_counter()
         fld = self.cached(request)
-        if fld is not None:
-            _say(request, fld, diag)
-            built = gave_up = False
-        else:
-            fld, gave_up = _build(request, diag)
-            built = True
+        built = gave_up = False
+        if fld is None:
+            fld, gave_up, stored = self._build_once(request, diag, start if measure else None)
+            built = stored is not None
         report = _measure(fld, request, start) if measure else None
         if built:
-            _say(request, fld, diag, gave_up=gave_up, store_failed=self._store(request, fld))
+            _say(request, fld, diag, gave_up=gave_up, store_failed=stored or None)
+        else:
+            _say(request, fld, diag)
         if announce:
             self._tell(fld)
         return _result(fld, built, report, start)
@@ -284,9 +292,59 @@ class FieldService:
         for listener in list(self._listeners):
             listener(scene, fld)
 
+    def _build_once(self, request: FieldRequest, diag: Diagnostics, measure_from=None):
+        """Build ``request``'s field and store it, unless another process sharing the
+        cache folder builds it: the first to take the field's lock (``io.locks``)
+        builds, the others wait for the field to appear on disk and read it. A lock
+        whose holder died is broken after at most ``io.locks.STALE_SECONDS``.
+
+        Returns
+        -------
+        (RayField, whether workers were given up, stored) : ``stored`` is None when the
+        field came from another process, else "" or the message of a refused write.
+        With ``measure_from`` (the request's start, ``time.perf_counter``) the build
+        report is measured before the field is stored, so the disk keeps it too.
+        """
+        self._use(request)
+        lock = self.cache.build_lock(request.key)
+        if lock is None:  # no disk cache: nothing to share
+            fld, gave_up = _build(request, diag)
+            if measure_from is not None:
+                _measure(fld, request, measure_from)
+            return fld, gave_up, self._store(request, fld) or ""
+        waited = time.perf_counter()
+        while not lock.acquire():
+            diag.check()  # Esc while waiting
+            fld = self.cache.peek(request.key, request.rig)
+            if fld is not None:
+                diag.info(
+                    "Another process sharing the cache folder built this field; waited "
+                    f"{time.perf_counter() - waited:.1f} s for it"
+                )
+                return fld, False, None
+            time.sleep(LOCK_POLL_SECONDS)
+        try:
+            fld = self.cache.peek(request.key, request.rig)  # stored while we waited
+            if fld is not None:
+                return fld, False, None
+            start = time.perf_counter()
+            fld, gave_up = _build(request, diag)
+            if measure_from is not None:
+                _measure(fld, request, measure_from)
+            stored = self._store(request, fld) or ""
+            self.cache.record_build(request.key, round(time.perf_counter() - start, 3))
+        finally:
+            lock.release()
+        return fld, gave_up, stored
+
+    def _use(self, request: FieldRequest) -> None:
+        """Point the cache at ``request``'s folder and size limit."""
+        self.cache.use_folder(request.folder)
+        self.cache.limit_mb = request.limit_mb
+
     def _store(self, request: FieldRequest, fld) -> str | None:
         """Keep ``fld`` in the cache; a message when the disk refused it."""
-        self.cache.limit_mb = request.limit_mb
+        self._use(request)
         return self.cache.put(request.key, fld)
 
     def clear(self) -> int:

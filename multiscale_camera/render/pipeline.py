@@ -130,7 +130,7 @@ def prepare_frame(depsgraph, diag=None):
     # volumes first: a missing or unusable volume file stops the render before the build
     volumes, volume_notices = prepare_volumes(depsgraph)
     with diag.stage("field"), runtime().journal() as runs:  # what the field's workers did
-        request = SERVICE.request(scene)
+        request = SERVICE.request(scene, depsgraph=depsgraph)
         result = SERVICE.get(request, diag)
     if not result.built:  # said as "field (cached)" in the timings
         diag.seconds["field (cached)"] = diag.seconds.pop("field")

@@ -64,7 +64,7 @@ def frame_for_view(depsgraph, view):
     ``view`` : ViewDraw, the picture that asked (it keeps the build it waits for).
     """
     try:
-        request = SERVICE.request(depsgraph.scene)
+        request = SERVICE.request(depsgraph.scene, depsgraph=depsgraph)
     except RigError as err:
         view.message = f"Multiscale: {err}"
         return None

@@ -6,6 +6,7 @@ import textwrap
 import bpy
 
 from ..adapters.cameras import pinhole_from_object
+from ..adapters.masks import animated_kind
 from ..core.quality import guard_pairs, headline
 from ..render import cycles
 from . import preview
@@ -166,6 +167,12 @@ def draw_camera_settings(layout, context, item):
             col.label(text="Too close to the eye for the guides:", icon="ERROR")
             col.label(text="raise Near Distance (or lower Beta)")
     layout.template_ID(item, "mask", new="multiscale.mask_new", open="image.open")
+    kind = animated_kind(item.mask)
+    if kind is not None:
+        col = layout.column(align=True)
+        col.alert = True
+        col.label(text=f"Animated mask ({kind.split(' ', 1)[1]}):", icon="ERROR")
+        col.label(text="not read yet; use a still image")
     row = layout.row(align=True)
     row.operator("multiscale.mask_new", icon="FILE_NEW")
     row.operator("multiscale.mask_paint", icon="BRUSH_DATA")
@@ -247,6 +254,7 @@ class MULTISCALE_PT_preview(bpy.types.Panel):
         row = layout.row(align=True)
         row.prop(settings, "cache_limit_mb", text="Cache (MB)")
         row.operator("multiscale.cache_clear", icon="TRASH")
+        layout.prop(settings, "cache_folder", text="Folder")
 
 
 CLASSES = (

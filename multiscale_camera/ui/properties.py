@@ -100,6 +100,10 @@ class MultiscaleCameraItem(bpy.types.PropertyGroup):
     )
 
 
+# Paths that may start with "//" (Blender 5 warns without the option, which older ones may lack).
+BLEND_RELATIVE = {"PATH_SUPPORTS_BLEND_RELATIVE"} if bpy.app.version >= (5, 0, 0) else set()
+
+
 class MultiscaleSettings(bpy.types.PropertyGroup):
     cameras: CollectionProperty(type=MultiscaleCameraItem)
     active_index: IntProperty(name="Active Camera", default=0, min=0)
@@ -197,6 +201,14 @@ class MultiscaleSettings(bpy.types.PropertyGroup):
         max=1.0,
         subtype="FACTOR",
         description="Opacity of the other cameras' masks and the transition bands",
+    )
+    cache_folder: StringProperty(
+        name="Cache Folder",
+        default="",
+        subtype="DIR_PATH",
+        options=BLEND_RELATIVE,
+        description="Folder of this scene's field cache ('//' = the .blend's folder, so "
+        "render farm workers share it with the file); empty: the extension's user folder",
     )
     show_preview: BoolProperty(
         name="Ray Preview",

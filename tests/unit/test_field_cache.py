@@ -1,6 +1,7 @@
 """Ray fields survive a trip to disk, and the disk cache keeps, finds and trims them."""
 
 import os
+import time
 
 import numpy as np
 import pytest
@@ -8,7 +9,7 @@ import pytest
 from fixtures.rigs import two_camera_rig
 from multiscale_camera.core.geometry import Rig
 from multiscale_camera.core.methods import Settings, field_key, prepare
-from multiscale_camera.io.cache import FieldCache
+from multiscale_camera.io.cache import IN_USE_SECONDS, FieldCache
 from multiscale_camera.io.fields import field_from_arrays, field_to_arrays
 
 SETTINGS = Settings(2.0, 48**3)
@@ -141,3 +142,17 @@ def test_voxel_budget_capping_the_accuracy_target_is_explained(rig):
         r"the quality, or move that camera's near plane farther from its eye\)"
     )
     assert any(re.fullmatch(pattern, w) for w in fld.warnings), fld.warnings
+
+
+def test_trim_leaves_fields_in_use(rig, tmp_path):
+    """Fields read or written in the last IN_USE_SECONDS stay past the size limit: on a
+    farm's shared folder another worker may be about to read them."""
+    fld = prepare(rig, "IMAGE_BLEND", SETTINGS)
+    cache = FieldCache(str(tmp_path), limit_mb=1e-6)
+    cache.put("a" * 40, fld)
+    cache.put("b" * 40, fld)
+    assert len(os.listdir(tmp_path)) == 2  # both written just now: both in use
+    old = time.time() - IN_USE_SECONDS - 1
+    os.utime(tmp_path / ("a" * 40 + ".npz"), (old, old))
+    assert cache.trim() == 1
+    assert os.listdir(tmp_path) == ["b" * 40 + ".npz"]

@@ -11,7 +11,8 @@
 #
 # Needs root and the realblender chroots (made by its setup.sh when missing: ~90 s each).
 # RB_SUITES="sid" to skip 4.3 (RB_SUITES=none: only the window run); E2E_GUI=0 to skip
-# the window run. Optional: not in make test.
+# the window run; E2E_CLI=0 to skip tests/tools and the animation and farm tests with
+# the real 5.2 as $BLENDER. Optional: not in make test.
 set -euo pipefail
 REPO=$(cd "$(dirname "$0")/../.." && pwd)
 RB=${RB:-$(cd "$REPO/../shared/tools/realblender" 2>/dev/null && pwd || echo /work/shared/tools/realblender)}
@@ -73,5 +74,19 @@ painted = [s for s in log["steps"] if s["step"] == "mask painted"]
 ok = steps[-1] == "done" and painted and painted[0]["white_pixels"] > 0
 sys.exit(0 if ok else 1)
 PY
+fi
+if [ "${E2E_CLI:-1}" = 1 ]; then
+  # Blender's command line as the tests rely on it (tests/tools: -s, -e, -j, -a, -F,
+  # placeholders, no-overwrite), then keyframed cameras rendered with -a and three farm
+  # workers sharing a cache folder, all with the real 5.2 as $BLENDER. The chroot sees
+  # the repository only, so the tests' temporary files go under out/.
+  export RB_SUITE=sid RB_HOME=$OUT/home-sid
+  echo "== sid: the command line, animation and farm workers"
+  rm -rf "$OUT/cli"
+  BLENDER="$RB/run.sh" .venv/bin/python -m pytest -q -p no:cacheprovider \
+    --basetemp="$OUT/cli" tests/tools/test_blender.py \
+    tests/blender/test_animation.py::test_command_line_animation_reads_each_frames_cameras \
+    tests/blender/test_farm.py > "$OUT/cli.log" 2>&1 || { tail -30 "$OUT/cli.log"; exit 1; }
+  tail -1 "$OUT/cli.log"
 fi
 echo "e2e-real: all passed"

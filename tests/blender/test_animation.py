@@ -1,0 +1,262 @@
+"""Animated rigs: every frame of an animation render is rendered with that frame's
+cameras (transform and lens as the render's depsgraph evaluates them), in
+``render(animation=True)`` and in ``blender -b file -s A -e B -a``; a static rig renders
+identical frames.
+
+The reference is written here, independently of the extension: for each frame and each
+camera, Blender's own ``view_frame`` of the camera evaluated at that frame and
+``scene.ray_cast`` along its straight pinhole rays from the near plane, one pixel at a
+time; the object it hits is compared with the render's IndexOB in the camera's mask
+eroded by 2 px (the hidden-surface agreement of docs/report.md's metrics)."""
+
+import math
+
+import bpy
+import numpy as np
+import pytest
+from mathutils import Vector
+
+from fixtures.blender import samples
+from fixtures.blender.scenes import two_camera_scene
+from multiscale_camera.adapters.masks import ANIMATED_MASK
+from multiscale_camera.adapters.scene import rig_from_scene
+from multiscale_camera.core.quality import erode
+from multiscale_camera.render import fields, pipeline
+from multiscale_camera.render.raycast import march
+from tests.conftest import REPO
+from tests.exr import read_passes
+
+WIDTH, HEIGHT = 48, 36
+FRAMES = (1, 2, 3)
+REGISTER = (
+    f"import sys; sys.path.insert(0, {str(REPO)!r}); import multiscale_camera; "
+    "multiscale_camera.register()"
+)
+
+
+def animated_rig(scene):
+    """The two-camera scene with both cameras keyframed over ``FRAMES``: C1 slides
+    sideways, C2 moves, turns and zooms (lens 50 -> 65), so every frame sees a
+    different picture."""
+    c1, c2 = two_camera_scene(scene, WIDTH, HEIGHT)
+    scene.frame_start, scene.frame_end = FRAMES[0], FRAMES[-1]
+    first, last = FRAMES[0], FRAMES[-1]
+    for obj, frame in ((c1, first), (c2, first)):
+        obj.keyframe_insert("location", frame=frame)
+        obj.keyframe_insert("rotation_euler", frame=frame)
+    c2.data.keyframe_insert("lens", frame=first)
+    c1.location.x += 1.5
+    c2.location += Vector((0.6, 0.4, -0.3))
+    c2.rotation_euler.z += 0.12
+    c2.data.lens = 65.0
+    for obj in (c1, c2):
+        obj.keyframe_insert("location", frame=last)
+        obj.keyframe_insert("rotation_euler", frame=last)
+    c2.data.keyframe_insert("lens", frame=last)
+    scene.frame_set(first)
+    return c1, c2
+
+
+def straight_index(scene, cam):
+    """(HEIGHT, WIDTH) int: pass index of the object ``cam``'s straight pinhole ray
+    through each pixel centre hits (0: none), at the scene's current frame; the ray
+    starts on the near plane, as the camera's own does."""
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    cam = cam.evaluated_get(depsgraph)
+    tr, br, bl, tl = (cam.matrix_world @ v for v in cam.data.view_frame(scene=scene))
+    eye = cam.matrix_world.translation
+    axis = (cam.matrix_world.to_quaternion() @ Vector((0, 0, -1))).normalized()
+    index = np.zeros((HEIGHT, WIDTH), dtype=np.float32)
+    for y in range(HEIGHT):
+        fy = (y + 0.5) / HEIGHT
+        left, right = tl.lerp(bl, fy), tr.lerp(br, fy)
+        for x in range(WIDTH):
+            d = (left.lerp(right, (x + 0.5) / WIDTH) - eye).normalized()
+            origin = eye + d * (cam.data.clip_start / d.dot(axis))
+            hit, _loc, _nor, _face, obj, _m = scene.ray_cast(depsgraph, origin, d)
+            index[y, x] = obj.pass_index if hit else 0
+    return index
+
+
+def agreement(scene, cams, frame, index):
+    """{camera name: (share of eroded-mask pixels whose IndexOB is the object the
+    camera's own straight ray hits at ``frame``, pixels compared)}."""
+    scene.frame_set(frame)
+    masks = rig_from_scene(scene).masks  # the masks as the rig resolves them
+    out = {}
+    for cam, mask in zip(cams, masks, strict=True):
+        kept = erode(mask, 2)
+        out[cam.name] = (
+            float((index[kept] == straight_index(scene, cam)[kept]).mean()),
+            int(kept.sum()),
+        )
+    return out
+
+
+def assert_each_frame_its_cameras(scene, cams, renders):
+    """``renders`` {frame: passes}: >= 99% hidden-surface agreement everywhere, and the
+    check has teeth: the frames differ, and frame 1's cameras do not explain the last."""
+    for frame, passes in renders.items():
+        for name, (agree, pixels) in agreement(
+            scene, cams, frame, passes["IndexOB"][..., 0]
+        ).items():
+            print(f"frame {frame} {name}: {agree:.4f} of {pixels} px")
+            assert pixels >= 40, f"frame {frame} {name}: only {pixels} px to compare"
+            assert agree >= 0.99, f"frame {frame} {name}: {agree:.2%} of the mask agrees"
+    first, last = renders[FRAMES[0]], renders[FRAMES[-1]]
+    assert not np.array_equal(first["IndexOB"], last["IndexOB"])
+    stale = agreement(scene, cams, FRAMES[0], last["IndexOB"][..., 0])
+    assert min(a for a, _n in stale.values()) < 0.97, stale
+
+
+def render_animation(scene, folder):
+    """{frame: passes} of ``render(animation=True)`` into ``folder``."""
+    scene.render.image_settings.media_type = "MULTI_LAYER_IMAGE"
+    scene.render.filepath = str(folder / "frame_####")
+    bpy.ops.render.render(animation=True)
+    return {f: read_passes(folder / f"frame_{f:04d}.exr") for f in FRAMES}
+
+
+@pytest.mark.slow
+def test_animation_render_reads_each_frames_cameras(empty_scene, tmp_path):
+    """render(animation=True) with keyframed cameras once gave frames 1 and 2 the same
+    picture: the render read the cameras' original objects, not the frame's."""
+    scene = empty_scene
+    cams = animated_rig(scene)
+    renders = render_animation(scene, tmp_path)
+    assert_each_frame_its_cameras(scene, cams, renders)
+
+
+@pytest.mark.slow
+def test_static_rig_renders_identical_frames(empty_scene, tmp_path):
+    scene = empty_scene
+    two_camera_scene(scene, WIDTH, HEIGHT)
+    scene.frame_start, scene.frame_end = 1, 2
+    scene.render.image_settings.media_type = "MULTI_LAYER_IMAGE"
+    scene.render.filepath = str(tmp_path / "frame_####")
+    bpy.ops.render.render(animation=True)
+    one, two = (read_passes(tmp_path / f"frame_{f:04d}.exr") for f in (1, 2))
+    for name in ("Combined", "Depth", "Normal", "IndexOB", "Membership"):
+        np.testing.assert_array_equal(one[name], two[name], err_msg=name)
+
+
+@pytest.mark.slow
+@pytest.mark.e2e
+def test_command_line_animation_reads_each_frames_cameras(empty_scene, tmp_path, run_blender):
+    """``blender -b file.blend -s 1 -e 3 -a``, as render farms run it."""
+    scene = empty_scene
+    cams = animated_rig(scene)
+    scene.frame_start, scene.frame_end = 7, 9  # -s and -e set the range to render
+    scene.render.image_settings.media_type = "MULTI_LAYER_IMAGE"
+    blend = tmp_path / "animated.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(blend))
+    out = tmp_path / "out"
+    run_blender(
+        [
+            "-b",
+            blend,
+            "--python-exit-code",
+            "1",
+            "--python-expr",
+            REGISTER,
+            "-o",
+            out / "frame_####",
+            "-s",
+            str(FRAMES[0]),
+            "-e",
+            str(FRAMES[-1]),
+            "-a",
+        ]
+    )
+    assert sorted(p.name for p in out.iterdir()) == [f"frame_{f:04d}.exr" for f in FRAMES]
+    renders = {f: read_passes(out / f"frame_{f:04d}.exr") for f in FRAMES}
+    assert_each_frame_its_cameras(scene, cams, renders)
+
+
+def first_hits(scene):
+    """(object index (H*W,), first-hit points (H*W, 3), eye distance (H*W,)) of every
+    pixel centre's multiscale ray at the scene's current state."""
+    frame = pipeline.prepare_frame(bpy.context.evaluated_depsgraph_get())
+    width, height = frame.size
+    iy, ix = np.mgrid[0:height, 0:width]
+    ix, iy = ix.ravel(), iy.ravel()
+    seg = frame.sampler.segments(ix + 0.5, iy + 0.5, ix, iy)
+    hits = march(frame.tree, seg, None, frame.bounds, frame.geometry, frame.occupancy)
+    index = np.where(hits.hit, frame.geometry.pass_index[np.maximum(hits.triangle, 0)], 0)
+    return index, hits.location, seg.start_depth + hits.distance
+
+
+@pytest.mark.slow
+def test_moving_camera_moves_rays_continuously(empty_scene):
+    """Camera 2 moves on a straight line at constant speed: at t, t + d/2 and t + d, over
+    the pixels that see the same object in all three, the p95 move of the first hit
+    from t to t + d is 1.6 to 2.4 times the one from t to t + d/2, both in camera 2's
+    preserved region and in the transition between the cameras (a field that re-snapped
+    its layout between frames would jump instead)."""
+    scene = empty_scene
+    c1, c2 = two_camera_scene(scene, 64, 48)
+    start, velocity = Vector(c2.location), Vector((0.16, 0.1, -0.06))
+    runs = []
+    for t in (0.0, 0.5, 1.0):
+        c2.location = start + velocity * t
+        bpy.context.view_layer.update()
+        runs.append(first_hits(scene))
+    rig = rig_from_scene(scene)
+    preserved = erode(rig.masks[1], 2).ravel()
+    transition = ~(rig.masks[0] | rig.masks[1]).ravel()
+    (i0, p0, z0), (ih, ph, _), (i1, p1, _) = runs
+    same = (i0 == ih) & (ih == i1) & (i0 > 0)
+    # moves in camera 1's pixels at the hit's distance: the unit cancels in the ratio
+    pixel = z0 * (c1.data.sensor_width / c1.data.lens) / 64
+    half = np.linalg.norm(ph - p0, axis=1) / pixel
+    full = np.linalg.norm(p1 - p0, axis=1) / pixel
+    for name, region in (("preserved", preserved), ("transition", transition)):
+        chosen = same & region & (full > 0)
+        assert chosen.sum() >= 30, f"{name}: {chosen.sum()} pixels"
+        ratio = np.percentile(full[chosen], 95) / np.percentile(half[chosen], 95)
+        print(
+            f"{name}: {chosen.sum()} px, p95 {np.percentile(half[chosen], 95):.3f} / "
+            f"{np.percentile(full[chosen], 95):.3f} px, ratio {ratio:.3f}"
+        )
+        assert 1.6 <= ratio <= 2.4, f"{name}: ratio {ratio:.3f}"
+
+
+def test_an_image_sequence_mask_is_said_not_read(empty_scene, tmp_path):
+    """A mask that is an image sequence once read as a mask without pixels ("is its
+    file missing?"); it now says it is animated, which is not read yet."""
+    scene = empty_scene
+    two_camera_scene(scene, 16, 12)
+    for frame in (1, 2):
+        still = bpy.data.images.new(f"frame {frame}", 16, 12)
+        still.filepath_raw = str(tmp_path / f"mask_{frame:04d}.png")
+        still.file_format = "PNG"
+        still.save()
+    sequence = bpy.data.images.load(str(tmp_path / "mask_0001.png"))
+    sequence.source = "SEQUENCE"
+    scene.multiscale.cameras[0].mask = sequence
+    rig = rig_from_scene(scene)
+    said = ANIMATED_MASK.format(name=sequence.name, kind="an image sequence")
+    assert said in rig.notices
+    assert not rig.masks[0].any()
+
+
+def test_dolly_sample_moves_uniformly(empty_scene):
+    """sample_blends/dolly.blend's scene: camera 3 from 2.4 m to 1.8 m from the teapot
+    in equal steps, camera 2 panning 6 degrees, so every frame asks for its own field."""
+    scene = empty_scene
+    samples.build_dolly(scene)
+    cam2, cam3 = scene.objects["Cam2 Stall"], scene.objects["Cam3 Object"]
+    teapot = Vector(samples.TEAPOT)
+    distance, yaw, keys = {}, {}, set()
+    for frame in (1, 2, 48):
+        scene.frame_set(frame)
+        depsgraph = bpy.context.evaluated_depsgraph_get()
+        distance[frame] = (cam3.evaluated_get(depsgraph).matrix_world.translation - teapot).length
+        yaw[frame] = math.degrees(cam2.evaluated_get(depsgraph).matrix_world.to_euler().z)
+        keys.add(fields.SERVICE.request(depsgraph.scene, depsgraph=depsgraph).key)
+    assert (scene.frame_start, scene.frame_end) == (1, 48)
+    assert distance[1] == pytest.approx(2.4, abs=1e-5)
+    assert distance[48] == pytest.approx(1.8, abs=1e-5)
+    assert distance[1] - distance[2] == pytest.approx(0.6 / 47, abs=1e-5)
+    assert yaw[48] - yaw[1] == pytest.approx(6.0, abs=1e-3)
+    assert len(keys) == 3
