@@ -254,3 +254,17 @@ def test_the_python_launcher_starts_this_interpreter_isolated():
     assert command[:3] == [sys.executable, "-I", "-c"]
     assert "multiscale_camera" in command[3] and "'control'" in command[3]
     assert launcher.environment()["OPENBLAS_NUM_THREADS"] == "1"
+
+
+def test_a_short_stall_limit_does_not_cut_a_slow_start_short():
+    """A run's stall limit is for items that stop beating, not for starting: a worker
+    that takes longer than it to start (a busy machine) is waited for, not given up
+    (which would leave the whole kind unused for later runs)."""
+    runtime = Runtime()
+    slow = Launcher("slow start", (sys.executable, "-c"), preamble="import time; time.sleep(1.5)")
+    try:
+        mapped = runtime.map(tasks.where, [1, 2], 2, launcher=slow, stall_seconds=0.3)
+        assert mapped.outcome.given_up == ()
+        assert any(in_worker for _i, _pid, in_worker in mapped.results)
+    finally:
+        runtime.shutdown()

@@ -32,9 +32,12 @@ from .worker import BEAT, CANCEL, CONTROL_WORDS, Context
 # How often a run asks ``should_stop`` and looks for stalled workers while it waits.
 POLL_SECONDS = 0.1
 # A worker that neither finishes its item nor beats for this long is taken for stuck;
-# tasks beat at least every fraction of a second. Also the longest a worker may take
-# to start (a background Blender takes a few seconds on a busy machine).
+# tasks beat at least every fraction of a second.
 STALL_SECONDS = 20.0
+# The longest a worker may take to start, whatever a run's stall limit: a background
+# Blender takes about 1 s, and several times that on a busy machine. A start given up
+# leaves the whole kind unused, so a short stall limit must not cut starts short.
+START_SECONDS = 20.0
 # How long a cancelled run waits for its workers to stop their items before it ends
 # them (a worker that stops stays in the pool).
 CANCEL_SECONDS = 0.5
@@ -366,9 +369,10 @@ class _State:
             if w in self.dropped:
                 continue
             if not w.ready.is_set():
-                if now - w.started > stall:
+                start = max(stall, START_SECONDS)
+                if now - w.started > start:
                     w.kill()
-                    self.give_up(w, Reason.NO_START, f"not ready after {stall:g} s")
+                    self.give_up(w, Reason.NO_START, f"not ready after {start:g} s")
             elif w in self.busy:
                 beats = int(w.control[BEAT])
                 since, before = self.seen[w]
@@ -494,12 +498,12 @@ class Runtime:
 
     def warm(self, processes, launcher=None):
         """Start workers of ``launcher``'s kind (default: plain Python) until the pool has
-        ``processes``, and wait until they are ready (``STALL_SECONDS`` at most), so that
+        ``processes``, and wait until they are ready (``START_SECONDS`` at most), so that
         the next run finds them; list of their pids."""
         pool = self.pool(python_launcher() if launcher is None else launcher)
         workers, _started, _errors = pool.checkout(processes, None)
         try:
-            deadline = time.monotonic() + STALL_SECONDS
+            deadline = time.monotonic() + START_SECONDS
             for w in workers:
                 while w.alive and not w.ready.wait(POLL_SECONDS):
                     if time.monotonic() > deadline:
