@@ -388,14 +388,20 @@ class FieldTracer:
         return first
 
     def preserved_rays(self, i, u, v, step, vertices):
-        """Rays of camera i's preserved pixels laid out analytically, where N = i all along.
+        """Rays of camera i's preserved pixels laid out analytically: R_i itself, from
+        camera 1's near plane along camera i's guides to its near plane and straight on
+        along its pinhole ray to the grid's edge (the caller runs them on from there).
 
-        Where the membership equals i at every vertex inside the grid, the blended field
-        is X_i and its streamline is R_i itself: no need to trace it.
+        A preserved pixel's ray is camera i's by definition, whatever the membership
+        along it: where N equals i the blended field is X_i and its streamline is R_i,
+        and where N sags below i (coarse nested levels, where a small camera's bundle is
+        a few cells wide) tracing Y would bend the ray off camera i's family behind its
+        near plane (docs/architecture.md, "Tracing"). The membership is recorded at
+        every vertex all the same.
 
         Returns
         -------
-        ok : (R,) bool, rays that qualify. traced : Traced of those rays.
+        ok : (R,) bool, all True. traced : Traced of the R rays.
         """
         if callable(step):
             verts = scheduled_rays(self.families[i], u, v, step, vertices, self.contains)
@@ -411,8 +417,7 @@ class FieldTracer:
             membership[s : s + block] = self.n_of(flat).reshape(-1, k)
         # the tracer keeps the first point outside the grid as a ray's last vertex
         count = np.where(inside.all(axis=1), k, np.argmin(inside, axis=1) + 1).astype(np.int32)
-        live = np.arange(k)[None, :] < (count[:, None] - 1)
-        ok = ~((np.abs(membership - (i + 1)) > 1e-5) & live).any(axis=1)
+        ok = np.ones(r, dtype=bool)
         reason = np.full(r, StopReason.LEFT_GRID, dtype=np.int8)
         reason[count == k] = StopReason.REACHED_LIMIT
         sel = np.flatnonzero(ok)
