@@ -62,9 +62,14 @@ def test_fill_constrains_every_voxel_around_preserved_rays():
         iy, ix = np.nonzero(masks[i])
         keep = np.arange(0, len(ix), 7)
         verts = tracer.preserved_rays(i, ix[keep] + 0.5, iy[keep] + 0.5, grid.cell, 200)[1].vertices
-        inside = grid.contains(verts.reshape(-1, 3))
-        idx = grid.to_index(verts.reshape(-1, 3)[inside])
-        # all eight voxels around every sample along a preserved ray hold camera i
+        flat = verts.reshape(-1, 3).astype(np.float64)
+        # every preserved ray is laid out, whatever N: the grid's first layer of voxels,
+        # on camera 1's near plane, has corners in front of it that no camera claims
+        cam1 = cams[0]
+        past = (flat - cam1.eye) @ cam1.forward >= cam1.clip_start + 2 * grid.cell
+        inside = grid.contains(flat) & past
+        idx = grid.to_index(flat[inside])
+        # all eight voxels around every other sample along a preserved ray hold camera i
         lo = np.floor(idx).astype(int)
         for corner in np.ndindex(2, 2, 2):
             c = np.minimum(lo + corner, np.array(grid.shape) - 1)

@@ -174,10 +174,9 @@ def test_streamlines_cross_levels_without_kinks():
 @pytest.mark.slow
 @pytest.mark.xfail(
     strict=True,
-    reason="not met: measured along the whole ray (report version 2) the nested grids "
-    "miss cameras 2 and 3 of the 1000x rig (p95 7.8 and 26 px at 240x135) and fold in "
-    "sections (61 quads here, 239 at 240x135): preserved rays drift where the membership "
-    "sags below the camera's number (docs/performance.md)",
+    reason="not met: the nested grids fold in sections (61 quads here, 239 at 240x135) "
+    "among the transition rays; the preserved rays, laid out exactly, now hold every "
+    "camera (p95 0.02, 0.52 and 0.26 px here along the whole ray; docs/performance.md)",
 )
 def test_1000x_rig_holds_every_camera_to_a_pixel_where_a_uniform_grid_fails():
     cams, masks = zoom1000_rig(192, 108)

@@ -113,8 +113,9 @@ def scheduled_rays(family, u, v, step, vertices, contains, chunk=4096):
     vertex x the next lies ``step(x)`` further along the curve, so analytic and traced
     rays can be mixed and interpolated. Vertices lie exactly on R_i: arc length maps to
     the family's tau through a dense table, and the point is evaluated at that tau.
-    A ray's vertices stop advancing after its first vertex outside ``contains`` (the
-    rest repeat it; the caller runs them on straight).
+    A ray's vertices stop advancing after its first vertex outside ``contains`` that
+    follows another on its straight part (the rest run straight on at the last step's
+    length, along camera i's pinhole ray).
 
     Parameters
     ----------
@@ -162,7 +163,8 @@ def _scheduled_chunk(family, u, v, step, vertices, contains):
         if not len(live):
             break
         x = out[live, k - 1]
-        s[live] += step(x)
+        h = step(x)
+        s[live] += h
         sl = s[live]
         on_curve = sl < bend[live]
         nxt = np.empty((len(live), 3))
@@ -185,7 +187,9 @@ def _scheduled_chunk(family, u, v, step, vertices, contains):
             t = taus[j] + (taus[j + 1] - taus[j]) * (target - c0) / np.maximum(c1 - c0, 1e-300)
             nxt[on_curve], _ = family.evaluate(u[rows], v[rows], t)
         out[live, k] = nxt
-        left = ~contains(nxt)
+        # a ray leaves once outside and on its straight part (its last step too), so it
+        # runs on along camera i's pinhole ray, not a chord of its guides
+        left = ~contains(nxt) & (sl - h >= bend[live])
         if left.any():
             # past the first vertex outside, run straight on at the last step's length
             gone = live[left]
@@ -194,6 +198,13 @@ def _scheduled_chunk(family, u, v, step, vertices, contains):
             out[gone, k + 1 :] = nxt[left][:, None] + d[:, None] * more[None, :, None]
             live = live[~left]
     return out
+
+
+def first_past_near_plane(cam, verts):
+    """(R,) int: index of each ray's first vertex on or past ``cam``'s near plane (0
+    where none is). verts : (R, K, 3) float world points."""
+    past = dot3(np.asarray(verts, dtype=np.float64) - cam.eye, cam.forward) >= cam.clip_start
+    return np.where(past.any(axis=1), np.argmax(past, axis=1), 0)
 
 
 # A trace is shared among worker processes only when each gets at least this many
@@ -239,6 +250,10 @@ class FieldTracer:
         float32 rounding (numpy may round a float64's last bit differently with the
         length of an array, and the trace carries that on).
     """
+
+    # preserved pixels' rays are laid out exactly (``preserved_rays``): the lattice
+    # keeps interpolation from bending them (``methods.traced``)
+    exact_preserved = True
 
     def __init__(self, rig, grid, membership, cubic=False, domain=None, processes=1):
         self.rig = rig
@@ -388,20 +403,27 @@ class FieldTracer:
         return first
 
     def preserved_rays(self, i, u, v, step, vertices):
-        """Rays of camera i's preserved pixels laid out analytically, where N = i all along.
+        """Rays of camera i's preserved pixels laid out analytically: R_i itself, from
+        camera 1's near plane along camera i's guides to its near plane and straight on
+        along its pinhole ray to the grid's edge (the caller runs them on from there).
 
-        Where the membership equals i at every vertex inside the grid, the blended field
-        is X_i and its streamline is R_i itself: no need to trace it.
+        A preserved pixel's ray is camera i's by definition, whatever the membership
+        along it: where N equals i the blended field is X_i and its streamline is R_i,
+        and where N sags below i (coarse nested levels, where a small camera's bundle is
+        a few cells wide) tracing Y would bend the ray off camera i's family behind its
+        near plane (docs/architecture.md, "Tracing"). The membership is recorded at
+        every vertex all the same.
 
         Returns
         -------
-        ok : (R,) bool, rays that qualify. traced : Traced of those rays.
+        ok : (R,) bool, all True. traced : Traced of the R rays.
         """
         if callable(step):
             verts = scheduled_rays(self.families[i], u, v, step, vertices, self.contains)
         else:
             verts = arc_length_rays(self.families[i], u, v, step, vertices)
         r, k = verts.shape[:2]
+        on_plane = first_past_near_plane(self.rig.cameras[i], verts)
         inside = np.empty((r, k), dtype=bool)
         membership = np.empty((r, k), dtype=np.float32)
         block = max(1, BLOCK_VERTICES // k)
@@ -410,9 +432,11 @@ class FieldTracer:
             inside[s : s + block] = self.contains(flat).reshape(-1, k)
             membership[s : s + block] = self.n_of(flat).reshape(-1, k)
         # the tracer keeps the first point outside the grid as a ray's last vertex
-        count = np.where(inside.all(axis=1), k, np.argmin(inside, axis=1) + 1).astype(np.int32)
-        live = np.arange(k)[None, :] < (count[:, None] - 1)
-        ok = ~((np.abs(membership - (i + 1)) > 1e-5) & live).any(axis=1)
+        count = np.where(inside.all(axis=1), k, np.argmin(inside, axis=1) + 1)
+        # ... and at least one vertex past the near plane's, so the ray runs on along
+        # camera i's pinhole ray wherever it leaves the grid
+        count = np.minimum(np.maximum(count, on_plane + 2), k).astype(np.int32)
+        ok = np.ones(r, dtype=bool)
         reason = np.full(r, StopReason.LEFT_GRID, dtype=np.int8)
         reason[count == k] = StopReason.REACHED_LIMIT
         sel = np.flatnonzero(ok)

@@ -114,6 +114,47 @@ MAX_STRIDE = 16
 DEVIATION_BLOCK_VERTICES = 1 << 20
 
 
+# Accuracy target of a lattice cell whose pixels all belong to one camera's preserved
+# region, as a fraction of the build's: its rays are laid out exactly (no trace), and
+# interpolating them is the only error left on that camera's pixels.
+PRESERVED_TOL_FRACTION = 0.25
+
+
+def preserved_labels(rig):
+    """(H, W) int8: 1 + the camera whose preserved ray a pixel gets (a rig's masks do
+    not overlap), 0 for transition pixels."""
+    w, h = rig.size
+    label = np.zeros((h, w), dtype=np.int8)
+    for i, mask in enumerate(rig.masks):
+        label[np.asarray(mask, dtype=bool)] = i + 1
+    return label
+
+
+class _CellLabels:
+    """Which lattice cells (closed pixel rectangles x0..x1, y0..y1) hold pixels of one
+    preserved region only, or a mix, from one summed-area table per camera."""
+
+    def __init__(self, label, count):
+        self.tables = []
+        for i in range(count):
+            t = np.zeros((label.shape[0] + 1, label.shape[1] + 1), dtype=np.int64)
+            t[1:, 1:] = np.cumsum(np.cumsum(label == i + 1, axis=0), axis=1)
+            self.tables.append(t)
+
+    def kinds(self, cells):
+        """For (n, 4) cells: pure (n,) bool, every pixel preserved by one camera; mixed
+        (n,) bool, some pixel preserved but not all by the same camera."""
+        x0, y0, x1, y1 = (np.asarray(c, dtype=np.int64) for c in np.asarray(cells).T)
+        area = (x1 - x0 + 1) * (y1 - y0 + 1)
+        pure = np.zeros(len(x0), dtype=bool)
+        some = np.zeros(len(x0), dtype=bool)
+        for t in self.tables:
+            n = t[y1 + 1, x1 + 1] - t[y0, x1 + 1] - t[y1 + 1, x0] + t[y0, x0]
+            pure |= n == area
+            some |= n > 0
+        return pure, some & ~pure
+
+
 # A cell's interpolation error over its parent's midpoint deviation: 1/4 for smooth rays,
 # 1/2 where N's trilinear kinks make them only once differentiable (the bound used).
 CHILD_ERROR_RATIO = 2.0
@@ -127,6 +168,12 @@ class _AdaptiveLattice:
     midpoint deviation), in pixels of the multiscale image at each vertex (the spacing
     of neighbouring rays there), both measured across the rays; cells above the
     tolerance are split in four and their midpoints traced, down to single pixels.
+
+    Where the tracer lays preserved rays out exactly (``exact_preserved``), a cell that
+    mixes one camera's preserved pixels with other pixels is split down to single
+    pixels whatever its error (interpolating across a mask's edge would bend preserved
+    rays towards their neighbours), and a cell of one camera's preserved pixels only is
+    held to ``PRESERVED_TOL_FRACTION`` of the tolerance.
     """
 
     def __init__(self, tracer, rig, step, max_steps, tol_px, diag):
@@ -135,6 +182,18 @@ class _AdaptiveLattice:
         w, h = rig.size
         self.index = np.full((h, w), -1, dtype=np.int32)
         self.parts, self.order, self.count = [], [], 0
+        self.labels = None
+        if getattr(tracer, "exact_preserved", False):
+            self.labels = _CellLabels(preserved_labels(rig), len(rig.cameras))
+
+    def _fine(self, cells, err):
+        """(n,) bool: cells whose interpolation error estimate ``err`` (n,) meets the
+        target, preserved regions' edges and interiors as the class says."""
+        if self.labels is None:
+            return err <= self.tol
+        pure, mixed = self.labels.kinds(cells)
+        tol = np.where(pure, self.tol * PRESERVED_TOL_FRACTION, self.tol)
+        return (err <= tol) & ~mixed
 
     def trace(self, px, py):
         """Trace the pixels not traced yet (duplicates allowed)."""
@@ -233,7 +292,7 @@ class _AdaptiveLattice:
         # the base lattice's own second differences estimate its cells' error, so only
         # the cells that need it get their midpoints traced
         rough = self._lattice_roughness(xs, ys)
-        flagged = rough / CHILD_ERROR_RATIO > self.tol
+        flagged = ~self._fine(cells, rough / CHILD_ERROR_RATIO)
         leaves = [cells[~flagged]]
         cells = cells[flagged]
         while len(cells):
@@ -256,7 +315,6 @@ class _AdaptiveLattice:
             )
             # bilinear error falls as the cell size squared where the rays are smooth, but
             # only linearly across the kinks of N at voxel faces: assume the slower rate
-            fine = err / CHILD_ERROR_RATIO <= self.tol
             children = np.concatenate(
                 [
                     np.stack([x0, y0, xm, ym], 1),
@@ -265,7 +323,7 @@ class _AdaptiveLattice:
                     np.stack([xm, ym, x1, y1], 1),
                 ]
             )
-            keep = np.tile(fine, 4)
+            keep = self._fine(children, np.tile(err / CHILD_ERROR_RATIO, 4))
             leaves.append(children[keep])
             cells = children[~keep]
         leaves = np.concatenate(leaves).astype(np.int32)

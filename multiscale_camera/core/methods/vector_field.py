@@ -105,6 +105,8 @@ class VectorFieldTracer(FieldTracer):
         """(P, 3) float64: Y at ``x``; its length is the stall test's speed."""
         return self.y_of(x).astype(np.float64)
 
+    exact_preserved = False
+
     def preserved_rays(self, i, u, v, step, vertices):
         """No ray is laid out analytically: Y only approximates R_i even in the masks, and
         tracing every ray keeps the method's error in sight. ``ok`` is all False."""
