@@ -5,7 +5,7 @@ import json
 
 import numpy as np
 
-from .metrics import bending_active, measured_pixels, preserved_error, quad_folds
+from .metrics import ERODE_PX, bending_active, measured_pixels, preserved_error, quad_folds
 
 VERSION = 1
 
@@ -58,15 +58,49 @@ def measure(fld):
     cameras = []
     for i, cam in enumerate(rig.cameras):
         ix, iy = measured_pixels(rig.masks[i])
+        if len(ix) == 0:  # nothing to measure: said, and the build goes on
+            cameras.append(unmeasured_camera(cam.name, no_pixels_reason(rig.masks[i])))
+            continue
         bundle = fld.rays(ix, iy)
         exit_index = fld.exit_index(ix, iy) if i == 0 else None
         pres = preserved_error(rig.cameras, i, bundle, exit_index)
         err, angle = pres.summary()
-        cameras.append(
-            {"name": cam.name, "pixels": pres.pixels, "preserved_px": err, "angle_deg": angle}
-        )
+        entry = {"name": cam.name, "pixels": pres.pixels, "preserved_px": err, "angle_deg": angle}
+        missed = pres.unmeasured()
+        if missed:
+            entry["unmeasured"] = NEVER_CROSS.format(missed=missed, pixels=pres.pixels)
+        cameras.append(entry)
     folds, _stride = fold_map(fld)
     return cameras, int(folds.sum())
+
+
+# Why a camera's figures are null (schema key "unmeasured" of a camera).
+EMPTY_MASK = "its mask is empty: no preserved pixel to measure"
+THIN_MASK = (
+    "its mask keeps no pixel once eroded by {px} px for measuring (too small or too thin "
+    "at this render size); its pixels render, unmeasured"
+)
+NEVER_CROSS = (
+    "{missed} of {pixels} measured rays never cross the camera's near plane (cameras out "
+    "of order, largest scale first, or a near plane inside other geometry?)"
+)
+NULL_FIGURES = {"p50": None, "p95": None, "max": None}
+
+
+def no_pixels_reason(mask):
+    """Why a camera's (H, W) bool ``mask`` gives no pixel to measure."""
+    return EMPTY_MASK if not mask.any() else THIN_MASK.format(px=ERODE_PX)
+
+
+def unmeasured_camera(name, reason):
+    """The "cameras" entry of a camera with nothing measured: null figures, a reason."""
+    return {
+        "name": name,
+        "pixels": 0,
+        "preserved_px": dict(NULL_FIGURES),
+        "angle_deg": dict(NULL_FIGURES),
+        "unmeasured": reason,
+    }
 
 
 def build_report(fld, quality, total_seconds=None):
@@ -105,18 +139,34 @@ def build_report(fld, quality, total_seconds=None):
 
 def headline(report):
     """One line for the panel: worst p95 error, folds, time."""
-    worst = max((c["preserved_px"]["p95"] for c in report["cameras"]), default=0.0)
+    p95 = [c["preserved_px"]["p95"] for c in report["cameras"]]
+    worst = max((v for v in p95 if v is not None), default=0.0)
+    unmeasured = sum(1 for c in report["cameras"] if c.get("unmeasured"))
     return (
         f"{report['method']}: p95 error {worst:.2f} px, {report['folds']} folds, "
         f"{report['seconds']['total']:.1f} s"
+        + (f", {unmeasured} camera(s) not measured" if unmeasured else "")
     )
+
+
+def strict(value):
+    """``value`` (dicts, lists, numbers, numpy scalars) with every NaN or infinite float
+    as None: what strict JSON can hold."""
+    if isinstance(value, dict):
+        return {k: strict(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [strict(v) for v in value]
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not np.isfinite(value):
+        return None
+    return value
 
 
 def to_json(report):
-    """The report as the JSON string stored in ``scene.multiscale.report``."""
-    return json.dumps(
-        report, indent=1, default=lambda o: o.item() if isinstance(o, np.generic) else str(o)
-    )
+    """The report as the strict JSON string stored in ``scene.multiscale.report`` (no
+    NaN or Infinity: ``null``, with the camera's "unmeasured" reason)."""
+    return json.dumps(strict(report), indent=1, allow_nan=False, default=str)
 
 
 def readable(report):
@@ -125,10 +175,14 @@ def readable(report):
     lines = [headline(report), ""]
     for cam in report.get("cameras", []):
         err, ang = cam["preserved_px"], cam["angle_deg"]
+        if cam.get("unmeasured") and err["p95"] is None:
+            lines.append(f"'{cam['name']}': not measured: {cam['unmeasured']}")
+            continue
         lines.append(
             f"'{cam['name']}': {cam['pixels']} preserved pixels measured; error p50 "
-            f"{err['p50']:.2f}, p95 {err['p95']:.2f}, max {err['max']:.2f} px; angle p95 "
-            f"{ang['p95']:.2f} deg"
+            f"{_figure(err['p50'])}, p95 {_figure(err['p95'])}, max {_figure(err['max'])} px;"
+            f" angle p95 {_figure(ang['p95'])} deg"
+            + (f" ({cam['unmeasured']})" if cam.get("unmeasured") else "")
         )
     s = report.get("seconds", {})
     lines.append("")
@@ -156,3 +210,8 @@ def readable(report):
         lines.append("Warnings:")
         lines += [f"- {w}" for w in warnings]
     return lines
+
+
+def _figure(value):
+    """A report figure for people: two decimals, or "none" for a null one."""
+    return "none" if value is None else f"{value:.2f}"
