@@ -11,7 +11,8 @@ As in Blender, the settings flags act first wherever they stand (``-b``/``--back
                                 (0, the default: print the traceback and go on)
     -E/--engine ENGINE          set the scene's render engine
     -o/--render-output PATH     set the render output path ('//' = blend folder, '#' = frame)
-    -f/--render-frame N[,M..]   render frames and save them to the output path (N..M ranges)
+    -f/--render-frame N[,M..]   render frames and save them to the output path (N..M ranges);
+                                a render that fails saves nothing and exits 1
     --                          end of Blender's arguments; scripts read the rest
 
 ``sys.argv`` is ``["blender", *arguments]``. Without ``--factory-startup`` the user's
@@ -107,7 +108,9 @@ def frames(spec):
 
 
 def render_frames(bpy, spec):
-    """Render and save each frame as `blender -f` does (frame number in the file name)."""
+    """Render and save each frame as `blender -f` does (frame number in the file name).
+    Returns False when a render failed (the engine reported an error: Blender saves
+    nothing and exits non-zero), after printing Blender's message."""
     scene = bpy.context.scene
     start, end = scene.frame_start, scene.frame_end
     try:
@@ -115,8 +118,12 @@ def render_frames(bpy, spec):
             # Setting the start moves the end along (and the reverse), so this order is safe.
             scene.frame_start, scene.frame_end = frame, frame
             bpy.ops.render.render(animation=True)
+    except RuntimeError as ex:
+        print(f"\n{str(ex).strip()}", file=sys.stderr)
+        return False
     finally:
         scene.frame_start, scene.frame_end = start, end
+    return True
 
 
 def main(args):
@@ -168,7 +175,8 @@ def main(args):
         elif flag == "--render-output":
             bpy.context.scene.render.filepath = value
         elif flag == "--render-frame":
-            render_frames(bpy, value)
+            if not render_frames(bpy, value):
+                return 1
         if not ok and exit_code_on_error:
             print(f"\nError: script failed, {flag} '{value}', exiting.", file=sys.stderr)
             return exit_code_on_error

@@ -150,16 +150,30 @@ def _mesh_arrays(mesh, matrix):
     return co, tris.reshape(nt, 3), mat, uv, normals.astype(np.float32)
 
 
+def left_out_of_render(inst):
+    """Whether a depsgraph instance is one a render leaves out: its object, or the
+    object that instances it, is disabled in renders (``hide_render``). A viewport
+    depsgraph (the rig check's) holds those; a render's has none of them."""
+    owners = [inst.object]
+    if inst.is_instance and inst.parent is not None:
+        owners.append(inst.parent)
+    return any(o.original.hide_render for o in owners)
+
+
 def scene_geometry(depsgraph):
     """Gather the render-visible geometry of an evaluated depsgraph (modifiers applied,
-    instances expanded) into one ``SceneGeometry``."""
+    instances expanded) into one ``SceneGeometry``; of a viewport depsgraph, what a
+    render would see (``left_out_of_render``)."""
     verts, tris, colours, index, owner, names = [], [], [], [], [], []
     mats, uvs, normals = [], [], []
     materials, material_ids, notices, cache = [], {}, [], {}
     offset = 0
+    viewport = depsgraph.mode == "VIEWPORT"  # the rig check's: it holds hide_render objects
     for inst in depsgraph.object_instances:
         obj = inst.object
         if obj.type not in GEOMETRY_TYPES or is_volume_source(obj):
+            continue
+        if viewport and left_out_of_render(inst):
             continue
         mesh = obj.to_mesh()
         if mesh is None:

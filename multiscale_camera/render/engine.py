@@ -5,8 +5,10 @@ import time
 import bpy
 
 from ..core.diagnostics import Diagnostics
-from ..core.errors import Cancelled, RigError, SolverDidNotConverge
+from ..core.errors import Cancelled
 from . import cycles, pipeline, viewport, workers
+from .failures import failure_message
+from .fields import publish_report
 
 
 class MultiscaleRenderEngine(bpy.types.RenderEngine):
@@ -16,16 +18,27 @@ class MultiscaleRenderEngine(bpy.types.RenderEngine):
     bl_use_preview = False
 
     def render(self, depsgraph):
+        """Render the frame; any error ends it with one message (``fail``), so that
+        Blender writes no file and the render operator does not finish."""
+        try:
+            self._render(depsgraph)
+        except Cancelled:
+            return
+        except Exception as err:  # every failure is said, never a traceback alone
+            self.fail(f"Multiscale: {failure_message(err)}")
+
+    def _render(self, depsgraph):
         start = time.perf_counter()
         self.update_stats("", "Multiscale: building rays")
         diag = Diagnostics(should_stop=self.test_break)
-        try:
-            frame = pipeline.prepare_frame(depsgraph, diag)
-        except (RigError, SolverDidNotConverge) as err:
-            self.fail(f"Multiscale: {err}")
-            return
+        try:  # the scene's report is the field's, measured once: none when it failed
+            frame = pipeline.prepare_frame(depsgraph, diag, report=True)
         except Cancelled:
-            return
+            raise
+        except Exception:
+            publish_report(depsgraph.scene, None)
+            raise
+        publish_report(depsgraph.scene, frame.report)
         reported = self.say(diag, 0)
         if depsgraph.scene.multiscale.shading == "CYCLES":
             if cycles.render(self, depsgraph, frame):
@@ -34,19 +47,16 @@ class MultiscaleRenderEngine(bpy.types.RenderEngine):
         for name, channels, chan_id, _kind in pipeline.PASSES[1:]:
             self.add_pass(name, channels, chan_id)
         processes = workers.worker_count(frame.processes)
-        try:
-            with diag.stage("render"):
-                for (row0, row1), passes in workers.render_tiles(
-                    frame, pipeline.tiles(frame), processes, self.test_break
-                ):
-                    # each tile goes into the Render Result as soon as it is done
-                    self.write_rows(passes, row0, row1, height, width)
-                    self.update_progress(row1 / height)
-                    self.update_stats("", stats_line(frame, row1, height, diag))
-                    # what the tile loop had to say (workers given up) is said at once
-                    reported = self.say(diag, reported)
-        except Cancelled:
-            return
+        with diag.stage("render"):
+            for (row0, row1), passes in workers.render_tiles(
+                frame, pipeline.tiles(frame), processes, self.test_break
+            ):
+                # each tile goes into the Render Result as soon as it is done
+                self.write_rows(passes, row0, row1, height, width)
+                self.update_progress(row1 / height)
+                self.update_stats("", stats_line(frame, row1, height, diag))
+                # what the tile loop had to say (workers given up) is said at once
+                reported = self.say(diag, reported)
         seconds = time.perf_counter() - start
         print(
             f"Multiscale: {width}x{height}, {frame.samples} samples, {frame.rays} rays, "
@@ -74,6 +84,10 @@ class MultiscaleRenderEngine(bpy.types.RenderEngine):
         self.end_result(result)
 
     def fail(self, message):
+        """End the render as failed. The ERROR report is what stops Blender from saving
+        the image and makes the render operator raise (bpy 5.0.1 wheel and Blender);
+        ``error_set`` alone still saves it. Both: the message shows in the render
+        window too."""
         self.report({"ERROR"}, message)
         self.error_set(message)
 

@@ -28,7 +28,7 @@ from ..core.diagnostics import Diagnostics, Level
 from ..core.errors import Cancelled
 from ..core.geometry import Rig
 from ..core.methods import Settings, field_key, prepare
-from ..core.quality import build_report, crossing_messages, empty_mask_messages
+from ..core.quality import build_report, crossing_messages, empty_mask_messages, to_json
 from ..core.runtime import gave_up, runtime
 from ..io.cache import DEFAULT_LIMIT_MB, FieldCache
 
@@ -202,15 +202,19 @@ class FieldService:
         diag = diag if diag is not None else Diagnostics()
         start = time.perf_counter()
         fld = self.cached(request)
+        diag.extend(self.cache.take_notices())  # a damaged entry deleted, memory only
         if fld is not None:
             _say(request, fld, diag)
             built = gave_up = False
+            report = _measure(fld, request, start) if measure else None
         else:
             fld, gave_up = _build(request, diag)
             built = True
-        report = _measure(fld, request, start) if measure else None
-        if built:
-            _say(request, fld, diag, gave_up=gave_up, store_failed=self._store(request, fld))
+            try:  # measured before it is stored (the report goes to disk with it) ...
+                report = _measure(fld, request, start) if measure else None
+            finally:  # ... yet a measure that fails loses no build
+                store_failed = self._store(request, fld)
+            _say(request, fld, diag, gave_up=gave_up, store_failed=store_failed)
         if announce:
             self._tell(fld)
         return _result(fld, built, report, start)
@@ -249,6 +253,8 @@ class FieldService:
                 build.diagnostics.warn(failed)
             build.result = _result(build.field, True, build.report, build.start)
             self._tell(build.field)
+        if diag is not None:
+            diag.extend(self.cache.take_notices())
         if diag is not None and build.field is not None:
             diag.merge(build.diagnostics)
             _say(build.request, build.field, diag, gave_up=build.gave_up)
@@ -329,6 +335,25 @@ def _say(request: FieldRequest, fld, diag: Diagnostics, gave_up=False, store_fai
         diag.warn(store_failed)
     if gave_up:
         diag.warn(WORKERS_GIVEN_UP)
+
+
+def publish_report(scene, report: dict | None) -> None:
+    """Keep ``report`` (None: a build that failed) as the scene's build report
+    (``scene.multiscale.report``, strict JSON; "" clears it), for the panel and for
+    scripts that read it after ``bpy.ops.render.render``. ``scene`` may be a render's
+    evaluated scene: its original gets it. Off the main thread (a render in Blender's
+    window) it is written by a timer, on the main thread."""
+    original = getattr(scene, "original", None) or scene
+    text = "" if report is None else to_json(report)
+
+    def write():
+        original.multiscale.report = text
+        return None
+
+    if bpy.app.background or threading.current_thread() is threading.main_thread():
+        write()
+    else:
+        bpy.app.timers.register(write, first_interval=0.0)
 
 
 def _redraw_views() -> None:

@@ -57,6 +57,7 @@ class Frame:
         tables (0: one per core; ``adapters.scene.processes_of``).
     occupancy : core.sampling.Occupancy of the triangles in ``bounds``, or None.
     volumes : render.volume.FrameVolumes.
+    report : dict or None, the field's build report (docs/report.md), when asked for.
     casts, shadow_casts, rays : int, counted as the render goes.
     """
 
@@ -79,6 +80,7 @@ class Frame:
     rays: int = 0
     volumes: FrameVolumes = field(default_factory=FrameVolumes)
     occupancy: Occupancy | None = None
+    report: dict | None = None
 
     @property
     def size(self):
@@ -113,11 +115,12 @@ def clear_fields():
     SERVICE.clear()
 
 
-def prepare_frame(depsgraph, diag=None):
+def prepare_frame(depsgraph, diag=None, report=False):
     """Build (or reuse) the ray field and the scene's BVH.
 
     ``diag`` (core.diagnostics.Diagnostics or None) steers the work (Esc) and becomes
-    the frame's: what the frame has to say and its seconds per stage.
+    the frame's: what the frame has to say and its seconds per stage. With ``report``
+    the field is measured (once per field) and the frame carries its build report.
 
     Raises
     ------
@@ -129,7 +132,7 @@ def prepare_frame(depsgraph, diag=None):
     # volumes first: a missing or unusable volume file stops the render before the build
     volumes, volume_notices = prepare_volumes(depsgraph)
     with diag.stage("field"), runtime().journal() as runs:  # what the field's workers did
-        result = SERVICE.get(SERVICE.request(scene), diag)
+        result = SERVICE.get(SERVICE.request(scene), diag, measure=report)
     if not result.built:  # said as "field (cached)" in the timings
         diag.seconds["field (cached)"] = diag.seconds.pop("field")
     ray_field = result.field
@@ -177,6 +180,7 @@ def prepare_frame(depsgraph, diag=None):
         processes=processes,
         volumes=volumes,
         occupancy=occupancy,
+        report=result.report,
     )
 
 

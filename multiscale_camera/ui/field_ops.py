@@ -9,13 +9,12 @@ from bpy.props import BoolProperty, StringProperty
 
 from ..adapters.scene import rig_from_scene
 from ..core.diagnostics import Diagnostics
-from ..core.errors import RigError, SolverDidNotConverge
-from ..core.quality import headline, readable, to_json
-from ..io.exr import ExrError
+from ..core.quality import headline, readable
 from ..render import pipeline
 from ..render.checks import validate_scene
 from ..render.export import export_rays
-from ..render.fields import SERVICE
+from ..render.failures import failure_message
+from ..render.fields import SERVICE, publish_report
 from ..render.volume import prepare_volumes
 from .context import evaluated_scene, settings_of
 
@@ -48,9 +47,10 @@ def run_validation(op, context):
         # volume sources and transfer functions too: a missing file shows here
         _volumes, said = prepare_volumes(context.evaluated_depsgraph_get())
         messages = list(messages) + list(said)
-    except RigError as err:
-        store_validation(settings, [str(err)], [])
-        op.report({"ERROR"}, str(err))
+    except Exception as err:  # a RigError says what to change; anything else, what failed
+        message = failure_message(err, "Check Rig")
+        store_validation(settings, [message], [])
+        op.report({"ERROR"}, message)
         return False, None, []
     store_validation(settings, [], messages)
     for notice in messages:
@@ -58,7 +58,6 @@ def run_validation(op, context):
     if not messages:
         op.report({"INFO"}, f"The rig of {len(rig.cameras)} cameras is ready to render")
     return True, rig, messages
-
 
 
 class MULTISCALE_OT_compute_field(bpy.types.Operator):
@@ -80,10 +79,14 @@ class MULTISCALE_OT_compute_field(bpy.types.Operator):
             return {"CANCELLED"}
         try:
             result = SERVICE.get(request, diag, measure=True, announce=True)
-        except (RigError, SolverDidNotConverge) as err:
-            self.report({"ERROR"}, str(err))
-            return {"CANCELLED"}
+        except Exception as err:  # every failure is said, and leaves no old report
+            return self._failed(context, err)
         return self._finish(context, result, diag)
+
+    def _failed(self, context, err):
+        publish_report(context.scene, None)
+        self.report({"ERROR"}, failure_message(err, "Compute Field"))
+        return {"CANCELLED"}
 
     def invoke(self, context, event):
         if bpy.app.background or context.window is None:
@@ -125,8 +128,7 @@ class MULTISCALE_OT_compute_field(bpy.types.Operator):
             self.report({"WARNING"}, "Field build cancelled; nothing was changed")
             return {"CANCELLED"}
         if build.error is not None:
-            self.report({"ERROR"}, str(build.error))
-            return {"CANCELLED"}
+            return self._failed(context, build.error)
         return self._finish(context, result, self._diag)
 
     def _request(self, context):
@@ -134,6 +136,7 @@ class MULTISCALE_OT_compute_field(bpy.types.Operator):
         warnings, reported already, start the Diagnostics so none is said twice."""
         ok, rig, messages = run_validation(self, context)
         if not ok:
+            publish_report(context.scene, None)
             return None, None
         diag = Diagnostics()
         diag.extend(messages)
@@ -142,13 +145,12 @@ class MULTISCALE_OT_compute_field(bpy.types.Operator):
 
     def _finish(self, context, result, diag):
         report = result.report
-        context.scene.multiscale.report = to_json(report)
+        publish_report(context.scene, report)
         for message in diag.since(self._checked):
             self.report({"WARNING"}, message.text)
         self.report(
             {"INFO"},
-            f"{headline(report)} ({'built' if result.built else 'cached'}, "
-            f"{result.seconds:.1f} s)",
+            f"{headline(report)} ({'built' if result.built else 'cached'}, {result.seconds:.1f} s)",
         )
         return {"FINISHED"}
 
@@ -167,8 +169,8 @@ class MULTISCALE_OT_render(bpy.types.Operator):
         scene = context.scene
         try:
             rig_from_scene(evaluated_scene(context))
-        except RigError as err:
-            self.report({"ERROR"}, str(err))
+        except Exception as err:
+            self.report({"ERROR"}, failure_message(err, "Render Multiscale"))
             return {"CANCELLED"}
         if scene.render.engine != "MULTISCALE":
             scene.render.engine = "MULTISCALE"
@@ -177,11 +179,22 @@ class MULTISCALE_OT_render(bpy.types.Operator):
             # Blender refuses to render a scene without an active camera
             scene.camera = scene.multiscale.cameras[0].camera
             self.report({"INFO"}, f"Scene camera set to '{scene.camera.name}'")
-        if bpy.app.background:
-            bpy.ops.render.render(write_still=self.write_still)
-        else:
-            bpy.ops.render.render("INVOKE_DEFAULT", write_still=self.write_still)
+        try:
+            if bpy.app.background:
+                bpy.ops.render.render(write_still=self.write_still)
+            else:
+                bpy.ops.render.render("INVOKE_DEFAULT", write_still=self.write_still)
+        except RuntimeError as err:  # the engine's or Blender's own message, said once
+            self.report({"ERROR"}, blender_error(err))
+            return {"CANCELLED"}
         return {"FINISHED"}
+
+
+def blender_error(err):
+    """The text of the RuntimeError an operator raised with its ERROR reports, without
+    Blender's "Error: " prefix: "Error: A\nError: B" -> "A; B"."""
+    lines = [line.strip() for line in str(err).splitlines() if line.strip()]
+    return "; ".join(line.removeprefix("Error: ") for line in lines)
 
 
 class MULTISCALE_OT_export_rays(bpy.types.Operator):
@@ -221,8 +234,8 @@ class MULTISCALE_OT_export_rays(bpy.types.Operator):
         try:
             frame = pipeline.prepare_frame(context.evaluated_depsgraph_get())
             exr_path, npz_path = export_rays(frame, path)
-        except (RigError, SolverDidNotConverge, ExrError, OSError) as err:
-            self.report({"ERROR"}, str(err))
+        except Exception as err:  # every failure is said, never a traceback
+            self.report({"ERROR"}, failure_message(err, "Export Rays"))
             return {"CANCELLED"}
         for notice in frame.notices:
             self.report({"WARNING"}, notice)

@@ -11,7 +11,7 @@ import pytest
 from fixtures.masks import disk
 from fixtures.rigs import camera, look_at, three_camera_rig, two_camera_rig
 from multiscale_camera.core.errors import RigError
-from multiscale_camera.core.geometry import PinholeCamera, Rig
+from multiscale_camera.core.geometry import Rig
 from multiscale_camera.core.methods import Settings, prepare
 from multiscale_camera.core.quality import build_report, headline, readable, to_json
 from multiscale_camera.core.quality.metrics import Preserved
