@@ -250,3 +250,73 @@ def test_rig_check_leaves_out_hide_render_objects_as_the_render_does(scene):
     scene.objects["Cube"].hide_render = True
     names = scene_geometry(bpy.context.evaluated_depsgraph_get()).object_names
     assert "Cube" not in names and "Plane" in names
+
+
+def test_sixteen_bit_and_float_masks_read_as_eight_bit_ones(scene, tmp_path):
+    from PIL import Image
+
+    from multiscale_camera.adapters.scene import rig_from_scene
+
+    want = disk(48, 36, 7)
+    Image.fromarray(np.where(want, 65535, 0).astype(np.uint16)).save(tmp_path / "m16.png")
+    scene.multiscale.cameras[1].mask = bpy.data.images.load(str(tmp_path / "m16.png"))
+    assert scene.multiscale.cameras[1].mask.is_float  # Blender reads 16 bits as float
+    np.testing.assert_array_equal(rig_from_scene(scene).masks[1], want)
+    img = bpy.data.images.new("float mask", 48, 36, float_buffer=True)
+    rgba = np.ones((36, 48, 4), np.float32)
+    rgba[..., :3] = np.where(want, 4.0, -1.0)[::-1, :, None]  # out of [0, 1], as floats may be
+    img.pixels.foreach_set(rgba.ravel())
+    scene.multiscale.cameras[1].mask = img
+    np.testing.assert_array_equal(rig_from_scene(scene).masks[1], want)
+
+
+def test_identical_camera_objects_render_with_the_order_warning(scene, output, capfd):
+    twin = scene.objects["C1"].copy()
+    twin.data = scene.objects["C1"].data.copy()
+    twin.name = "C1 twin"
+    scene.collection.objects.link(twin)
+    item = scene.multiscale.cameras.add()
+    item.camera = twin
+    item.mask = mask_image("twin mask", disk(48, 36, 3))
+    scene.multiscale.cameras[1].mask = mask_image("C2 ring", disk(48, 36, 7) & ~disk(48, 36, 4))
+    bpy.ops.render.render(write_still=True)
+    assert (
+        "The near plane of 'C1 twin' lies before the near plane of 'C2': the list should "
+        "run from the largest scale to the smallest"
+    ) in capfd.readouterr().out
+    assert output.read_bytes() != KEEP
+    report = json.loads(  # strict JSON even for twins
+        scene.multiscale.report, parse_constant=lambda c: pytest.fail(f"{c} in the report")
+    )
+    assert [c["name"] for c in report["cameras"]] == ["C1", "C2", "C1 twin"]
+
+
+def test_compute_field_and_export_rays_say_an_unexpected_error(scene, tmp_path, monkeypatch):
+    scene.multiscale.report = '{"version": 1}'
+
+    def broken(*_a, **_k):
+        raise KeyError("lost")
+
+    monkeypatch.setattr(fields, "prepare", broken)
+    with pytest.raises(RuntimeError) as info:
+        bpy.ops.multiscale.compute_field()
+    assert str(info.value).startswith("Error: Compute Field failed (KeyError: 'lost'); nothing")
+    assert scene.multiscale.report == ""  # the old report is not left standing
+    with pytest.raises(RuntimeError) as info:
+        bpy.ops.multiscale.export_rays(filepath=str(tmp_path / "rays.exr"))
+    assert str(info.value).startswith("Error: Export Rays failed (KeyError: 'lost'); nothing")
+    assert not (tmp_path / "rays.exr").exists()
+
+
+def test_rig_check_leaves_out_instances_of_a_hide_render_instancer(scene):
+    inner = bpy.data.collections.new("Inner")
+    inner.objects.link(scene.objects["Cube"])
+    scene.collection.objects.unlink(scene.objects["Cube"])
+    holder = bpy.data.objects.new("Holder", None)
+    holder.instance_type, holder.instance_collection = "COLLECTION", inner
+    scene.collection.objects.link(holder)
+    bpy.context.view_layer.update()
+    assert "Cube" in scene_geometry(bpy.context.evaluated_depsgraph_get()).object_names
+    holder.hide_render = True
+    bpy.context.view_layer.update()
+    assert "Cube" not in scene_geometry(bpy.context.evaluated_depsgraph_get()).object_names
