@@ -33,8 +33,7 @@ SUFFIX = ".npz"
 CHECKSUM = "checksum"
 # What the user reads when a disk entry is refused (deleted; the field is built again).
 DAMAGED = (
-    "The cached field '{name}' was damaged ({why}): it was deleted and the field is "
-    "built again"
+    "The cached field '{name}' was damaged ({why}): it was deleted and the field is built again"
 )
 UNUSABLE = (
     "The field cache folder '{folder}' cannot be used ({err}): fields are kept in memory "

@@ -4,11 +4,14 @@ import time
 
 import bpy
 
-from ..core.diagnostics import Diagnostics
+from ..core.diagnostics import Diagnostics, interrupt_stops
 from ..core.errors import Cancelled
 from . import cycles, pipeline, viewport, workers
 from .failures import failure_message
 from .fields import publish_report
+
+# What a render stopped by Ctrl-C says (it writes nothing, and `-f` exits 1).
+INTERRUPTED = "Render cancelled (Ctrl-C); nothing was written"
 
 
 class MultiscaleRenderEngine(bpy.types.RenderEngine):
@@ -19,18 +22,26 @@ class MultiscaleRenderEngine(bpy.types.RenderEngine):
 
     def render(self, depsgraph):
         """Render the frame; any error ends it with one message (``fail``), so that
-        Blender writes no file and the render operator does not finish."""
-        try:
-            self._render(depsgraph)
-        except Cancelled:
-            return
-        except Exception as err:  # every failure is said, never a traceback alone
-            self.fail(f"Multiscale: {failure_message(err)}")
+        Blender writes no file and the render operator does not finish. Ctrl-C in
+        background mode stops it as Esc does in the window, and writes nothing."""
+        with interrupt_stops() as interrupted:
+            self._interrupted = interrupted
+            try:
+                self._render(depsgraph)
+            except Cancelled:
+                if interrupted.is_set():
+                    self.fail(f"Multiscale: {INTERRUPTED}")
+            except Exception as err:  # every failure is said, never a traceback alone
+                self.fail(f"Multiscale: {failure_message(err)}")
+
+    def should_stop(self):
+        """Esc (``test_break``), or Ctrl-C during this render."""
+        return self.test_break() or self._interrupted.is_set()
 
     def _render(self, depsgraph):
         start = time.perf_counter()
         self.update_stats("", "Multiscale: building rays")
-        diag = Diagnostics(should_stop=self.test_break)
+        diag = Diagnostics(should_stop=self.should_stop)
         try:  # the scene's report is the field's, measured once: none when it failed
             frame = pipeline.prepare_frame(depsgraph, diag, report=True)
         except Cancelled:
@@ -49,7 +60,7 @@ class MultiscaleRenderEngine(bpy.types.RenderEngine):
         processes = workers.worker_count(frame.processes)
         with diag.stage("render"):
             for (row0, row1), passes in workers.render_tiles(
-                frame, pipeline.tiles(frame), processes, self.test_break
+                frame, pipeline.tiles(frame), processes, self.should_stop
             ):
                 # each tile goes into the Render Result as soon as it is done
                 self.write_rows(passes, row0, row1, height, width)

@@ -8,7 +8,8 @@ import bpy
 from bpy.props import BoolProperty, StringProperty
 
 from ..adapters.scene import rig_from_scene
-from ..core.diagnostics import Diagnostics
+from ..core.diagnostics import Diagnostics, interrupt_stops
+from ..core.errors import Cancelled
 from ..core.quality import headline, readable
 from ..render import pipeline
 from ..render.checks import validate_scene
@@ -60,6 +61,10 @@ def run_validation(op, context):
     return True, rig, messages
 
 
+# What a cancelled build says (Esc in the window, Ctrl-C headless).
+CANCELLED = "Field build cancelled; nothing was changed"
+
+
 class MULTISCALE_OT_compute_field(bpy.types.Operator):
     """Build the ray field of the camera list (or reuse the cached one) and measure it:
     preserved-ray error per camera, folds, timings. The report is kept in the scene.
@@ -74,13 +79,18 @@ class MULTISCALE_OT_compute_field(bpy.types.Operator):
     _checked = 0  # the rig check's messages at the start of ``_diag``
 
     def execute(self, context):
-        request, diag = self._request(context)
-        if request is None:
-            return {"CANCELLED"}
-        try:
-            result = SERVICE.get(request, diag, measure=True, announce=True)
-        except Exception as err:  # every failure is said, and leaves no old report
-            return self._failed(context, err)
+        # headless, Ctrl-C stops the build as Esc does in the window
+        with interrupt_stops() as interrupted:
+            request, diag = self._request(context, interrupted.is_set)
+            if request is None:
+                return {"CANCELLED"}
+            try:
+                result = SERVICE.get(request, diag, measure=True, announce=True)
+            except Cancelled:
+                self.report({"WARNING"}, CANCELLED)
+                return {"CANCELLED"}
+            except Exception as err:  # every failure is said, and leaves no old report
+                return self._failed(context, err)
         return self._finish(context, result, diag)
 
     def _failed(self, context, err):
@@ -125,20 +135,21 @@ class MULTISCALE_OT_compute_field(bpy.types.Operator):
         build = self._build
         result = SERVICE.finish(build, self._diag)
         if build.cancelled:
-            self.report({"WARNING"}, "Field build cancelled; nothing was changed")
+            self.report({"WARNING"}, CANCELLED)
             return {"CANCELLED"}
         if build.error is not None:
             return self._failed(context, build.error)
         return self._finish(context, result, self._diag)
 
-    def _request(self, context):
-        """(FieldRequest, Diagnostics) after the rig check, or (None, None). The check's
-        warnings, reported already, start the Diagnostics so none is said twice."""
+    def _request(self, context, should_stop=None):
+        """(FieldRequest, Diagnostics with ``should_stop``) after the rig check, or
+        (None, None). The check's warnings, reported already, start the Diagnostics so
+        none is said twice."""
         ok, rig, messages = run_validation(self, context)
         if not ok:
             publish_report(context.scene, None)
             return None, None
-        diag = Diagnostics()
+        diag = Diagnostics(should_stop=should_stop)
         diag.extend(messages)
         self._checked = len(diag.messages)
         return SERVICE.request(evaluated_scene(context), rig), diag
