@@ -320,3 +320,25 @@ def test_rig_check_leaves_out_instances_of_a_hide_render_instancer(scene):
     holder.hide_render = True
     bpy.context.view_layer.update()
     assert "Cube" not in scene_geometry(bpy.context.evaluated_depsgraph_get()).object_names
+
+
+def test_viewport_picture_says_a_bad_rig_or_a_defect_instead_of_a_traceback(scene, monkeypatch):
+    from multiscale_camera.render import viewport
+
+    view = viewport.ViewDraw()
+    scene.objects["C2"].scale = (0, 0, 0)
+    assert viewport.frame_for_view(bpy.context.evaluated_depsgraph_get(), view) is None
+    assert view.message == (
+        "Multiscale: Camera 'C2' has a scale of zero on an axis (world scale (0, 0, 0)): "
+        f"give it a non-zero scale, 1 is best, in {FIX}"
+    )
+    scene.objects["C2"].scale = (1, 1, 1)
+
+    def broken(*_a, **_k):
+        raise IndexError("a defect")
+
+    monkeypatch.setattr(fields.SERVICE, "request", broken)
+    assert viewport.frame_for_view(bpy.context.evaluated_depsgraph_get(), view) is None
+    assert view.message.startswith(
+        "Multiscale: The viewport picture failed (IndexError: a defect); nothing was written"
+    )
