@@ -17,6 +17,7 @@ from fixtures.masks import disk
 from multiscale_camera.adapters.meshes import scene_geometry
 from multiscale_camera.io.cache import FieldCache
 from multiscale_camera.render import fields, pipeline, workers
+from tests.exr import read_passes
 
 FIX = "Object Properties > Transform (and its parents' transforms)"
 KEEP = b"the user's own image"
@@ -342,3 +343,29 @@ def test_viewport_picture_says_a_bad_rig_or_a_defect_instead_of_a_traceback(scen
     assert view.message.startswith(
         "Multiscale: The viewport picture failed (IndexError: a defect); nothing was written"
     )
+
+
+def render_passes(scene, path):
+    scene.render.image_settings.media_type = "MULTI_LAYER_IMAGE"
+    scene.render.filepath = str(path)
+    bpy.ops.render.render(write_still=True)
+    return read_passes(path)
+
+
+def test_rig_check_leaves_out_collections_disabled_in_renders(scene, tmp_path):
+    hidden = bpy.data.collections.new("Hidden")
+    scene.collection.children.link(hidden)
+    inner = bpy.data.collections.new("Inner")  # inside it: hidden too
+    hidden.children.link(inner)
+    inner.objects.link(scene.objects["Cube"])
+    scene.collection.objects.unlink(scene.objects["Cube"])
+    bpy.context.view_layer.update()
+    assert "Cube" in scene_geometry(bpy.context.evaluated_depsgraph_get()).object_names
+    hidden.hide_render = True
+    bpy.context.view_layer.update()
+    assert "Cube" not in scene_geometry(bpy.context.evaluated_depsgraph_get()).object_names
+    index = render_passes(scene, tmp_path / "hidden.exr")["IndexOB"]
+    assert 1 in index and 2 not in index  # the render leaves the cube (pass index 2) out too
+    scene.collection.objects.link(bpy.data.objects["Cube"])  # also shown elsewhere: kept
+    bpy.context.view_layer.update()
+    assert "Cube" in scene_geometry(bpy.context.evaluated_depsgraph_get()).object_names
