@@ -5,7 +5,8 @@ with a report that is strict JSON, or raises the core's own error (RigError,
 SolverDidNotConverge) with a message; nothing else.
 
 Two profiles (``MULTISCALE_FUZZ``): "bounded" (the default, in ``make test``: a few
-small rigs) and "full" (``make fuzz``: 500 rigs up to 256 pixels).
+small rigs) and "full" (``make fuzz``: 500 rigs up to 256 pixels);
+``MULTISCALE_FUZZ_EXAMPLES`` sets another number of rigs.
 """
 
 import json
@@ -25,6 +26,7 @@ from multiscale_camera.core.quality import build_report, to_json
 PROFILE = os.environ.get("MULTISCALE_FUZZ", "bounded")
 PROFILES = {"bounded": (6, 24), "full": (500, 256)}  # examples, largest side in pixels
 EXAMPLES, MAX_SIDE = PROFILES[PROFILE]
+EXAMPLES = int(os.environ.get("MULTISCALE_FUZZ_EXAMPLES", EXAMPLES))  # a shorter full run
 settings.register_profile(
     PROFILE,
     max_examples=EXAMPLES,
