@@ -77,7 +77,8 @@ test: build
 	$(PY) -m pytest -q tests
 
 fuzz: venv
-	MULTISCALE_FUZZ=full $(PY) -m pytest -q -p no:cacheprovider tests/unit/test_fuzz_core.py
+	MULTISCALE_FUZZ=full $(PY) -m pytest -q -p no:cacheprovider --hypothesis-show-statistics \
+	  tests/unit/test_fuzz_core.py
 
 # The loop while working: neither the slow tests (pyproject.toml's markers) nor those
 # that run $(BLENDER) in a subprocess, so no build is needed.

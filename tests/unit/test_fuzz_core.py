@@ -14,7 +14,7 @@ import os
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 
 from fixtures.rigs import camera, orbit
@@ -97,7 +97,9 @@ def build_or_refuse(cams, masks, method):
         fld = prepare(Rig(tuple(cams), masks), method, settings_for("PREVIEW"))
     except (RigError, SolverDidNotConverge) as err:
         assert str(err).strip(), f"{type(err).__name__} without a message"
+        event(f"refused: {type(err).__name__}")  # --hypothesis-show-statistics counts them
         return None
+    event("built")
     w, h = fld.rig.size
     iy, ix = np.mgrid[0:h, 0:w]
     bundle = fld.rays(ix.ravel(), iy.ravel())
