@@ -9,6 +9,8 @@
 #   make bench    speed and accuracy: solver, every method, the renderer, the Cycles hand-off,
 #                 volume ray casting: bench/*.json
 #   make lint     ruff and the import contracts (pyproject.toml, [tool.importlinter])
+#   make fuzz     the core on 500 random rigs (tests/unit/test_fuzz_core.py, profile "full");
+#                 make test runs its bounded profile
 #   make e2e-real the extension in real Blender 5.2 and 4.3, screenshots to docs/images/
 #   make e2e-timing  Compute Field and render of the demo: real 5.2 window against -b
 #
@@ -45,7 +47,7 @@ RUN_SAMPLES := $(BLENDER) -b --factory-startup --python-exit-code 1 \
 	--python sample_blends/make_samples.py
 
 .PHONY: venv build test test-quick samples demo demo-anim bench bench-render lint clean distclean e2e-real \
-	e2e-timing
+	e2e-timing fuzz
 
 venv: $(VENV_STAMP)
 
@@ -74,6 +76,10 @@ test: build
 	$(PY) -m ruff check .
 	$(LINT_IMPORTS)
 	$(PY) -m pytest -q tests
+
+fuzz: venv
+	MULTISCALE_FUZZ=full $(PY) -m pytest -q -p no:cacheprovider --hypothesis-show-statistics \
+	  tests/unit/test_fuzz_core.py
 
 # The loop while working: neither the slow tests (pyproject.toml's markers) nor those
 # that run $(BLENDER) in a subprocess, so no build is needed.

@@ -12,11 +12,13 @@ As in Blender, the settings flags act first wherever they stand (``-b``/``--back
     -E/--engine ENGINE          set the scene's render engine
     -o/--render-output PATH     set the render output path ('//' = blend folder, '#' = frame)
     -F/--render-format FORMAT   set the output format (PNG, OPEN_EXR_MULTILAYER, FFMPEG, ...)
-    -f/--render-frame N[,M..]   render frames and save them to the output path (N..M ranges)
+    -f/--render-frame N[,M..]   render frames and save them to the output path (N..M ranges);
+                                a render that fails saves nothing and exits 1
     -s/--frame-start N          set the scene's first frame (+N/-N: relative to it)
     -e/--frame-end N            set the scene's last frame (+N/-N: relative to it)
     -j/--frame-jump N           set the frame step (at least 1)
-    -a/--render-anim            render frames start..end (every step-th) and save them
+    -a/--render-anim            render frames start..end (every step-th) and save them;
+                                a render that fails saves nothing and exits 1
 
 Rendering is Blender's own (``render.render(animation=True)``, the RE_RenderAnim of the
 bpy wheel), so its output naming ('#' runs become the zero-padded frame number, else
@@ -182,9 +184,11 @@ class FrameRange:
 
 def render_range(bpy, first, last):
     """Render and save frames ``first .. last`` (every frame_step-th) as Blender's
-    RE_RenderAnim does: placeholders and no-overwrite included."""
+    RE_RenderAnim does: placeholders and no-overwrite included. Returns False when a
+    render failed (the engine reported an error: Blender saves nothing and exits
+    non-zero), after printing Blender's message."""
     if first > last:
-        return
+        return True
     scene = bpy.context.scene
     start, end = scene.frame_start, scene.frame_end
     try:
@@ -192,20 +196,27 @@ def render_range(bpy, first, last):
         scene.frame_start, scene.frame_end = first, first
         scene.frame_end = last
         bpy.ops.render.render(animation=True)
+    except RuntimeError as ex:
+        print(f"\n{str(ex).strip()}", file=sys.stderr)
+        return False
     finally:
         scene.frame_start, scene.frame_end = start, end
+    return True
 
 
 def render_frames(bpy, spec, span):
-    """Render and save each frame as `blender -f` does (frame number in the file name)."""
+    """Render and save each frame as `blender -f` does (frame number in the file name);
+    False when a render failed (``render_range``)."""
     scene = bpy.context.scene
     step = scene.frame_step
     try:
         scene.frame_step = 1  # -f renders every frame it names
         for frame in frames(spec, *span.of(scene)):
-            render_range(bpy, frame, frame)
+            if not render_range(bpy, frame, frame):
+                return False
     finally:
         scene.frame_step = step
+    return True
 
 
 FRAME_FLAGS = {
@@ -298,14 +309,16 @@ def main(args):
                     file=sys.stderr,
                 )
         elif flag == "--render-frame":
-            render_frames(bpy, value, span)
+            if not render_frames(bpy, value, span):
+                return 1
         elif flag in ("--frame-start", "--frame-end", "--frame-jump"):
             try:
                 set_frames(bpy.context.scene, span, flag, value)
             except ValueError:
                 print(f"\nError: not a number '{FRAME_FLAGS[flag]} {value}'.", file=sys.stderr)
         elif flag == "--render-anim":
-            render_range(bpy, *span.of(bpy.context.scene))
+            if not render_range(bpy, *span.of(bpy.context.scene)):
+                return 1
         if not ok and exit_code_on_error:
             print(f"\nError: script failed, {flag} '{value}', exiting.", file=sys.stderr)
             return exit_code_on_error

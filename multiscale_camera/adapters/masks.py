@@ -3,6 +3,8 @@
 import bpy
 import numpy as np
 
+from ..core.errors import RigError
+
 # Rec. 709 luminance weights: white (preserved) is luminance >= 0.5.
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
 THRESHOLD = 0.5
@@ -65,14 +67,35 @@ def mask_from_image(image, width, height):
             f"Mask '{image.name}' has no pixels (is its file missing?); treated as empty"
         ]
     mask = rgba[..., :3] @ LUMINANCE >= THRESHOLD
+    if not mask.any() and image.channels == 4:
+        alpha = rgba[..., 3] >= THRESHOLD
+        if alpha.any() and not alpha.all():
+            raise RigError(ALPHA_ONLY.format(name=image.name))
     notices = []
     if mask.shape != (height, width):
         notices.append(
             f"Mask '{image.name}' is {mask.shape[1]}x{mask.shape[0]}, the render is "
             f"{width}x{height}: resampled to the render size"
         )
+        kept = mask.any()
         mask = resample_nearest(mask, width, height)
+        if kept and not mask.any():
+            raise RigError(LOST_AT_SIZE.format(name=image.name, width=width, height=height))
     return mask, notices
+
+
+# A mask whose shape is in its alpha alone (its colour all black).
+ALPHA_ONLY = (
+    "Mask '{name}' is black in colour and holds its shape in alpha only; masks are read "
+    "from their colour (white: kept), not from alpha: paint the kept area white (Image "
+    "editor, Paint mode), or save the image without alpha"
+)
+# A mask whose white area vanishes at the render size.
+LOST_AT_SIZE = (
+    "Mask '{name}' keeps no pixel at the render size {width}x{height}: its white area is "
+    "smaller than a pixel there; raise Output Properties > Format > Resolution (or its %), "
+    "or widen the white area"
+)
 
 
 def image_from_rgba(name, rgba, colorspace=None, pack=True):

@@ -150,16 +150,44 @@ def _mesh_arrays(mesh, matrix):
     return co, tris.reshape(nt, 3), mat, uv, normals.astype(np.float32)
 
 
+def left_out_of_render(inst, shown):
+    """Whether a depsgraph instance is one a render leaves out: its object is disabled
+    in renders (``hide_render``), or the object that holds it in the scene (itself, or
+    the instancer of an instance) is disabled in renders or in no collection the render
+    shows (``shown``: ``render_shown``). A viewport depsgraph (the rig check's) holds
+    those; a render's has none of them."""
+    obj = inst.object.original
+    holder = inst.parent.original if inst.is_instance and inst.parent is not None else obj
+    return obj.hide_render or holder.hide_render or holder.name_full not in shown
+
+
+def render_shown(scene):
+    """set of str: full names of the objects a render of ``scene`` shows as far as
+    collections go: those reached from the scene's collection through collections not
+    disabled in renders (``Collection.hide_render``)."""
+    shown, stack = set(), [scene.collection]
+    while stack:
+        coll = stack.pop()
+        shown.update(o.name_full for o in coll.objects)
+        stack.extend(c for c in coll.children if not c.hide_render)
+    return shown
+
+
 def scene_geometry(depsgraph):
     """Gather the render-visible geometry of an evaluated depsgraph (modifiers applied,
-    instances expanded) into one ``SceneGeometry``."""
+    instances expanded) into one ``SceneGeometry``; of a viewport depsgraph, what a
+    render would see (``left_out_of_render``)."""
     verts, tris, colours, index, owner, names = [], [], [], [], [], []
     mats, uvs, normals = [], [], []
     materials, material_ids, notices, cache = [], {}, [], {}
     offset = 0
+    viewport = depsgraph.mode == "VIEWPORT"  # the rig check's: it holds hide_render objects
+    shown = render_shown(depsgraph.scene.original) if viewport else None
     for inst in depsgraph.object_instances:
         obj = inst.object
         if obj.type not in GEOMETRY_TYPES or is_volume_source(obj):
+            continue
+        if viewport and left_out_of_render(inst, shown):
             continue
         mesh = obj.to_mesh()
         if mesh is None:

@@ -16,6 +16,8 @@ and progress; ``merge`` brings them back.
 from __future__ import annotations
 
 import enum
+import signal
+import threading
 import time
 from collections.abc import Callable, Iterable
 from contextlib import contextmanager
@@ -177,3 +179,22 @@ def check_stop(should_stop: Callable[[], bool] | None) -> None:
 def diagnostics_of(diag: Diagnostics | None) -> Diagnostics:
     """``diag``, or a fresh Diagnostics that never stops (for callers that pass none)."""
     return diag if diag is not None else Diagnostics()
+
+
+@contextmanager
+def interrupt_stops():
+    """Within the block, Ctrl-C (SIGINT) asks the job to stop instead of raising
+    ``KeyboardInterrupt`` wherever the main thread happens to be: yields a
+    ``threading.Event`` that SIGINT sets, for the job's cancel check (headless Blender,
+    where no Esc reaches the job). Off the main thread (a render in Blender's window)
+    it changes nothing. The handler before it is put back after; one Python did not
+    install (Blender's own, in C) cannot be, and SIGINT then has its default action."""
+    interrupted = threading.Event()
+    if threading.current_thread() is not threading.main_thread():
+        yield interrupted
+        return
+    previous = signal.signal(signal.SIGINT, lambda _signum, _frame: interrupted.set())
+    try:
+        yield interrupted
+    finally:
+        signal.signal(signal.SIGINT, previous if previous is not None else signal.SIG_DFL)

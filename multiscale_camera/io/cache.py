@@ -18,6 +18,7 @@ The field service (``render.fields.SERVICE``) owns the one cache every caller us
 Only ``default_folder`` touches bpy; the rest is plain Python and numpy.
 """
 
+import hashlib
 import json
 import os
 import tempfile
@@ -41,6 +42,16 @@ SUFFIX = ".npz"
 IN_USE_SECONDS = 600.0
 # One JSON line per field built into a folder: {"key", "host", "pid", "time", "seconds"}.
 BUILDS_LOG = "builds.jsonl"
+# The array of an entry that holds the checksum of all the others (``checksum``).
+CHECKSUM = "checksum"
+# What the user reads when a disk entry is refused (deleted; the field is built again).
+DAMAGED = (
+    "The cached field '{name}' was damaged ({why}): it was deleted and the field is built again"
+)
+UNUSABLE = (
+    "The field cache folder '{folder}' cannot be used ({err}): fields are kept in memory "
+    "only, for this session; point ${env} at a writable folder to keep them on disk"
+)
 
 
 def default_folder():
@@ -84,14 +95,24 @@ class FieldCache:
         self.limit_mb = float(limit_mb)
         self.memory = {}
         self.hits = self.misses = self.disk_hits = 0
+        self._notices = []
 
     @property
     def folder(self):
-        """The folder in use: the one ``use_folder`` chose, else the default."""
+        """The folder in use: the one ``use_folder`` chose, else the default, or None
+        (memory only: none was given, or the default could not be used, which
+        ``take_notices`` then says)."""
         if self._chosen:
             return self._chosen
         if self._folder is None and self._lazy:
-            self._folder = default_folder()
+            self._lazy = False
+            try:
+                self._folder = default_folder()
+            except OSError as err:  # a file in its place, no permission: memory only
+                where = getattr(err, "filename", None) or os.environ.get(FOLDER_ENV, "")
+                self._notices.append(
+                    UNUSABLE.format(folder=where, err=err.strerror or err, env=FOLDER_ENV)
+                )
         return self._folder
 
     def use_folder(self, folder):
@@ -143,6 +164,12 @@ class FieldCache:
         except (OSError, TypeError):
             return []
 
+    def take_notices(self):
+        """What the cache had to say since last asked (damaged entries deleted, an
+        unusable folder), oldest first; forgotten once taken."""
+        said, self._notices = self._notices, []
+        return said
+
     def path(self, key):
         return os.path.join(self.folder, key + SUFFIX)
 
@@ -183,9 +210,14 @@ class FieldCache:
             self.memory.pop(next(iter(self.memory)))
 
     def _write(self, key, fld):
+        """Write the entry atomically: into a temporary file of a unique name in the
+        same folder, then renamed over ``path(key)`` (``os.replace``): a reader in
+        another process sees the old entry or the new one, never part of one; two
+        writers of the same key leave one whole entry."""
         arrays = field_to_arrays(fld)
+        arrays[CHECKSUM] = checksum(arrays)
         os.makedirs(self.folder, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(suffix=SUFFIX, dir=self.folder)
+        fd, tmp = tempfile.mkstemp(prefix=".writing-", suffix=SUFFIX, dir=self.folder)
         try:
             with os.fdopen(fd, "wb") as out:
                 np.savez(out, **arrays)
@@ -196,14 +228,26 @@ class FieldCache:
             raise
 
     def _read(self, key, rig):
+        """The entry's field, or None. An entry that does not load, or whose arrays do
+        not match their checksum, is deleted (and said: ``take_notices``)."""
         path = self.path(key)
         if not os.path.isfile(path):
             return None
         try:
             with np.load(path, allow_pickle=False) as data:
-                fld = field_from_arrays({k: data[k] for k in data.files}, rig)
-        except (OSError, ValueError, KeyError, TypeError, zipfile.BadZipFile):
-            os.remove(path)
+                arrays = {k: data[k] for k in data.files}
+            stored = arrays.pop(CHECKSUM, None)
+            if stored is None:
+                raise ValueError("it has no checksum")
+            if not np.array_equal(stored, checksum(arrays)):
+                raise ValueError("its arrays do not match their checksum")
+            fld = field_from_arrays(arrays, rig)
+        except (OSError, ValueError, KeyError, TypeError, EOFError, zipfile.BadZipFile) as err:
+            self._notices.append(DAMAGED.format(name=os.path.basename(path), why=err))
+            try:
+                os.remove(path)
+            except OSError:  # another process removed it first
+                pass
             return None
         os.utime(path)  # least recently used goes first
         return fld
@@ -215,7 +259,7 @@ class FieldCache:
             return []
         out = []
         for name in os.listdir(folder):
-            if name.endswith(SUFFIX):
+            if name.endswith(SUFFIX) and not name.startswith(".writing-"):
                 p = os.path.join(folder, name)
                 try:
                     st = os.stat(p)
@@ -261,3 +305,14 @@ class FieldCache:
                 except OSError:
                     pass
         return removed
+
+
+def checksum(arrays):
+    """(32,) uint8 BLAKE2b digest of a dict of arrays: every name, dtype, shape and
+    byte, in the order of the sorted names."""
+    digest = hashlib.blake2b(digest_size=32)
+    for name in sorted(arrays):
+        a = np.ascontiguousarray(arrays[name])
+        digest.update(f"{name}|{a.dtype.str}|{a.shape}|".encode())
+        digest.update(a.tobytes())
+    return np.frombuffer(digest.digest(), dtype=np.uint8)

@@ -5,9 +5,14 @@ import time
 import bpy
 import numpy as np
 
-from ..core.diagnostics import Diagnostics
-from ..core.errors import Cancelled, RigError, SolverDidNotConverge
+from ..core.diagnostics import Diagnostics, interrupt_stops
+from ..core.errors import Cancelled
 from . import cycles, pipeline, viewport, workers
+from .failures import failure_message
+from .fields import publish_report
+
+# What a render stopped by Ctrl-C says (it writes nothing, and `-f` exits 1).
+INTERRUPTED = "Render cancelled (Ctrl-C); nothing was written"
 
 
 class MultiscaleRenderEngine(bpy.types.RenderEngine):
@@ -17,16 +22,35 @@ class MultiscaleRenderEngine(bpy.types.RenderEngine):
     bl_use_preview = False
 
     def render(self, depsgraph):
+        """Render the frame; any error ends it with one message (``fail``), so that
+        Blender writes no file and the render operator does not finish. Ctrl-C in
+        background mode stops it as Esc does in the window, and writes nothing."""
+        with interrupt_stops() as interrupted:
+            self._interrupted = interrupted
+            try:
+                self._render(depsgraph)
+            except Cancelled:
+                if interrupted.is_set():
+                    self.fail(f"Multiscale: {INTERRUPTED}")
+            except Exception as err:  # every failure is said, never a traceback alone
+                self.fail(f"Multiscale: {failure_message(err)}")
+
+    def should_stop(self):
+        """Esc (``test_break``), or Ctrl-C during this render."""
+        return self.test_break() or self._interrupted.is_set()
+
+    def _render(self, depsgraph):
         start = time.perf_counter()
         self.update_stats("", "Multiscale: building rays")
-        diag = Diagnostics(should_stop=self.test_break)
-        try:
-            frame = pipeline.prepare_frame(depsgraph, diag)
-        except (RigError, SolverDidNotConverge) as err:
-            self.fail(f"Multiscale: {err}")
-            return
+        diag = Diagnostics(should_stop=self.should_stop)
+        try:  # the scene's report is the field's, measured once: none when it failed
+            frame = pipeline.prepare_frame(depsgraph, diag, report=True)
         except Cancelled:
-            return
+            raise
+        except Exception:
+            publish_report(depsgraph.scene, None)
+            raise
+        publish_report(depsgraph.scene, frame.report)
         reported = self.say(diag, 0)
         if depsgraph.scene.multiscale.shading == "CYCLES":
             if cycles.render(self, depsgraph, frame):
@@ -36,18 +60,15 @@ class MultiscaleRenderEngine(bpy.types.RenderEngine):
             self.add_pass(name, channels, chan_id)
         processes = workers.worker_count(frame.processes)
         shown = ShownRows(height, width)
-        try:
-            with diag.stage("render"):
-                for (row0, row1), passes in workers.render_tiles(
-                    frame, pipeline.tiles(frame), processes, self.test_break
-                ):
-                    if shown.add(row0, row1, passes):
-                        self.show(shown, frame, diag)
-                    # what the tile loop had to say (workers given up) is said at once
-                    reported = self.say(diag, reported)
-                self.show(shown, frame, diag)
-        except Cancelled:
-            return
+        with diag.stage("render"):
+            for (row0, row1), passes in workers.render_tiles(
+                frame, pipeline.tiles(frame), processes, self.should_stop
+            ):
+                if shown.add(row0, row1, passes):
+                    self.show(shown, frame, diag)
+                # what the tile loop had to say (workers given up) is said at once
+                reported = self.say(diag, reported)
+            self.show(shown, frame, diag)
         seconds = time.perf_counter() - start
         print(
             f"Multiscale: {width}x{height}, {frame.samples} samples, {frame.rays} rays, "
@@ -86,6 +107,10 @@ class MultiscaleRenderEngine(bpy.types.RenderEngine):
         self.end_result(result)
 
     def fail(self, message):
+        """End the render as failed. The ERROR report is what stops Blender from saving
+        the image and makes the render operator raise (bpy 5.0.1 wheel and Blender);
+        ``error_set`` alone still saves it. Both: the message shows in the render
+        window too."""
         self.report({"ERROR"}, message)
         self.error_set(message)
 

@@ -28,7 +28,7 @@ from ..core.diagnostics import Diagnostics, Level
 from ..core.errors import Cancelled
 from ..core.geometry import Rig
 from ..core.methods import Settings, field_key, prepare
-from ..core.quality import build_report, crossing_messages, empty_mask_messages
+from ..core.quality import build_report, crossing_messages, empty_mask_messages, to_json
 from ..core.runtime import gave_up, runtime
 from ..io.cache import DEFAULT_LIMIT_MB, FieldCache
 from ..io.locks import POLL_SECONDS as LOCK_POLL_SECONDS
@@ -214,6 +214,7 @@ class FieldService:
         if fld is None:
             fld, gave_up, stored = self._build_once(request, diag, start if measure else None)
             built = stored is not None
+        diag.extend(self.cache.take_notices())  # a damaged entry deleted, memory only
         report = _measure(fld, request, start) if measure else None
         if built:
             _say(request, fld, diag, gave_up=gave_up, store_failed=stored or None)
@@ -257,6 +258,8 @@ class FieldService:
                 build.diagnostics.warn(failed)
             build.result = _result(build.field, True, build.report, build.start)
             self._tell(build.field)
+        if diag is not None:
+            diag.extend(self.cache.take_notices())
         if diag is not None and build.field is not None:
             diag.merge(build.diagnostics)
             _say(build.request, build.field, diag, gave_up=build.gave_up)
@@ -309,9 +312,7 @@ class FieldService:
         lock = self.cache.build_lock(request.key)
         if lock is None:  # no disk cache: nothing to share
             fld, gave_up = _build(request, diag)
-            if measure_from is not None:
-                _measure(fld, request, measure_from)
-            return fld, gave_up, self._store(request, fld) or ""
+            return fld, gave_up, self._measure_and_store(request, fld, measure_from)
         waited = time.perf_counter()
         while not lock.acquire():
             diag.check()  # Esc while waiting
@@ -329,13 +330,22 @@ class FieldService:
                 return fld, False, None
             start = time.perf_counter()
             fld, gave_up = _build(request, diag)
-            if measure_from is not None:
-                _measure(fld, request, measure_from)
-            stored = self._store(request, fld) or ""
+            stored = self._measure_and_store(request, fld, measure_from)
             self.cache.record_build(request.key, round(time.perf_counter() - start, 3))
         finally:
             lock.release()
         return fld, gave_up, stored
+
+    def _measure_and_store(self, request: FieldRequest, fld, measure_from=None) -> str:
+        """Measure ``fld`` (with ``measure_from``, the request's start) before it is
+        stored, so the disk keeps its report too, and store it even when the measure
+        fails: a failed measure loses no build. "" or the message of a refused write."""
+        try:
+            if measure_from is not None:
+                _measure(fld, request, measure_from)
+        finally:
+            stored = self._store(request, fld) or ""
+        return stored
 
     def _use(self, request: FieldRequest) -> None:
         """Point the cache at ``request``'s folder and size limit."""
@@ -387,6 +397,25 @@ def _say(request: FieldRequest, fld, diag: Diagnostics, gave_up=False, store_fai
         diag.warn(store_failed)
     if gave_up:
         diag.warn(WORKERS_GIVEN_UP)
+
+
+def publish_report(scene, report: dict | None) -> None:
+    """Keep ``report`` (None: a build that failed) as the scene's build report
+    (``scene.multiscale.report``, strict JSON; "" clears it), for the panel and for
+    scripts that read it after ``bpy.ops.render.render``. ``scene`` may be a render's
+    evaluated scene: its original gets it. Off the main thread (a render in Blender's
+    window) it is written by a timer, on the main thread."""
+    original = getattr(scene, "original", None) or scene
+    text = "" if report is None else to_json(report)
+
+    def write():
+        original.multiscale.report = text
+        return None
+
+    if bpy.app.background or threading.current_thread() is threading.main_thread():
+        write()
+    else:
+        bpy.app.timers.register(write, first_interval=0.0)
 
 
 def _redraw_views() -> None:

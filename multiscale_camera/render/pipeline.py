@@ -58,6 +58,7 @@ class Frame:
         tables (0: one per core; ``adapters.scene.processes_of``).
     occupancy : core.sampling.Occupancy of the triangles in ``bounds``, or None.
     volumes : render.volume.FrameVolumes.
+    report : dict or None, the field's build report (docs/report.md), when asked for.
     casts, shadow_casts, rays : int, counted as the render goes.
     """
 
@@ -80,6 +81,7 @@ class Frame:
     rays: int = 0
     volumes: FrameVolumes = field(default_factory=FrameVolumes)
     occupancy: Occupancy | None = None
+    report: dict | None = None
 
     @property
     def size(self):
@@ -114,11 +116,12 @@ def clear_fields():
     SERVICE.clear()
 
 
-def prepare_frame(depsgraph, diag=None):
+def prepare_frame(depsgraph, diag=None, report=False):
     """Build (or reuse) the ray field and the scene's BVH.
 
     ``diag`` (core.diagnostics.Diagnostics or None) steers the work (Esc) and becomes
-    the frame's: what the frame has to say and its seconds per stage.
+    the frame's: what the frame has to say and its seconds per stage. With ``report``
+    the field is measured (once per field) and the frame carries its build report.
 
     Raises
     ------
@@ -131,7 +134,7 @@ def prepare_frame(depsgraph, diag=None):
     volumes, volume_notices = prepare_volumes(depsgraph)
     with diag.stage("field"), runtime().journal() as runs:  # what the field's workers did
         request = SERVICE.request(scene, depsgraph=depsgraph)
-        result = SERVICE.get(request, diag)
+        result = SERVICE.get(request, diag, measure=report)
     if not result.built:  # said as "field (cached)" in the timings
         diag.seconds["field (cached)"] = diag.seconds.pop("field")
     ray_field = result.field
@@ -182,6 +185,7 @@ def prepare_frame(depsgraph, diag=None):
         processes=processes,
         volumes=volumes,
         occupancy=occupancy,
+        report=result.report,
     )
 
 

@@ -14,8 +14,8 @@ import numpy as np
 from bpy_extras.view3d_utils import location_3d_to_region_2d
 from gpu_extras.presets import draw_texture_2d
 
-from ..core.errors import RigError, SolverDidNotConverge
 from . import pipeline
+from .failures import failure_message
 from .fields import SERVICE
 from .pipeline import _cast_and_shade, _rgba
 
@@ -65,17 +65,13 @@ def frame_for_view(depsgraph, view):
     """
     try:
         request = SERVICE.request(depsgraph.scene, depsgraph=depsgraph)
-    except RigError as err:
-        view.message = f"Multiscale: {err}"
-        return None
-    if SERVICE.cached(request) is None:
-        view.build = SERVICE.start(request)
-        view.message = "Multiscale: building the ray field..."
-        return None
-    try:
+        if SERVICE.cached(request) is None:
+            view.build = SERVICE.start(request)
+            view.message = "Multiscale: building the ray field..."
+            return None
         return pipeline.prepare_frame(depsgraph)
-    except (RigError, SolverDidNotConverge) as err:
-        view.message = f"Multiscale: {err}"
+    except Exception as err:  # said on the picture, as the render says it
+        view.message = f"Multiscale: {failure_message(err, 'The viewport picture')}"
         return None
 
 

@@ -8,14 +8,14 @@ import bpy
 from bpy.props import BoolProperty, StringProperty
 
 from ..adapters.scene import rig_from_scene
-from ..core.diagnostics import Diagnostics
-from ..core.errors import RigError, SolverDidNotConverge
-from ..core.quality import headline, readable, to_json
-from ..io.exr import ExrError
+from ..core.diagnostics import Diagnostics, interrupt_stops
+from ..core.errors import Cancelled
+from ..core.quality import headline, readable
 from ..render import pipeline
 from ..render.checks import validate_scene
 from ..render.export import export_rays
-from ..render.fields import SERVICE
+from ..render.failures import failure_message
+from ..render.fields import SERVICE, publish_report
 from ..render.surface import with_surface
 from ..render.volume import prepare_volumes
 from .context import evaluated_scene, settings_of
@@ -49,9 +49,10 @@ def run_validation(op, context):
         # volume sources and transfer functions too: a missing file shows here
         _volumes, said = prepare_volumes(context.evaluated_depsgraph_get())
         messages = list(messages) + list(said)
-    except RigError as err:
-        store_validation(settings, [str(err)], [])
-        op.report({"ERROR"}, str(err))
+    except Exception as err:  # a RigError says what to change; anything else, what failed
+        message = failure_message(err, "Check Rig")
+        store_validation(settings, [message], [])
+        op.report({"ERROR"}, message)
         return False, None, []
     store_validation(settings, [], messages)
     for notice in messages:
@@ -59,6 +60,10 @@ def run_validation(op, context):
     if not messages:
         op.report({"INFO"}, f"The rig of {len(rig.cameras)} cameras is ready to render")
     return True, rig, messages
+
+
+# What a cancelled build says (Esc in the window, Ctrl-C headless).
+CANCELLED = "Field build cancelled; nothing was changed"
 
 
 class MULTISCALE_OT_compute_field(bpy.types.Operator):
@@ -75,15 +80,24 @@ class MULTISCALE_OT_compute_field(bpy.types.Operator):
     _checked = 0  # the rig check's messages at the start of ``_diag``
 
     def execute(self, context):
-        request, diag = self._request(context)
-        if request is None:
-            return {"CANCELLED"}
-        try:
-            result = SERVICE.get(request, diag, measure=True, announce=True)
-        except (RigError, SolverDidNotConverge) as err:
-            self.report({"ERROR"}, str(err))
-            return {"CANCELLED"}
+        # headless, Ctrl-C stops the build as Esc does in the window
+        with interrupt_stops() as interrupted:
+            request, diag = self._request(context, interrupted.is_set)
+            if request is None:
+                return {"CANCELLED"}
+            try:
+                result = SERVICE.get(request, diag, measure=True, announce=True)
+            except Cancelled:
+                self.report({"WARNING"}, CANCELLED)
+                return {"CANCELLED"}
+            except Exception as err:  # every failure is said, and leaves no old report
+                return self._failed(context, err)
         return self._finish(context, result, diag)
+
+    def _failed(self, context, err):
+        publish_report(context.scene, None)
+        self.report({"ERROR"}, failure_message(err, "Compute Field"))
+        return {"CANCELLED"}
 
     def invoke(self, context, event):
         if bpy.app.background or context.window is None:
@@ -122,20 +136,21 @@ class MULTISCALE_OT_compute_field(bpy.types.Operator):
         build = self._build
         result = SERVICE.finish(build, self._diag)
         if build.cancelled:
-            self.report({"WARNING"}, "Field build cancelled; nothing was changed")
+            self.report({"WARNING"}, CANCELLED)
             return {"CANCELLED"}
         if build.error is not None:
-            self.report({"ERROR"}, str(build.error))
-            return {"CANCELLED"}
+            return self._failed(context, build.error)
         return self._finish(context, result, self._diag)
 
-    def _request(self, context):
-        """(FieldRequest, Diagnostics) after the rig check, or (None, None). The check's
-        warnings, reported already, start the Diagnostics so none is said twice."""
+    def _request(self, context, should_stop=None):
+        """(FieldRequest, Diagnostics with ``should_stop``) after the rig check, or
+        (None, None). The check's warnings, reported already, start the Diagnostics so
+        none is said twice."""
         ok, rig, messages = run_validation(self, context)
         if not ok:
+            publish_report(context.scene, None)
             return None, None
-        diag = Diagnostics()
+        diag = Diagnostics(should_stop=should_stop)
         diag.extend(messages)
         self._checked = len(diag.messages)
         return SERVICE.request(evaluated_scene(context), rig), diag
@@ -143,7 +158,7 @@ class MULTISCALE_OT_compute_field(bpy.types.Operator):
     def _finish(self, context, result, diag):
         # the rays' first hits in this scene: what the picture shows (docs/report.md)
         report = with_surface(result.report, result.field, context.evaluated_depsgraph_get())
-        context.scene.multiscale.report = to_json(report)
+        publish_report(context.scene, report)
         for message in diag.since(self._checked):
             self.report({"WARNING"}, message.text)
         self.report(
@@ -167,8 +182,8 @@ class MULTISCALE_OT_render(bpy.types.Operator):
         scene = context.scene
         try:
             rig_from_scene(evaluated_scene(context))
-        except RigError as err:
-            self.report({"ERROR"}, str(err))
+        except Exception as err:
+            self.report({"ERROR"}, failure_message(err, "Render Multiscale"))
             return {"CANCELLED"}
         if scene.render.engine != "MULTISCALE":
             scene.render.engine = "MULTISCALE"
@@ -177,11 +192,22 @@ class MULTISCALE_OT_render(bpy.types.Operator):
             # Blender refuses to render a scene without an active camera
             scene.camera = scene.multiscale.cameras[0].camera
             self.report({"INFO"}, f"Scene camera set to '{scene.camera.name}'")
-        if bpy.app.background:
-            bpy.ops.render.render(write_still=self.write_still)
-        else:
-            bpy.ops.render.render("INVOKE_DEFAULT", write_still=self.write_still)
+        try:
+            if bpy.app.background:
+                bpy.ops.render.render(write_still=self.write_still)
+            else:
+                bpy.ops.render.render("INVOKE_DEFAULT", write_still=self.write_still)
+        except RuntimeError as err:  # the engine's or Blender's own message, said once
+            self.report({"ERROR"}, blender_error(err))
+            return {"CANCELLED"}
         return {"FINISHED"}
+
+
+def blender_error(err):
+    """The text of the RuntimeError an operator raised with its ERROR reports, without
+    Blender's "Error: " prefix: "Error: A\nError: B" -> "A; B"."""
+    lines = [line.strip() for line in str(err).splitlines() if line.strip()]
+    return "; ".join(line.removeprefix("Error: ") for line in lines)
 
 
 class MULTISCALE_OT_export_rays(bpy.types.Operator):
@@ -221,8 +247,8 @@ class MULTISCALE_OT_export_rays(bpy.types.Operator):
         try:
             frame = pipeline.prepare_frame(context.evaluated_depsgraph_get())
             exr_path, npz_path = export_rays(frame, path)
-        except (RigError, SolverDidNotConverge, ExrError, OSError) as err:
-            self.report({"ERROR"}, str(err))
+        except Exception as err:  # every failure is said, never a traceback
+            self.report({"ERROR"}, failure_message(err, "Export Rays"))
             return {"CANCELLED"}
         for notice in frame.notices:
             self.report({"WARNING"}, notice)

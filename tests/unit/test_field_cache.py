@@ -156,3 +156,78 @@ def test_trim_leaves_fields_in_use(rig, tmp_path):
     os.utime(tmp_path / ("a" * 40 + ".npz"), (old, old))
     assert cache.trim() == 1
     assert os.listdir(tmp_path) == ["b" * 40 + ".npz"]
+
+
+DAMAGED = "The cached field '{}.npz' was damaged ({}): it was deleted and the field is built again"
+
+
+def test_damaged_entry_that_loads_fails_its_checksum_is_deleted_and_said(rig, tmp_path):
+    key = field_key(rig, "IMAGE_BLEND", SETTINGS)
+    cache = FieldCache(str(tmp_path))
+    cache.put(key, prepare(rig, "IMAGE_BLEND", SETTINGS))
+    path = tmp_path / f"{key}.npz"
+    with np.load(path) as data:
+        arrays = {k: data[k] for k in data.files}
+    arrays["array.weights"] = arrays["array.weights"][::-1].copy()  # loads, yet wrong
+    np.savez(path, **arrays)
+    fresh = FieldCache(str(tmp_path))
+    assert fresh.get(key, rig) is None and fresh.misses == 1
+    assert not path.exists()
+    assert fresh.take_notices() == [DAMAGED.format(key, "its arrays do not match their checksum")]
+    assert fresh.take_notices() == []  # said once
+
+
+def test_entry_without_checksum_is_deleted_and_said(rig, tmp_path):
+    key = field_key(rig, "IMAGE_BLEND", SETTINGS)
+    np.savez(tmp_path / f"{key}.npz", **field_to_arrays(prepare(rig, "IMAGE_BLEND", SETTINGS)))
+    cache = FieldCache(str(tmp_path))
+    assert cache.get(key, rig) is None
+    assert cache.take_notices() == [DAMAGED.format(key, "it has no checksum")]
+
+
+def test_cache_folder_that_is_a_file_falls_back_to_memory_with_a_message(
+    rig, tmp_path, monkeypatch
+):
+    blocker = tmp_path / "file"
+    blocker.write_text("not a folder")
+    monkeypatch.setenv("MULTISCALE_CACHE_DIR", str(blocker))
+    cache = FieldCache(lazy_folder=True)
+    assert cache.folder is None
+    fld = prepare(rig, "IMAGE_BLEND", SETTINGS)
+    assert cache.put("k" * 40, fld) is None and cache.get("k" * 40, rig) is fld
+    assert cache.take_notices() == [
+        f"The field cache folder '{blocker}' cannot be used (File exists): fields are kept "
+        "in memory only, for this session; point $MULTISCALE_CACHE_DIR at a writable folder "
+        "to keep them on disk"
+    ]
+
+
+def _write_many(folder, times):
+    """Worker of the test below: put the same field under one key ``times`` times."""
+    cams, masks = two_camera_rig(40, 30)
+    rig = Rig(cams, masks)
+    cache = FieldCache(folder)
+    fld = prepare(rig, "IMAGE_BLEND", SETTINGS)
+    for _ in range(times):
+        assert cache.put("shared" * 7, fld) is None
+
+
+def test_two_processes_writing_one_entry_leave_a_whole_one(rig, tmp_path):
+    import multiprocessing
+
+    ctx = multiprocessing.get_context("spawn")
+    writers = [ctx.Process(target=_write_many, args=(str(tmp_path), 15)) for _ in range(2)]
+    for w in writers:
+        w.start()
+    reader = FieldCache(str(tmp_path))
+    reads = 0
+    while any(w.is_alive() for w in writers):
+        reader.memory.clear()
+        reads += reader.get("shared" * 7, rig) is not None
+    for w in writers:
+        w.join()
+        assert w.exitcode == 0
+    reader.memory.clear()
+    assert reader.get("shared" * 7, rig) is not None
+    assert reader.take_notices() == []  # no reader ever saw part of an entry
+    assert sorted(os.listdir(tmp_path)) == ["shared" * 7 + ".npz"]  # no temporary left

@@ -215,7 +215,7 @@ def test_a_camera_with_no_measured_pixel_reports_null_and_why():
     middle = rep["cameras"][1]
     assert rep["version"] == 2 and middle["pixels"] == 0
     assert middle["preserved_px"] == {"p50": None, "p95": None, "max": None}
-    assert middle["reason"] == "its mask is empty: it only bends rays"
+    assert middle["unmeasured"] == "its mask is empty: no preserved pixel to measure"
     assert rep["newton_lost"] == 0 and rep["unfinished"] == 0
     assert headline(rep).startswith("IMAGE_BLEND: p95 error 0.00 px")
-    assert "'C2': not measured (its mask is empty: it only bends rays)" in readable(rep)
+    assert "'C2': not measured: its mask is empty: no preserved pixel to measure" in readable(rep)

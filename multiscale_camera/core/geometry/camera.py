@@ -10,6 +10,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..errors import RigError
+
 SENSOR_FITS = ("AUTO", "HORIZONTAL", "VERTICAL")
 
 
@@ -56,6 +58,9 @@ class PinholeCamera:
 
     def __post_init__(self):
         m = np.array(self.matrix_world, dtype=np.float64)
+        problem = pose_problem(self.name, m, self)
+        if problem is not None:
+            raise RigError(problem)
         rot = m[:3, :3] / np.linalg.norm(m[:3, :3], axis=0, keepdims=True)
         for name, value in (
             ("matrix_world", m),
@@ -185,3 +190,66 @@ def pixel_centres(width, height):
     px, py : (height, width) float64 arrays, top-left origin, centres at +0.5.
     """
     return np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
+
+
+# Relative tolerance of the checks of a camera's transform (``pose_problem``).
+POSE_TOL = 1e-6
+# Where the fix is made, said in every message of ``pose_problem``.
+TRANSFORM_FIX = "Object Properties > Transform (and its parents' transforms)"
+
+
+def pose_problem(name, matrix_world, optics):
+    """Why camera ``name`` cannot give rays, or None: its (4, 4) camera-to-world
+    ``matrix_world`` is not finite, squashes an axis to nothing (a zero scale), mirrors
+    (a negative scale: the image would be flipped) or shears (a non-uniform scale of a
+    rotated parent), or one of the lens figures of ``optics`` (an object with ``lens``,
+    ``sensor_width``, ``sensor_height``, ``clip_start``, ``clip_end``) is not a positive
+    finite number with clip_start < clip_end. Scale is otherwise ignored, as Blender's
+    cameras ignore it."""
+    m = np.asarray(matrix_world, dtype=np.float64)
+    if not np.isfinite(m).all():
+        return (
+            f"Camera '{name}' has a location, rotation or scale that is not a number "
+            f"(NaN or infinite): set its transform again in {TRANSFORM_FIX}"
+        )
+    axes = m[:3, :3]
+    scale = np.linalg.norm(axes, axis=0)
+    size = max(float(np.abs(m[:3, 3]).max()), 1.0)
+    if scale.min() <= POSE_TOL * max(float(scale.max()), 1e-300) or scale.max() < 1e-12 * size:
+        return (
+            f"Camera '{name}' has a scale of zero on an axis (world scale "
+            f"{_triple(scale)}): give it a non-zero scale, 1 is best, in {TRANSFORM_FIX}"
+        )
+    unit = axes / scale
+    if np.linalg.det(unit) < 0:
+        return (
+            f"Camera '{name}' is mirrored (a negative scale, its own or a parent's): its "
+            f"image would be flipped; make every scale positive in {TRANSFORM_FIX}"
+        )
+    if np.abs(unit.T @ unit - np.eye(3)).max() > 1e-4:
+        return (
+            f"Camera '{name}' is sheared (a parent scaled unevenly and rotated): use a "
+            f"uniform scale on its parents, or unparent it keeping its transform, in "
+            f"{TRANSFORM_FIX}"
+        )
+    figures = {k: float(getattr(optics, k)) for k in LENS_FIGURES}
+    bad = [k for k, v in figures.items() if not (np.isfinite(v) and v > 0)]
+    if bad:
+        return (
+            f"Camera '{name}' has {', '.join(bad)} that is not a positive number: set it "
+            "in Camera Properties > Lens and Camera"
+        )
+    if figures["clip_end"] <= figures["clip_start"]:
+        return (
+            f"Camera '{name}' has Clip End ({figures['clip_end']:g}) not beyond Clip Start "
+            f"({figures['clip_start']:g}): raise Clip End in Camera Properties > Lens"
+        )
+    return None
+
+
+# The lens figures ``pose_problem`` checks.
+LENS_FIGURES = ("lens", "sensor_width", "sensor_height", "clip_start", "clip_end")
+
+
+def _triple(v):
+    return "(" + ", ".join(f"{x:.3g}" for x in v) + ")"

@@ -68,7 +68,7 @@ class TracedField(RayField):
         # past the last traced vertex every ray runs straight: one more vertex holds it
         k = min(
             self.traced.vertices.shape[1],
-            max(int(self.traced.counts[r].max()) for r, _w in corners) + 1,
+            max(int(self.traced.counts[r].max(initial=0)) for r, _w in corners) + 1,
         )
         k = max(k, 2)
         verts = mem = None

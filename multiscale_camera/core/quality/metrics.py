@@ -168,18 +168,25 @@ class Preserved:
     angle_deg: np.ndarray
 
     def summary(self):
-        """{"p50", "p95", "max"} of the error and of the angle (NaN counts as inf); each
-        None when no pixel was measured."""
+        """{"p50", "p95", "max"} of the error and of the angle. A ray without a finite
+        figure (one that never crosses the near plane) counts as infinitely wrong; a
+        percentile that lands on such rays, or one of no rays, is None (strict JSON has
+        no NaN or Infinity: ``unmeasured`` says why)."""
 
         def stats(a):
-            if len(a) == 0:
-                return {"p50": None, "p95": None, "max": None}
             a = np.where(np.isfinite(a), a, np.inf)
-            return {
-                k: float(np.percentile(a, q)) for k, q in (("p50", 50), ("p95", 95), ("max", 100))
-            }
+            out = {}
+            for k, q in (("p50", 50), ("p95", 95), ("max", 100)):
+                with np.errstate(invalid="ignore"):  # inf - inf between two infinite rays
+                    v = float(np.percentile(a, q)) if len(a) else np.inf
+                out[k] = v if np.isfinite(v) else None
+            return out
 
         return stats(self.error_px), stats(self.angle_deg)
+
+    def unmeasured(self):
+        """Rays of the measure without a finite error: int."""
+        return int(np.count_nonzero(~np.isfinite(self.error_px)))
 
 
 def preserved_error(cameras, i, bundle):

@@ -62,18 +62,47 @@ def measure(fld):
     cameras = []
     for i, cam in enumerate(rig.cameras):
         ix, iy = measured_pixels(rig.masks[i])
+        if len(ix) == 0:  # nothing to measure: said, and the build goes on
+            cameras.append(unmeasured_camera(cam.name, no_pixels_reason(rig.masks[i])))
+            continue
         pres = preserved_error(rig.cameras, i, fld.rays(ix, iy))
         err, angle = pres.summary()
         entry = {"name": cam.name, "pixels": pres.pixels, "preserved_px": err, "angle_deg": angle}
-        if not pres.pixels:
-            entry["reason"] = (
-                f"no pixel of its mask is left after eroding it by {ERODE_PX} px"
-                if rig.masks[i].any()
-                else "its mask is empty: it only bends rays"
-            )
+        missed = pres.unmeasured()
+        if missed:
+            entry["unmeasured"] = NEVER_CROSS.format(missed=missed, pixels=pres.pixels)
         cameras.append(entry)
     folds, _stride = fold_map(fld)
     return cameras, int(folds.sum())
+
+
+# Why a camera's figures are null (schema key "unmeasured" of a camera).
+EMPTY_MASK = "its mask is empty: no preserved pixel to measure"
+THIN_MASK = (
+    "its mask keeps no pixel once eroded by {px} px for measuring (too small or too thin "
+    "at this render size); its pixels render, unmeasured"
+)
+NEVER_CROSS = (
+    "{missed} of {pixels} measured rays never cross the camera's near plane (cameras out "
+    "of order, largest scale first, or a near plane inside other geometry?)"
+)
+NULL_FIGURES = {"p50": None, "p95": None, "max": None}
+
+
+def no_pixels_reason(mask):
+    """Why a camera's (H, W) bool ``mask`` gives no pixel to measure."""
+    return EMPTY_MASK if not mask.any() else THIN_MASK.format(px=ERODE_PX)
+
+
+def unmeasured_camera(name, reason):
+    """The "cameras" entry of a camera with nothing measured: null figures, a reason."""
+    return {
+        "name": name,
+        "pixels": 0,
+        "preserved_px": dict(NULL_FIGURES),
+        "angle_deg": dict(NULL_FIGURES),
+        "unmeasured": reason,
+    }
 
 
 def build_report(fld, quality, total_seconds=None):
@@ -116,25 +145,34 @@ def build_report(fld, quality, total_seconds=None):
 
 def headline(report):
     """One line for the panel: worst p95 error, folds, time."""
-    worst = max(
-        (
-            c["preserved_px"]["p95"]
-            for c in report["cameras"]
-            if c["preserved_px"]["p95"] is not None
-        ),
-        default=0.0,
-    )
+    p95 = [c["preserved_px"]["p95"] for c in report["cameras"]]
+    worst = max((v for v in p95 if v is not None), default=0.0)
+    unmeasured = sum(1 for c in report["cameras"] if c.get("unmeasured"))
     return (
         f"{report['method']}: p95 error {worst:.2f} px, {report['folds']} folds, "
         f"{report['seconds']['total']:.1f} s"
+        + (f", {unmeasured} camera(s) not measured" if unmeasured else "")
     )
+
+
+def strict(value):
+    """``value`` (dicts, lists, numbers, numpy scalars) with every NaN or infinite float
+    as None: what strict JSON can hold."""
+    if isinstance(value, dict):
+        return {k: strict(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [strict(v) for v in value]
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not np.isfinite(value):
+        return None
+    return value
 
 
 def to_json(report):
-    """The report as the JSON string stored in ``scene.multiscale.report``."""
-    return json.dumps(
-        report, indent=1, default=lambda o: o.item() if isinstance(o, np.generic) else str(o)
-    )
+    """The report as the strict JSON string stored in ``scene.multiscale.report`` (no
+    NaN or Infinity: ``null``, with the camera's "unmeasured" reason)."""
+    return json.dumps(strict(report), indent=1, allow_nan=False, default=str)
 
 
 def readable(report):
@@ -143,15 +181,16 @@ def readable(report):
     lines = [headline(report), ""]
     for cam in report.get("cameras", []):
         err, ang = cam["preserved_px"], cam["angle_deg"]
-        if err["p95"] is None:
-            lines.append(f"'{cam['name']}': not measured ({cam.get('reason', 'no pixel')})")
+        if cam.get("unmeasured") and err["p95"] is None:
+            lines.append(f"'{cam['name']}': not measured: {cam['unmeasured']}")
             continue
-        surface = cam.get("surface_px", {}).get("p95")
+        surface = (cam.get("surface_px") or {}).get("p95")
         lines.append(
             f"'{cam['name']}': {cam['pixels']} preserved pixels measured; error along the "
-            f"ray p50 {err['p50']:.2f}, p95 {err['p95']:.2f}, max {err['max']:.2f} px; angle "
-            f"p95 {ang['p95']:.2f} deg"
+            f"ray p50 {_figure(err['p50'])}, p95 {_figure(err['p95'])}, max "
+            f"{_figure(err['max'])} px; angle p95 {_figure(ang['p95'])} deg"
             + (f"; at the visible surface p95 {surface:.2f} px" if surface is not None else "")
+            + (f" ({cam['unmeasured']})" if cam.get("unmeasured") else "")
         )
     s = report.get("seconds", {})
     lines.append("")
@@ -180,3 +219,8 @@ def readable(report):
         lines.append("Warnings:")
         lines += [f"- {w}" for w in warnings]
     return lines
+
+
+def _figure(value):
+    """A report figure for people: two decimals, or "none" for a null one."""
+    return "none" if value is None else f"{value:.2f}"
