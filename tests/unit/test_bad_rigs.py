@@ -87,11 +87,20 @@ def test_uniformly_scaled_camera_gives_the_rays_of_the_unscaled_one():
         ("lens", 0.0, "Camera 'Cam' has lens that is not a positive number"),
         ("clip_start", float("nan"), "Camera 'Cam' has clip_start that is not a positive"),
         ("clip_end", 0.5, "Camera 'Cam' has Clip End (0.5) not beyond Clip Start (1)"),
+        ("clip_end", float("nan"), "Camera 'Cam' has clip_end that is not a positive"),
+        ("clip_start", float("inf"), "Camera 'Cam' has clip_start that is not a positive"),
     ],
 )
 def test_camera_with_impossible_lens_figures_is_refused(field, value, message):
     with pytest.raises(RigError, match=message.replace("(", r"\(").replace(")", r"\)")):
         posed(look_at((0, -10, 5), (0, 0, 0)), **{field: value})
+
+
+def test_unbounded_clip_end_is_a_camera_that_sees_forever():
+    """clip_end = inf is the core's unbounded camera (its measures run 1000 near-plane
+    distances out), not an impossible lens figure."""
+    cam = posed(look_at((0, -10, 5), (0, 0, 0)), clip_end=float("inf"))
+    assert cam.clip_end == float("inf")
 
 
 def three_with_middle(mask):

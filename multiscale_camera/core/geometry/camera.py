@@ -204,8 +204,9 @@ def pose_problem(name, matrix_world, optics):
     (a negative scale: the image would be flipped) or shears (a non-uniform scale of a
     rotated parent), or one of the lens figures of ``optics`` (an object with ``lens``,
     ``sensor_width``, ``sensor_height``, ``clip_start``, ``clip_end``) is not a positive
-    finite number with clip_start < clip_end. Scale is otherwise ignored, as Blender's
-    cameras ignore it."""
+    finite number with clip_start < clip_end (``clip_end`` may be +inf: a camera whose
+    view is unbounded, as the core's measures allow). Scale is otherwise ignored, as
+    Blender's cameras ignore it."""
     m = np.asarray(matrix_world, dtype=np.float64)
     if not np.isfinite(m).all():
         return (
@@ -233,7 +234,12 @@ def pose_problem(name, matrix_world, optics):
             f"{TRANSFORM_FIX}"
         )
     figures = {k: float(getattr(optics, k)) for k in LENS_FIGURES}
-    bad = [k for k, v in figures.items() if not (np.isfinite(v) and v > 0)]
+    unbounded = figures["clip_end"] == np.inf
+    bad = [
+        k
+        for k, v in figures.items()
+        if not ((np.isfinite(v) or (k == "clip_end" and unbounded)) and v > 0)
+    ]
     if bad:
         return (
             f"Camera '{name}' has {', '.join(bad)} that is not a positive number: set it "
