@@ -14,12 +14,12 @@ import blf
 import bpy
 import gpu
 import numpy as np
-from gpu_extras.batch import batch_for_shader
 
 from ..adapters.masks import mask_from_image
 from ..render.guide import guide_size
 from .mask_ops import guide_key, guide_state, make_guide
 from .mask_shapes import overlay_rgba
+from .preview import draw_texture
 from .preview_lines import PALETTE
 
 # The overlay is computed at most this wide (then stretched over the mask), and again
@@ -172,7 +172,7 @@ class MaskOverlay:
             return
         x0, y0 = region.view2d.view_to_region(0.0, 0.0, clip=False)
         x1, y1 = region.view2d.view_to_region(1.0, 1.0, clip=False)
-        _draw_texture(self.texture, (x0, y0, x1, y1))
+        draw_texture(self.texture, (x0, y0, x1, y1))
         blf.size(0, 13)
         for k, text in enumerate(self.messages):  # top left, under the header
             blf.position(0, 12, region.height - 30 - 18 * k, 0)
@@ -190,26 +190,6 @@ def _texture(rgba):
     except TypeError:  # a Blender whose Buffer takes sequences only
         buf = gpu.types.Buffer("FLOAT", flat.size, flat.tolist())
     return gpu.types.GPUTexture((w, h), format="RGBA16F", data=buf)
-
-
-def _draw_texture(texture, rect):
-    if texture is None:
-        return
-    x0, y0, x1, y1 = rect
-    shader = gpu.shader.from_builtin("IMAGE")
-    batch = batch_for_shader(
-        shader,
-        "TRI_FAN",
-        {
-            "pos": ((x0, y0), (x1, y0), (x1, y1), (x0, y1)),
-            "texCoord": ((0, 0), (1, 0), (1, 1), (0, 1)),
-        },
-    )
-    gpu.state.blend_set("ALPHA")
-    shader.bind()
-    shader.uniform_sampler("image", texture)
-    batch.draw(shader)
-    gpu.state.blend_set("NONE")
 
 
 class MULTISCALE_PT_image_masks(bpy.types.Panel):

@@ -206,8 +206,17 @@ def _draw_image_guide():
         return
     x0, y0 = region.view2d.view_to_region(0.0, 0.0, clip=False)
     x1, y1 = region.view2d.view_to_region(1.0, 1.0, clip=False)
-    texture = gpu.texture.from_image(guide)
-    name = "IMAGE_COLOR" if _has_shader("IMAGE_COLOR") else "IMAGE"
+    draw_texture(gpu.texture.from_image(guide), (x0, y0, x1, y1), scene.multiscale.guide_opacity)
+
+
+def draw_texture(texture, rect, opacity=None):
+    """Draw ``texture`` (GPUTexture) over the region rectangle ``rect`` (x0, y0, x1, y1,
+    region pixels), alpha-blended; at ``opacity`` (0..1) where Blender has the
+    IMAGE_COLOR shader, else (or with None) as it is."""
+    if texture is None:
+        return
+    x0, y0, x1, y1 = rect
+    name = "IMAGE_COLOR" if opacity is not None and _has_shader("IMAGE_COLOR") else "IMAGE"
     shader = gpu.shader.from_builtin(name)
     batch = batch_for_shader(
         shader,
@@ -220,7 +229,7 @@ def _draw_image_guide():
     gpu.state.blend_set("ALPHA")
     shader.bind()
     if name == "IMAGE_COLOR":
-        shader.uniform_float("color", (1.0, 1.0, 1.0, scene.multiscale.guide_opacity))
+        shader.uniform_float("color", (1.0, 1.0, 1.0, opacity))
     shader.uniform_sampler("image", texture)
     batch.draw(shader)
     gpu.state.blend_set("NONE")
