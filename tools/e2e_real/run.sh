@@ -7,7 +7,8 @@
 #      4.3 cannot open files saved by Blender 5, so it builds its own demo.blend first.
 #   2. Blender 5.2 in a real window (Xvfb): the sidebar with three cameras, a render, the
 #      viewport's Rendered shading, a mask made and painted over its guide
-#      (tools/e2e_real/gui_steps.py); screenshots -> docs/images/ (SHOTS=... to change).
+#      (tools/e2e_real/gui_steps.py), then the mask tools (tools/e2e_real/mask_steps.py);
+#      screenshots -> docs/images/ (SHOTS=... to change).
 #
 # Needs root and the realblender chroots (made by its setup.sh when missing: ~90 s each).
 # RB_SUITES="sid" to skip 4.3 (RB_SUITES=none: only the window run); E2E_GUI=0 to skip
@@ -44,6 +45,7 @@ done
 
 if [ "${E2E_GUI:-1}" = 1 ]; then
   export RB_SUITE=sid RB_HOME=$OUT/home-sid RB_DISPLAY=${RB_DISPLAY:-:99}
+  GUI_DISPLAY=$RB_DISPLAY  # the mask tools below use the same display
   mkdir -p "$SHOTS"
   # the newest zip, into the 5.2 user folder (its field cache stays)
   "$RB/run.sh" --command extension install-file -r user_default -e "$ZIP" | tail -1
@@ -73,6 +75,22 @@ print("steps:", ", ".join(steps))
 painted = [s for s in log["steps"] if s["step"] == "mask painted"]
 ok = steps[-1] == "done" and painted and painted[0]["white_pixels"] > 0
 sys.exit(0 if ok else 1)
+PY
+  # the mask tools in the same window: the guide under any mask, Mask from Selected, a
+  # dragged soft shape, the overlay, the guide remade after the camera turns, New Mask
+  # asking first (tools/e2e_real/mask_steps.py; screenshots mask_*.png)
+  echo "== sid: the mask tools in a window, screenshots in $SHOTS"
+  export RB_DISPLAY=$GUI_DISPLAY
+  RB_ENV="SHOT_DIR=$SHOTS E2E_LOG=$OUT/mask-log.json" \
+    "$RB/run.sh" "$REPO/sample_blends/demo.blend" --python "$REPO/tools/e2e_real/mask_steps.py" \
+    > "$OUT/mask.log" 2>&1 || true
+  "$RB/run.sh" --stop-xvfb
+  unset RB_DISPLAY
+  python3 - "$OUT/mask-log.json" <<'PY'
+import json, sys
+steps = [s["step"] for s in json.load(open(sys.argv[1]))["steps"]]
+print("mask steps:", ", ".join(steps))
+sys.exit(0 if steps and steps[-1] == "done" and "failed" not in steps else 1)
 PY
 fi
 if [ "${E2E_CLI:-1}" = 1 ]; then
