@@ -19,7 +19,7 @@ from .checks import geometry_cast
 from .fields import SERVICE, WORKERS_GIVEN_UP
 from .raycast import march
 from .shade import shade
-from .surface import surface_messages
+from .surface import surface_errors, surface_messages, with_surface
 from .volume import FrameVolumes, composite_volumes, prepare_volumes
 
 PASSES = (
@@ -156,11 +156,16 @@ def prepare_frame(depsgraph, diag=None, report=False):
         said = []
         world = scene_world(scene, said)
         diag.extend(said)
+        published = result.report
         if result.built:  # geometry in the bending stretch hides a camera's view: say so once
             diag.extend(obstruction_messages(rig, geometry_cast(geometry, tree)))
-            # and preserved pixels that show the surface away from their camera's view
+            # and preserved pixels that show the surface away from their camera's view,
+            # measured once: for the warning and for the report this build publishes
+            errors = surface_errors(ray_field, tree, diag.should_stop)
             target = request.settings.accuracy_px
-            diag.extend(surface_messages(ray_field, tree, target, diag.should_stop))
+            diag.extend(surface_messages(rig.cameras, errors, target))
+            if published is not None:
+                published = with_surface(published, errors)
     settings = scene.multiscale
     tol = getattr(settings, "simplify_px", DEFAULT_TOLERANCE_PX)
     processes = processes_of(scene)
@@ -185,7 +190,7 @@ def prepare_frame(depsgraph, diag=None, report=False):
         processes=processes,
         volumes=volumes,
         occupancy=occupancy,
-        report=result.report,
+        report=published,
     )
 
 

@@ -42,28 +42,30 @@ def surface_errors(fld, tree, should_stop=None):
     return out
 
 
-def with_surface(report, fld, depsgraph, should_stop=None):
-    """A copy of the build ``report`` whose camera entries also hold the preserved
-    error at the visible surface of the evaluated scene (``surface_errors``)."""
-    _geometry, tree = scene_tree(depsgraph)
-    cameras = [
-        dict(entry, **extra)
-        for entry, extra in zip(report["cameras"], surface_errors(fld, tree, should_stop))
-    ]
+def with_surface(report, errors):
+    """A copy of the build ``report`` whose camera entries also hold the preserved error
+    at the visible surface (``errors``, from ``surface_errors``)."""
+    cameras = [dict(entry, **extra) for entry, extra in zip(report["cameras"], errors)]
     return dict(report, cameras=cameras)
 
 
-def surface_messages(fld, tree, target_px, should_stop=None):
+def scene_surface_errors(fld, depsgraph, should_stop=None):
+    """``surface_errors`` of ``fld`` against the evaluated scene of ``depsgraph``."""
+    _geometry, tree = scene_tree(depsgraph)
+    return surface_errors(fld, tree, should_stop)
+
+
+def surface_messages(cameras, errors, target_px):
     """Warnings for the cameras whose preserved pixels show the scene's surface farther
-    than ``target_px`` (their p95, ``surface_errors``) from where the camera itself shows
-    it: what a render says once per built field.
+    than ``target_px`` (their p95 in ``errors``, from ``surface_errors``) from where the
+    camera itself shows it: what a render says once per built field.
 
     Returns
     -------
     list of str, one per such camera.
     """
     out = []
-    for cam, got in zip(fld.rig.cameras, surface_errors(fld, tree, should_stop)):
+    for cam, got in zip(cameras, errors):
         p95 = got["surface_px"]["p95"]
         if p95 is not None and p95 > target_px:
             out.append(

@@ -16,7 +16,7 @@ from ..render.checks import validate_scene
 from ..render.export import export_rays
 from ..render.failures import failure_message
 from ..render.fields import SERVICE, publish_report
-from ..render.surface import with_surface
+from ..render.surface import scene_surface_errors, with_surface
 from ..render.volume import prepare_volumes
 from .context import evaluated_scene, settings_of
 
@@ -157,7 +157,8 @@ class MULTISCALE_OT_compute_field(bpy.types.Operator):
 
     def _finish(self, context, result, diag):
         # the rays' first hits in this scene: what the picture shows (docs/report.md)
-        report = with_surface(result.report, result.field, context.evaluated_depsgraph_get())
+        errors = scene_surface_errors(result.field, context.evaluated_depsgraph_get())
+        report = with_surface(result.report, errors)
         publish_report(context.scene, report)
         for message in diag.since(self._checked):
             self.report({"WARNING"}, message.text)

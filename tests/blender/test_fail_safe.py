@@ -225,6 +225,10 @@ def test_f12_writes_strict_json_report_and_a_failed_build_clears_it(scene, tmp_p
         "C2",
     ]
     assert report["cached"] is False
+    # the build measured the visible surface for its warning: the report keeps it too
+    # (IMAGE_BLEND's preserved rays are exact, so the hits land on their pixels)
+    assert all(c["surface_pixels"] > 0 for c in report["cameras"])
+    assert all(c["surface_px"]["p95"] < 0.01 for c in report["cameras"])
     scene.objects["C2"].scale = (0, 0, 0)
     failed_render()
     assert scene.multiscale.report == ""

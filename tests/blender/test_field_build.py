@@ -90,7 +90,7 @@ def test_compute_field_says_when_its_workers_were_given_up(empty_scene, monkeypa
 
 
 def test_a_render_says_which_cameras_show_the_surface_off_their_view(empty_scene):
-    from multiscale_camera.render.surface import surface_messages
+    from multiscale_camera.render.surface import surface_errors, surface_messages
 
     scene = empty_scene
     two_camera_scene(scene)
@@ -100,6 +100,7 @@ def test_a_render_says_which_cameras_show_the_surface_off_their_view(empty_scene
     # IMAGE_BLEND's preserved rays are exact: nothing to say at the 0.5 px target
     assert not [n for n in frame.notices if "preserved pixels show the surface" in n]
     # at a target below float32 rounding both cameras are named, with their figures
-    said = surface_messages(frame.field, frame.tree, 1e-12)
+    errors = surface_errors(frame.field, frame.tree)
+    said = surface_messages(frame.field.rig.cameras, errors, 1e-12)
     assert [m.split(":")[0] for m in said] == ["Camera 'C1'", "Camera 'C2'"]
     assert all("over the 1e-12 px target of the quality" in m for m in said)
