@@ -65,28 +65,25 @@ def guides_due(scene, images, failed=None):
     return due
 
 
-# Camera name -> the guide_key whose guide could not be made (not tried again).
-_FAILED = {}
-
-
 def _guide_timer():
     """Timer: remake the missing or stale guides of masks shown in Image Editors."""
     context = bpy.context
     scene = context.scene
     wm = context.window_manager
-    if scene is None or not hasattr(scene, "multiscale") or wm is None:
+    if OVERLAY is None or scene is None or not hasattr(scene, "multiscale") or wm is None:
         return GUIDE_CHECK_SECONDS
     if not scene.multiscale.auto_guide or bpy.app.is_job_running("RENDER"):
         return GUIDE_CHECK_SECONDS
     for window in wm.windows:
         areas = [a for a in window.screen.areas if a.type == "IMAGE_EDITOR"]
         images = [a.spaces.active.image for a in areas]
-        for item in guides_due(scene, [i for i in images if i is not None], _FAILED):
+        failed = OVERLAY.failed_guides
+        for item in guides_due(scene, [i for i in images if i is not None], failed):
             try:
                 with context.temp_override(window=window):
                     make_guide(bpy.context, item)
             except Exception as err:  # say it once, in the console and the panel's state
-                _FAILED[item.camera.name] = guide_key(item.camera, scene)
+                failed[item.camera.name] = guide_key(item.camera, scene)
                 print(f"Multiscale: no guide for '{item.camera.name}' ({err})")
             for area in areas:
                 area.tag_redraw()
@@ -112,6 +109,8 @@ class MaskOverlay:
         self.texture = None
         self.messages = []
         self.cache = {}  # list index -> (key, time read, bool mask)
+        # camera name -> the guide_key whose guide could not be made (not tried again)
+        self.failed_guides = {}
 
     def start(self):
         if not bpy.app.background and self.handler is None:
