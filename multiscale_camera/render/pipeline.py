@@ -17,6 +17,7 @@ from ..core.runtime import gave_up, runtime, worker_count
 from ..core.sampling import DEFAULT_TOLERANCE_PX, Occupancy, RaySampler, sample_offsets
 from .checks import geometry_cast
 from .fields import SERVICE, WORKERS_GIVEN_UP
+from .memory import guard_memory
 from .raycast import march
 from .shade import shade
 from .surface import surface_errors, surface_messages, with_surface
@@ -125,7 +126,9 @@ def prepare_frame(depsgraph, diag=None, report=False):
 
     Raises
     ------
-    RigError, SolverDidNotConverge: the rig cannot be rendered (the message says why).
+    RigError, SolverDidNotConverge: the rig cannot be rendered (the message says why);
+    ``memory.MemoryBudgetError`` (a RigError) before the build when the build or the
+    render would need more memory than the scene's budget.
     Cancelled: ``diag`` said so.
     """
     diag = diag if diag is not None else Diagnostics()
@@ -134,6 +137,7 @@ def prepare_frame(depsgraph, diag=None, report=False):
     volumes, volume_notices = prepare_volumes(depsgraph)
     with diag.stage("field"), runtime().journal() as runs:  # what the field's workers did
         request = SERVICE.request(scene, depsgraph=depsgraph)
+        guard_memory(scene, request, render=True)  # before anything large is allocated
         result = SERVICE.get(request, diag, measure=report)
     if not result.built:  # said as "field (cached)" in the timings
         diag.seconds["field (cached)"] = diag.seconds.pop("field")

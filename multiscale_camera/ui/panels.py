@@ -255,6 +255,7 @@ class MULTISCALE_PT_preview(bpy.types.Panel):
         row.prop(settings, "cache_limit_mb", text="Cache (MB)")
         row.operator("multiscale.cache_clear", icon="TRASH")
         layout.prop(settings, "cache_folder", text="Folder")
+        layout.prop(settings, "memory_budget_mb", text="Memory Budget (MB, 0: free memory)")
 
 
 CLASSES = (

@@ -174,6 +174,15 @@ class MultiscaleSettings(bpy.types.PropertyGroup):
         max=1 << 20,
         description="Size limit of the field cache on disk, megabytes (oldest fields go first)",
     )
+    memory_budget_mb: IntProperty(
+        name="Memory Budget",
+        default=0,
+        min=0,
+        max=1 << 24,
+        description="Most memory, in megabytes, that a field build or a render may take "
+        "(Blender's process and its workers together); larger work is refused before it "
+        "starts, saying what to lower. 0: what the machine has free, less a margin",
+    )
     guide_opacity: FloatProperty(
         name="Guide Opacity",
         default=0.5,
