@@ -84,6 +84,19 @@ def test_scalar_field_peak_is_its_largest_stage_and_the_workers_shares():
     )
 
 
+def test_nested_levels_are_filled_in_the_workers_and_solved_one_at_a_time():
+    kw = dict(traced_rays=600, vertices=20, workers=2)
+    uniform = build_memory("SCALAR_FIELD", 64, 48, 2, voxels=3 * 10**6, **kw)
+    nested = build_memory("SCALAR_FIELD", 64, 48, 2, voxels=3 * 10**6, level_voxels=10**6, **kw)
+    assert uniform.main == 3 * 10**6 * mem.SOLVE_BYTES_PER_CELL
+    assert nested.main == 10**6 * mem.SOLVE_BYTES_PER_CELL  # the largest level's solve
+    fill = mem.FILL_CHUNK_BYTES + 10**6 * (
+        mem.FILL_BYTES_PER_VOXEL + 2 * mem.FILL_BYTES_PER_CAMERA_VOXEL
+    )
+    assert nested.workers == 2
+    assert nested.parts["workers: grid fill"] == 2 * fill
+
+
 def test_a_small_trace_stays_in_the_main_process():
     est = build_memory(
         "SCALAR_FIELD", 64, 48, 2, voxels=1000, traced_rays=300, vertices=20, workers=2

@@ -77,11 +77,14 @@ WEIGHT_BYTES_PER_CAMERA_PIXEL = 8
 # Traced rays over the image's pixels, beyond the base lattice: the lattice splits
 # cells down to single pixels along every preserved region's edge (a band of about
 # this many pixels for each edge pixel), and refines elsewhere as the accuracy target
-# asks: a fraction of the pixels, TRACED_FRACTION at 0.5 px on a 480-pixel-wide image,
-# growing as the target tightens and falling as the image widens (the exponents below).
+# and the transitions ask: a fraction of the pixels, TRACED_FRACTION at 0.5 px on a
+# 480-pixel-wide image of a rig whose scales differ tenfold, growing as the target
+# tightens and as (1 + log10 of the scale ratio) squared (deeper zooms bend faster),
+# falling as the image widens (the exponents below).
 EDGE_BAND_PIXELS = 3.0
-TRACED_FRACTION = 0.2
-TRACED_ACCURACY_EXPONENT = 2.2
+TRACED_FRACTION = 0.065 * 4
+TRACED_ACCURACY_EXPONENT = 2.0
+TRACED_RATIO_EXPONENT = 2.0
 TRACED_WIDTH_EXPONENT = 0.6
 # The longest traced ray over the trace's step limit.
 VERTICES_OF_LIMIT = 0.35
@@ -142,14 +145,25 @@ def traced_workers(rays, workers):
 
 
 def build_memory(
-    method, width, height, cameras, voxels=0, traced_rays=0, vertices=0, max_vertices=0, workers=1
+    method,
+    width,
+    height,
+    cameras,
+    voxels=0,
+    traced_rays=0,
+    vertices=0,
+    max_vertices=0,
+    workers=1,
+    level_voxels=0,
 ):
     """Peak memory of building a field, from shapes.
 
     The main process's peak is that of its largest stage: the fill (eq. 4), the solve
     (eq. 5), or the trace on the lattice (the kept grid, the lattice's arrays, the traced
     rays twice, the error estimate's block, a share received from a worker); each
-    worker's, its interpreter, the grid it samples and its share of rays.
+    worker's, its interpreter, the grid it samples and its share of rays. On nested
+    grids (``level_voxels``) the levels are filled in the workers and solved one at a
+    time: the fill is a worker's stage, the solve the largest level's.
 
     Parameters
     ----------
@@ -161,6 +175,7 @@ def build_memory(
         kept ray holds). max_vertices : int, the trace's step limit plus one (what a
         worker lays preserved rays out on); ``vertices`` when 0.
     workers : int, worker processes available (1: none).
+    level_voxels : int, the largest nested level's voxels (0: one uniform grid).
 
     Returns
     -------
@@ -189,13 +204,14 @@ def build_memory(
     n = traced_workers(rays, workers)
     largest = int(np.ceil(LARGEST_ROUND * rays))
     share = min(MAX_RAYS_PER_SHARE, -(-largest // n)) if n else largest
+    level = int(level_voxels) or voxels
+    per_voxel = (FILL_BYTES_PER_VOXEL + cameras * FILL_BYTES_PER_CAMERA_VOXEL) * grid_factor
+    fill = {"grid fill": FILL_CHUNK_BYTES + level * per_voxel}
+    fills_in_workers = bool(level_voxels) and workers > 1
     stages = [
         image if method == "AUTO" else {},
-        {
-            "grid fill": FILL_CHUNK_BYTES
-            + voxels * (FILL_BYTES_PER_VOXEL + cameras * FILL_BYTES_PER_CAMERA_VOXEL) * grid_factor
-        },
-        {"grid solve": voxels * SOLVE_BYTES_PER_CELL * grid_factor},
+        {} if fills_in_workers else fill,
+        {"grid solve": level * SOLVE_BYTES_PER_CELL * grid_factor},
         {
             "grid": voxels * KEPT_BYTES_PER_VOXEL * grid_factor,
             "lattice": pixels * (LATTICE_BYTES_PER_PIXEL + cameras * CELL_TABLE_BYTES_PER_PIXEL),
@@ -212,12 +228,16 @@ def build_memory(
     ]
     main = max(stages, key=lambda parts: sum(parts.values()))
     worker = {}
-    if n:
+    if n or fills_in_workers:
+        work = {"share of rays": share * max_vertices * WORKER_BYTES_PER_VERTEX} if n else {}
+        if fills_in_workers and sum(fill.values()) > sum(work.values()):
+            work = fill
         worker = {
             "interpreter": WORKER_BASE_BYTES,
             "grid": voxels * WORKER_BYTES_PER_VOXEL * grid_factor,
-            "share of rays": share * max_vertices * WORKER_BYTES_PER_VERTEX,
+            **work,
         }
+        n = n or max(2, int(workers))
     return _estimate(main, worker, n, shapes)
 
 
@@ -276,15 +296,18 @@ def edge_pixels(masks):
     return int(edge.sum()) * s
 
 
-def traced_rays_of(width, height, stride, edges, accuracy_px):
+def traced_rays_of(width, height, stride, edges, accuracy_px, ratio=10.0):
     """int, an estimate of the rays the adaptive lattice traces: the base lattice at
     ``stride``, a band around the ``edges`` pixels of preserved regions' edges, and the
-    fraction of every pixel the accuracy target refines to (``TRACED_FRACTION``); at
-    most every pixel."""
+    fraction of every pixel the accuracy target and the rig's scale ``ratio`` (the
+    first camera's near-plane width over the smallest one's) refine to
+    (``TRACED_FRACTION``); at most every pixel."""
     lattice = (-(-width // stride) + 1) * (-(-height // stride) + 1)
+    depth = (1.0 + np.log10(max(ratio, 1.0))) / 2.0  # 1 at a tenfold ratio
     fraction = (
         TRACED_FRACTION
         * (0.5 / accuracy_px) ** TRACED_ACCURACY_EXPONENT
+        * depth**TRACED_RATIO_EXPONENT
         * (480 / max(width, 1)) ** TRACED_WIDTH_EXPONENT
     )
     extra = EDGE_BAND_PIXELS * edges + min(fraction, 1.0) * width * height
@@ -319,12 +342,15 @@ def estimate_memory(rig, method, settings, workers=1):
             ).grids
         )
     voxels = sum(g.size for g in grids)
+    level = max(g.size for g in grids) if len(grids) > 1 else 0
     # the lattice's stride (``traced.lattice_stride``) and the step limit (``trace_field``)
     px = min(near_plane_width(c) / w for c in rig.cameras)
     stride = int(np.clip(grids[-1].cell / px / 2, 1, 16))
     cells = step_cells(settings.accuracy_px, w)
     steps = int(sum(np.ceil(np.linalg.norm(np.array(g.shape)) / cells * 2) for g in grids)) + 8
-    rays = traced_rays_of(w, h, stride, edge_pixels(rig.masks), settings.accuracy_px)
+    widths = [near_plane_width(c) for c in rig.cameras]
+    ratio = widths[0] / max(min(widths), 1e-30)
+    rays = traced_rays_of(w, h, stride, edge_pixels(rig.masks), settings.accuracy_px, ratio)
     return build_memory(
         method,
         w,
@@ -335,6 +361,7 @@ def estimate_memory(rig, method, settings, workers=1):
         vertices=int(np.ceil(VERTICES_OF_LIMIT * (steps + 1))),
         max_vertices=steps + 1,
         workers=workers,
+        level_voxels=level,
     )
 
 
