@@ -394,16 +394,17 @@ def budget_message(estimate, budget, budget_text, action="The field build"):
 
     Returns
     -------
-    str or None: the estimate and its largest parts, the budget and where it comes from,
-    and what to lower (by the largest part first), or None.
+    str or None: the estimate and its three largest parts, the budget and where it comes
+    from, and what to lower for those of them that weigh at least a quarter of the
+    largest (the largest first), or None.
     """
     if estimate.total <= budget:
         return None
     parts = list(estimate.parts.items())[:3]
     said = ", ".join(f"{name} {size_text(count)}" for name, count in parts)
     advice = []
-    for name, _count in parts:
-        if _lower(name) not in advice:
+    for name, count in parts:  # what to lower for the parts that weigh (a quarter or more)
+        if count >= parts[0][1] / 4 and _lower(name) not in advice:
             advice.append(_lower(name))
     return (
         f"{action} would need about {size_text(estimate.total)} of memory ({said}), more "
