@@ -22,6 +22,8 @@ from dataclasses import replace
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+# bench/ itself off the path: its cycles.py would stand in for Blender's Cycles add-on
+sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != ROOT / "bench"]
 sys.path.insert(0, str(ROOT))
 OUT = ROOT / "bench" / "anim.json"
 # The frames after the first must build in at most this share of a cold build.
