@@ -139,6 +139,7 @@ def ray_gap_px(a, b):
     return float(gap.max()), float(np.percentile(gap.max(axis=1), 99))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("nested", [False, True])
 def test_a_frame_after_another_matches_it_built_cold(nested):
     """Frame 2 built after frame 1 (camera 1 and 2's claims taken, the solve started
@@ -158,6 +159,7 @@ def test_a_frame_after_another_matches_it_built_cold(nested):
     assert worst <= 0.01
 
 
+@pytest.mark.slow
 def test_a_moved_layout_builds_cold():
     """A rig that left the layout (camera 3 half a metre on) takes nothing: its grids
     are new, so neither claims nor a warm start apply."""
