@@ -161,9 +161,7 @@ def render(engine, depsgraph, frame):
         engine.update_stats("", "Multiscale: marching rays for Cycles")
         try:
             with runtime().journal() as runs:  # what the march's workers did
-                tables = ray_tables(
-                    frame, stop, progress=lambda f: engine.update_progress(0.2 * f)
-                )
+                tables = ray_tables(frame, stop, progress=lambda f: engine.update_progress(0.2 * f))
         except Cancelled:
             return report
         if gave_up(runs):

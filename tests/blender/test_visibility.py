@@ -176,9 +176,7 @@ def test_particles_count_as_the_render_shows_them_and_the_emitter_as_it_is_set(
     assert 7 in passes["IndexOB"] and 7 in tables.object_index
 
 
-def test_rig_check_and_render_count_the_same_objects_in_a_mixed_scene(
-    scene, tmp_path, monkeypatch
-):
+def test_rig_check_and_render_count_the_same_objects_in_a_mixed_scene(scene, tmp_path, monkeypatch):
     """Every case at once: the sets of objects are equal, not only the cube's fate."""
     add_mesh("cube", (-2, 1, 1), 4, (0.5, 0.5, 0.5)).hide_viewport = True
     add_mesh("cube", (2, 1, 1), 5, (0.5, 0.5, 0.5)).visible_camera = False

@@ -141,8 +141,6 @@ def test_ctrl_c_stops_the_cycles_tables_within_2_s(tmp_path, stage):
     """The tables are written in a fraction of a second: the signal comes 0.05 s into
     them, before Cycles' own stage, which hears Esc only (docs/failures.md)."""
     delay = 0.25 if stage == "ray_tables" else 0.05
-    seconds, result, output = interrupted_at(
-        stage, RENDER, tmp_path, shading="CYCLES", delay=delay
-    )
+    seconds, result, output = interrupted_at(stage, RENDER, tmp_path, shading="CYCLES", delay=delay)
     assert result == RENDER_CANCELLED, output
     assert seconds < 2.0, output
