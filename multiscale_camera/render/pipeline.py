@@ -313,9 +313,16 @@ def _cast_and_shade(frame, seg, should_stop):
 
 
 def _rgba(frame, hits, shaded):
-    """(R, 4) float32 Combined (premultiplied by alpha under film transparency)."""
+    """(R, 4) float32 Combined (premultiplied by alpha under film transparency). A hit
+    on a holdout shows transparent black, whatever the film (as Cycles' holdouts)."""
     alpha = np.where(hits.hit | (not frame.transparent), 1.0, 0.0).astype(np.float32)
     colour = shaded.colour * alpha[:, None] if frame.transparent else shaded.colour
+    holdout = getattr(frame.geometry, "holdout", None)
+    if holdout is not None and holdout.any():
+        held = hits.hit.copy()
+        held[held] = holdout[hits.triangle[held]]
+        alpha[held] = 0.0
+        colour = np.where(held[:, None], 0.0, colour)
     return np.concatenate([colour, alpha[:, None]], axis=1)
 
 
