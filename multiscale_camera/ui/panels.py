@@ -9,6 +9,7 @@ from ..adapters.cameras import pinhole_from_object
 from ..adapters.masks import animated_kind
 from ..core.quality import guard_pairs, headline
 from ..render import cycles
+from ..render.fields import SERVICE
 from . import preview
 from .mask_ops import guide_state
 from .volume import draw_transfer_function
@@ -251,6 +252,9 @@ class MULTISCALE_PT_preview(bpy.types.Panel):
         row.prop(settings, "preview_rays", text="Rays")
         if settings.show_preview and preview.note():
             layout.label(text=preview.note(), icon="INFO")
+        layout.prop(settings, "live_picture", toggle=True, icon="RENDER_RESULT")
+        if settings.live_picture and SERVICE.live is not None and SERVICE.live.status():
+            layout.label(text=SERVICE.live.status(), icon="INFO")
         row = layout.row(align=True)
         row.prop(settings, "cache_limit_mb", text="Cache (MB)")
         row.operator("multiscale.cache_clear", icon="TRASH")

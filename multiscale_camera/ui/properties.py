@@ -202,6 +202,13 @@ class MultiscaleSettings(bpy.types.PropertyGroup):
         subtype="FACTOR",
         description="Opacity of the other cameras' masks and the transition bands",
     )
+    live_picture: BoolProperty(
+        name="Live Picture",
+        default=True,
+        description="While a mask is shown in an Image Editor, remake a small PREVIEW "
+        "render of the multiscale image in the background after each stroke or camera "
+        "move (the image 'Multiscale Live', and in the editor's corner)",
+    )
     cache_folder: StringProperty(
         name="Cache Folder",
         default="",
