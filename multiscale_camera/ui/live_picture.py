@@ -267,7 +267,7 @@ class LivePicture:
             h, w = self.display.shape[:2]
             cw = region.width * CORNER_FRACTION
             ch = cw * h / w
-            x1, y0 = region.width - 12, 12
+            x1, y0 = region.width - 12 - _sidebar_over(context), 12
             draw_texture(self.texture, (x1 - cw, y0, x1, y0 + ch))
             blf.size(0, 12)
             blf.color(0, 1.0, 1.0, 1.0, 0.9)
@@ -277,9 +277,15 @@ class LivePicture:
             print(f"Multiscale: no live picture drawn ({err})")
 
 
-def live():
-    """The session's LivePicture (None while unregistered)."""
-    return SERVICE.live
+def _sidebar_over(context):
+    """Width of the editor's sidebar where it is drawn over the picture (region
+    overlap), else 0 (pixels)."""
+    if not context.preferences.system.use_region_overlap:
+        return 0
+    for region in context.area.regions:
+        if region.type == "UI" and region.width > 1:
+            return region.width
+    return 0
 
 
 def register():
