@@ -169,7 +169,16 @@ def draw_camera_settings(layout, context, item):
             col.label(text="raise Near Distance (or lower Beta)")
     layout.template_ID(item, "mask", new="multiscale.mask_new", open="image.open")
     kind = animated_kind(item.mask)
-    if kind is not None:
+    if kind is not None and item.mask.source == "SEQUENCE":
+        col = layout.column(align=True)
+        col.label(text="Mask sequence, read at each frame:", icon="SEQUENCE")
+        row = col.row(align=True)
+        row.prop(item, "mask_frames")
+        row.prop(item, "mask_frame_start")
+        row = col.row(align=True)
+        row.prop(item, "mask_frame_offset")
+        row.prop(item, "mask_cyclic", toggle=True)
+    elif kind is not None:
         col = layout.column(align=True)
         col.alert = True
         col.label(text=f"Animated mask ({kind.split(' ', 1)[1]}):", icon="ERROR")
