@@ -14,8 +14,10 @@ simplification and the render. One stroke is made and waited for first (the work
 processes start, the BVH tree is built), outside the figures. Fields are cached in a
 temporary folder.
 
-Writes JSON: seconds per stroke, median, p95 (nearest rank), the load average before
-and after, the cores, the commit.
+Writes JSON: seconds per stroke, median, p95 (nearest rank), the seconds of each
+stage (field, simplify, render), the CPU seconds of this process per stroke (with
+``--threads 1`` the whole work: no worker processes), the load average before and
+after, the cores, the commit.
 """
 
 import argparse
@@ -75,6 +77,13 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--strokes", type=int, default=20)
     ap.add_argument("--out", default=str(ROOT / "bench" / "live_picture.json"))
+    ap.add_argument(
+        "--threads",
+        type=int,
+        default=0,
+        help="Render > Performance > Threads (0: one worker per core; 1: all in this "
+        "process, so its CPU seconds are the whole work's)",
+    )
     args = ap.parse_args()
     load_before = os.getloadavg()
     multiscale_camera.register()
@@ -82,17 +91,22 @@ def main():
         bpy.ops.wm.read_homefile(use_empty=True)
         scene = bpy.context.scene
         build_demo(scene)
+        if args.threads:
+            scene.render.threads_mode, scene.render.threads = "FIXED", args.threads
         live = SERVICE.live
         mask = scene.multiscale.cameras[1].mask
         w, h = mask.size
-        seconds = []
+        seconds, cpu, stages = [], [], []
         for k in range(args.strokes + 1):
             angle = 2 * math.pi * k / (args.strokes + 1)
             r = 0.3 * min(w, h)
             stroke(mask, w / 2 + r * math.cos(angle), h / 2 + r * math.sin(angle))
+            c0 = time.process_time()
             took = wait_for_picture(live, live.updates)
             if k:  # the first starts the workers and builds the tree
                 seconds.append(round(took, 3))
+                cpu.append(round(time.process_time() - c0, 3))
+                stages.append({n: round(float(v), 3) for n, v in live.stages.items()})
         image = bpy.data.images[IMAGE_NAME]
         size = list(image.size)
     finally:
@@ -109,11 +123,16 @@ def main():
         "seconds": seconds,
         "median_s": round(float(np.median(seconds)), 3),
         "p95_s": p95,
+        "threads": args.threads,
+        "cpu_s_this_process": cpu,
+        "median_cpu_s_this_process": round(float(np.median(cpu)), 3),
+        "stages_s": stages,
         "cores": os.cpu_count(),
         "load_before": [round(x, 2) for x in load_before],
         "load_after": [round(x, 2) for x in os.getloadavg()],
         "commit": commit,
-        "command": f"nice -n 10 .venv/bin/python bench/live_picture.py --strokes {args.strokes}",
+        "command": "nice -n 10 .venv/bin/python bench/live_picture.py "
+        f"--strokes {args.strokes} --threads {args.threads}",
     }
     Path(args.out).write_text(json.dumps(result, indent=1) + "\n")
     print(json.dumps(result))

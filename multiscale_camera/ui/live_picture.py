@@ -173,8 +173,13 @@ class LivePicture:
 
     def start(self, context, key):
         """Start the job of ``key`` (main thread)."""
-        depsgraph = context.evaluated_depsgraph_get()
         try:
+            windows = getattr(context.window_manager, "windows", ())
+            if context.window is None and len(windows):  # a timer: a window's view layer
+                with context.temp_override(window=windows[0]):
+                    depsgraph = bpy.context.evaluated_depsgraph_get()
+            else:
+                depsgraph = context.evaluated_depsgraph_get()
             self.job = LiveJob.of(depsgraph.scene, depsgraph, key, self.changed).launch()
             self.message = ""
         except Exception as err:  # a rig that cannot render: said until it changes
