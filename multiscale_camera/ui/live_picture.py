@@ -272,7 +272,8 @@ class LivePicture:
             h, w = self.display.shape[:2]
             cw = region.width * CORNER_FRACTION
             ch = cw * h / w
-            x1, y0 = region.width - 12 - _sidebar_over(context), 12
+            right, bottom = _regions_over(context)
+            x1, y0 = region.width - 12 - right, 12 + bottom
             draw_texture(self.texture, (x1 - cw, y0, x1, y0 + ch))
             blf.size(0, 12)
             blf.color(0, 1.0, 1.0, 1.0, 0.9)
@@ -282,15 +283,18 @@ class LivePicture:
             print(f"Multiscale: no live picture drawn ({err})")
 
 
-def _sidebar_over(context):
-    """Width of the editor's sidebar where it is drawn over the picture (region
-    overlap), else 0 (pixels)."""
+def _regions_over(context):
+    """(right, bottom): widths of the sidebar and heights of the asset shelf (the
+    brushes in Paint mode) drawn over the editor's picture (region overlap), pixels."""
     if not context.preferences.system.use_region_overlap:
-        return 0
+        return 0, 0
+    right = bottom = 0
     for region in context.area.regions:
         if region.type == "UI" and region.width > 1:
-            return region.width
-    return 0
+            right = max(right, region.width)
+        elif region.type.startswith("ASSET_SHELF") and region.height > 1:
+            bottom += region.height
+    return right, bottom
 
 
 def register():

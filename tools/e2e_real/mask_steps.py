@@ -12,9 +12,10 @@ timers, a screenshot of the whole screen after each (ImageMagick's ``import``).
    turns back).
 5. New Mask on camera 3's painted mask asks first (mask_confirm.png), then the
    3D viewport's panel offers to put the replaced mask back (mask_restore.png).
-6. A brush stroke (the mouse dragged with its button down) on camera 2's mask in Paint
-   mode: the live picture is remade in the background and drawn in the editor's
-   corner (mask_live.png); the log gives the seconds from the stroke's end to it.
+6. Camera 3's mask put back, then a brush stroke (the mouse dragged with its button
+   down) on camera 2's mask in Paint mode: the live picture is remade in the
+   background and drawn in the editor's corner (mask_live.png); the log gives the
+   seconds from the stroke's end to it.
 
     SHOT_DIR=docs/images E2E_LOG=out/mask-log.json \\
       ../shared/tools/realblender/run.sh sample_blends/demo.blend \\
@@ -134,7 +135,14 @@ def setup():
 
 
 def live_on():
-    bpy.context.scene.multiscale.live_picture = True
+    """Camera 3's painted mask put back (New Mask left it empty), then the live picture
+    on, camera 2's mask painted."""
+    settings = bpy.context.scene.multiscale
+    settings.active_index = 2
+    with override():
+        result = bpy.ops.multiscale.mask_restore()
+    note("mask put back", result=sorted(result), mask=settings.cameras[2].mask.name)
+    settings.live_picture = True
     paint(1)
 
 
@@ -270,6 +278,8 @@ def live_ready():
     """Camera 2's mask in the Image Editor, Paint mode: wait for the first live
     picture (the one of the masks as they are) before the stroke."""
     live = live_picture()
+    if live.message:
+        raise RuntimeError(live.message)
     if live.updates == 0 or live.job is not None:
         if time.time() - T0 > 900:
             raise RuntimeError(f"no live picture ({live.message or 'timed out'})")
@@ -300,6 +310,8 @@ def brush_up():
 def live_updated():
     """The live picture after the stroke: wait for it (Blender stays responsive)."""
     live = live_picture()
+    if live.message:
+        raise RuntimeError(live.message)
     if live.updates <= state["live"] or live.job is not None:
         if time.perf_counter() - state["stroke_end"] > 600:
             raise RuntimeError(f"the stroke gave no live picture ({live.message or 'timed out'})")
