@@ -149,6 +149,10 @@ class LiveJob:
     def cancel(self) -> None:
         self._stop.set()
 
+    def stopped(self) -> bool:
+        """Whether it was asked to stop (its picture, if it made one, is not wanted)."""
+        return self._stop.is_set()
+
     def join(self, timeout=None) -> None:
         self._thread.join(timeout)
 

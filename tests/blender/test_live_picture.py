@@ -153,3 +153,18 @@ def test_the_toggle_stops_the_live_picture(scene):
         live.tick()
         assert live.job is None
     assert IMAGE_NAME not in bpy.data.images
+
+
+def test_a_new_file_forgets_the_picture_and_stops_the_job(scene):
+    live = SERVICE.live
+    tick_until(live, lambda: live.updates >= 1)
+    mask = scene.multiscale.cameras[1].mask
+    stroke(mask, 48, 36, 26)
+    tick_until(live, lambda: live.job is not None)
+    job = live.job
+    bpy.ops.wm.read_homefile(use_empty=True)
+    assert job.stopped()
+    assert live.shown_key is None and live.display is None
+    job.join(60)
+    live.tick()  # the stopped job ends without a picture
+    assert live.job is None and live.updates == 1
