@@ -7,7 +7,7 @@
 #   make demo     install the linux zip in a throwaway user folder, render demo.blend to out/
 #   make demo-anim  render sample_blends/dolly.blend at 160x90 to out/dolly.mp4 (FFmpeg)
 #   make bench    speed and accuracy: solver, every method, the renderer, the Cycles hand-off,
-#                 volume ray casting: bench/*.json
+#                 volume ray casting, the dolly's fields frame after frame: bench/*.json
 #   make lint     ruff and the import contracts (pyproject.toml, [tool.importlinter])
 #   make fuzz     the core on 500 random rigs (tests/unit/test_fuzz_core.py, profile "full");
 #                 make test runs its bounded profile
@@ -46,7 +46,7 @@ SAMPLE_SCRIPTS := $(wildcard sample_blends/*.py fixtures/*.py fixtures/blender/*
 RUN_SAMPLES := $(BLENDER) -b --factory-startup --python-exit-code 1 \
 	--python sample_blends/make_samples.py
 
-.PHONY: venv build test test-quick samples demo demo-anim bench bench-render lint clean distclean e2e-real \
+.PHONY: venv build test test-quick samples demo demo-anim bench bench-render bench-anim lint clean distclean e2e-real \
 	e2e-timing fuzz
 
 venv: $(VENV_STAMP)
@@ -118,11 +118,16 @@ demo-anim: sample_blends/dolly.blend
 # Cycles hand-off against plain Cycles at 480x270, 64 samples, on the three-camera test
 # scene and on the 100k-triangle scene of bench-render (about 3 minutes on 2 cores),
 # then volume ray casting of a 256^3 phantom at 1920x1080.
-bench: venv bench-render
+bench: venv bench-render bench-anim
 	$(PY) bench/solvers.py --sizes 64 128 256 320 --diffusion-sizes 64 128 --cap 480
 	$(PY) bench/methods.py --width 480 --height 270
 	$(PY) bench/cycles.py --width 480 --height 270 --samples 64
 	$(PY) bench/volume.py --width 1920 --height 1080 --voxels 256
+
+# The dolly sample's fields at 960x540, frames 1-3 built in sequence (each taking what the
+# one before left valid) against each built cold: bench/anim.json (about 3 minutes).
+bench-anim: venv
+	$(PY) bench/anim.py --width 960 --height 540 --frames 1 2 3 --quality PREVIEW
 
 # The renderer on a 100k-triangle scene at 1920x1080: raw BVH rate, engine cast rate,
 # render time, cancel latency: bench/render.json.

@@ -50,9 +50,33 @@ def cache_folder_of(scene):
 
 
 def field_settings(scene):
-    """The core ``Settings`` of the scene's quality, accuracy target and threads."""
+    """The core ``Settings`` of the scene's quality, accuracy target and threads; a rig
+    in motion asks for a steady layout (``rig_is_animated``), the same at every frame."""
     s = scene.multiscale
-    return replace(settings_for(s.quality, s.accuracy_px), processes=processes_of(scene))
+    settings = settings_for(s.quality, s.accuracy_px)
+    return replace(settings, processes=processes_of(scene), steady=rig_is_animated(scene))
+
+
+def _moves(block):
+    """Whether an ID (object or camera data) has keys or drivers."""
+    anim = getattr(block, "animation_data", None)
+    return anim is not None and (anim.action is not None or len(anim.drivers) > 0)
+
+
+def rig_is_animated(scene):
+    """Whether any camera of the list can change from frame to frame: it, its camera
+    data or a parent has keys or drivers, or it or a parent has constraints. Read from
+    the original objects, so every frame (and every process of a farm) answers alike."""
+    for item in scene.multiscale.cameras:
+        obj = item.camera
+        obj = getattr(obj, "original", None) or obj
+        if obj is not None and _moves(getattr(obj, "data", None)):
+            return True
+        while obj is not None:
+            if _moves(obj) or len(getattr(obj, "constraints", ())) > 0:
+                return True
+            obj = obj.parent
+    return False
 
 
 def rig_from_scene(scene, depsgraph=None):

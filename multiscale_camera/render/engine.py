@@ -9,7 +9,7 @@ from ..core.diagnostics import Diagnostics, interrupt_stops
 from ..core.errors import Cancelled
 from . import cycles, pipeline, viewport, workers
 from .failures import failure_message
-from .fields import publish_report
+from .fields import SERVICE, publish_report
 
 # What a render stopped by Ctrl-C says (it writes nothing, and `-f` exits 1).
 INTERRUPTED = "Render cancelled (Ctrl-C); nothing was written"
@@ -50,9 +50,11 @@ class MultiscaleRenderEngine(bpy.types.RenderEngine):
         except Exception:
             publish_report(depsgraph.scene, None)
             raise
-        publish_report(depsgraph.scene, frame.report)
+        scene = depsgraph.scene
+        publish_report(scene, frame.report)  # again with the frame's jump once rendered
+        print(pipeline.rebuilt_line(frame.rebuilt))
         reported = self.say(diag, 0)
-        if depsgraph.scene.multiscale.shading == "CYCLES":
+        if scene.multiscale.shading == "CYCLES":
             if cycles.render(self, depsgraph, frame):
                 return
         width, height = frame.size
@@ -60,15 +62,29 @@ class MultiscaleRenderEngine(bpy.types.RenderEngine):
             self.add_pass(name, channels, chan_id)
         processes = workers.worker_count(frame.processes)
         shown = ShownRows(height, width)
+        index = np.zeros((height, width), dtype=np.float32)
+        hits = np.zeros((height, width, 3), dtype=np.float32)
         with diag.stage("render"):
             for (row0, row1), passes in workers.render_tiles(
                 frame, pipeline.tiles(frame), processes, self.should_stop
             ):
+                index[row0:row1] = passes["IndexOB"][..., 0]
+                hits[row0:row1] = passes[pipeline.HIT_PASS[0]]
                 if shown.add(row0, row1, passes):
                     self.show(shown, frame, diag)
                 # what the tile loop had to say (workers given up) is said at once
                 reported = self.say(diag, reported)
             self.show(shown, frame, diag)
+        jump = SERVICE.sequence.add(
+            scene.name, scene.frame_current, max(1, scene.frame_step), index, hits
+        )
+        publish_report(scene, with_frame(frame.report, jump.as_dict()))
+        if jump.px is not None:
+            print(
+                f"Multiscale: frame {scene.frame_current}: first hits moved {jump.px:.3f} px "
+                f"(p95) since frame {scene.frame_current - max(1, scene.frame_step)}; worst "
+                f"of the sequence {jump.worst_px:.3f} px at frame {jump.worst_frame}"
+            )
         seconds = time.perf_counter() - start
         print(
             f"Multiscale: {width}x{height}, {frame.samples} samples, {frame.rays} rays, "
@@ -171,6 +187,14 @@ class ShownRows:
         names = tiles[0][2].keys()
         passes = {name: np.concatenate([t[2][name] for t in tiles]) for name in names}
         return tiles[0][0], tiles[-1][1], passes
+
+
+def with_frame(report, jump):
+    """``report`` (None: no report) with ``jump`` (``Sequence.add``'s, as a dict) in its
+    ``frame`` record (docs/report.md)."""
+    if report is None:
+        return None
+    return dict(report, frame=dict(report.get("frame", {}), **jump))
 
 
 def stats_line(frame, row, height, diag):

@@ -10,7 +10,10 @@ When a build started with ``start`` ends, the service stores it and tells its li
 (the ray preview registers one), on the main thread.
 
 ``SERVICE`` is the one instance; it owns the caches: fields, the frame's BVH tree
-(``trees``, see ``pipeline.scene_tree``) and decoded volume sources (``volume_grids``).
+(``trees``, see ``pipeline.scene_tree``), decoded volume sources (``volume_grids``),
+what a build of an animated rig may take from the frame before it (``reuse``,
+``core.methods.FrameReuse``) and the first hits of the frame rendered last
+(``sequence``, ``render.sequence``).
 """
 
 from __future__ import annotations
@@ -27,11 +30,12 @@ from ..adapters.volumes import VolumeGridCache
 from ..core.diagnostics import Diagnostics, Level
 from ..core.errors import Cancelled
 from ..core.geometry import Rig
-from ..core.methods import Settings, field_key, prepare, settings_for
+from ..core.methods import FrameReuse, Settings, field_key, prepare, settings_for
 from ..core.quality import build_report, crossing_messages, empty_mask_messages, to_json
 from ..core.runtime import gave_up, runtime
 from ..io.cache import DEFAULT_LIMIT_MB, FieldCache
 from ..io.locks import POLL_SECONDS as LOCK_POLL_SECONDS
+from .sequence import Sequence
 
 # Worker processes of a build, the simplification or the ray tables gave way.
 WORKERS_GIVEN_UP = (
@@ -145,6 +149,8 @@ class FieldService:
         self.cache = cache if cache is not None else FieldCache(lazy_folder=True)
         self.trees = {}  # pipeline.scene_tree's last result, keyed on its triangles
         self.volume_grids = VolumeGridCache()  # decoded volume sources, every frame
+        self.reuse = FrameReuse()  # claims and solutions of the last animated build
+        self.sequence = Sequence()  # the last frame's first hits: frame-to-frame jumps
         self._listeners: list[Callable] = []
         self._build: FieldBuild | None = None
         self.live = None  # the live picture (ui/live_picture.py), made by its register()
@@ -164,8 +170,13 @@ class FieldService:
         rig = rig if rig is not None else rig_from_scene(scene, depsgraph)
         settings = field_settings(scene)
         if quality is not None and quality != group.quality:
+            preset = settings_for(quality, group.accuracy_px)  # the rest as the scene's
             settings = replace(
-                settings_for(quality, group.accuracy_px), processes=settings.processes
+                settings,
+                accuracy_px=preset.accuracy_px,
+                max_voxels=preset.max_voxels,
+                cubic=preset.cubic,
+                nested=preset.nested,
             )
         notices = tuple(rig.notices) + tuple(empty_mask_messages(rig))
         notices += tuple(crossing_messages(rig))
@@ -374,9 +385,11 @@ class FieldService:
 
 
 def _build(request: FieldRequest, diag: Diagnostics):
-    """(RayField, whether worker processes were given up) for ``request``."""
+    """(RayField, whether worker processes were given up) for ``request``. A rig in
+    motion (``Settings.steady``) takes what the frame before left valid (``SERVICE.reuse``)."""
+    reuse = SERVICE.reuse if request.settings.steady else None
     with runtime().journal() as runs, diag.stage("field"):  # what its workers did
-        fld = prepare(request.rig, request.method, request.settings, diag)
+        fld = prepare(request.rig, request.method, request.settings, diag, reuse=reuse)
     return fld, gave_up(runs)
 
 

@@ -30,6 +30,9 @@ PASSES = (
     ("IndexOB", 1, "X", "VALUE"),
     ("Membership", 1, "X", "VALUE"),
 )
+# Not a Blender pass: each pixel centre's first hit, world units (0 where it misses), for
+# the frame-to-frame jump of an animation (``render.sequence``); never written to a file.
+HIT_PASS = ("First Hit", 3)
 # Depth written where a ray hits nothing, as Blender's own engines do.
 MISS_DEPTH = 1e10
 NO_MESH = "The scene has no visible mesh: only the world is rendered"
@@ -59,6 +62,7 @@ class Frame:
     occupancy : core.sampling.Occupancy of the triangles in ``bounds``, or None.
     volumes : render.volume.FrameVolumes.
     report : dict or None, the field's build report (docs/report.md), when asked for.
+    rebuilt : dict, what the preparation built and reused (``frame_rebuilt``).
     casts, shadow_casts, rays : int, counted as the render goes.
     """
 
@@ -82,6 +86,7 @@ class Frame:
     volumes: FrameVolumes = field(default_factory=FrameVolumes)
     occupancy: Occupancy | None = None
     report: dict | None = None
+    rebuilt: dict = field(default_factory=dict)
 
     @property
     def size(self):
@@ -142,8 +147,9 @@ def prepare_frame(depsgraph, diag=None, report=False):
     with diag.stage("geometry"):
         geometry = scene_geometry(depsgraph)
         bounds = occupancy = None
+        tree_built = False
         if len(geometry):
-            tree, bounds, occupancy, scale = scene_tree(geometry)
+            (tree, bounds, occupancy, scale), tree_built = scene_tree_built(geometry)
         else:
             tree, scale = None, 1.0
         diag.extend(volume_notices)
@@ -173,6 +179,9 @@ def prepare_frame(depsgraph, diag=None, report=False):
         sampler = sampler_for(ray_field, tol, bounds, diag.should_stop, occupancy, processes)
     if gave_up(runs + simplified):  # the field's trace or the simplification
         diag.warn(WORKERS_GIVEN_UP)
+    rebuilt = frame_rebuilt(scene.frame_current, result, tree_built, diag.seconds)
+    if published is not None:
+        published = dict(published, frame=rebuilt)
     return Frame(
         rig=rig,
         field=ray_field,
@@ -191,6 +200,49 @@ def prepare_frame(depsgraph, diag=None, report=False):
         volumes=volumes,
         occupancy=occupancy,
         report=published,
+        rebuilt=rebuilt,
+    )
+
+
+def frame_rebuilt(number, result, tree_built, seconds):
+    """What frame ``number``'s preparation built and what it took as it was, for the
+    log and the report's ``frame`` (docs/report.md): ``built`` and ``reused`` list the
+    parts ("field", "camera claims ...", "membership solve (warm start)", "BVH"),
+    ``seconds`` the stages' seconds so far. ``result`` is the field service's
+    FieldResult, ``tree_built`` whether the BVH was built."""
+    built, reused = [], []
+    if not result.built:
+        reused.append("field")
+    else:
+        took = result.field.stats.get("reuse")
+        if took is None:
+            built.append("field")
+        else:
+            names = ", ".join(f"'{n}'" for n in took["claims_reused"])
+            if names:
+                reused.append(f"claims of {names}")
+            rest = ", ".join(f"'{n}'" for n in took["claims_built"])
+            built.append(f"claims of {rest}" if rest else "no claims")
+            solve = took["solve"]
+            built.append("membership solve" + (f" ({solve} start)" if solve != "cold" else ""))
+            built.append("trace")
+    (built if tree_built else reused).append("BVH")
+    return {
+        "number": int(number),
+        "built": built,
+        "reused": reused,
+        "seconds": {k: round(float(v), 3) for k, v in seconds.items()},
+    }
+
+
+def rebuilt_line(rebuilt):
+    """The log's line for a frame's ``rebuilt`` record (``frame_rebuilt``)."""
+    seconds = rebuilt["seconds"]
+    field_s = seconds.get("field", seconds.get("field (cached)", 0.0))
+    return (
+        f"Multiscale: frame {rebuilt['number']}: built {', '.join(rebuilt['built']) or 'nothing'}; "
+        f"reused {', '.join(rebuilt['reused']) or 'nothing'}; field {field_s:.2f} s, "
+        f"geometry {seconds.get('geometry', 0.0):.2f} s"
     )
 
 
@@ -205,11 +257,17 @@ def scene_tree(geometry):
     tree : BVHTree. bounds : ((3,), (3,)) float64, world units. occupancy : Occupancy.
     scale : float, the diagonal of the triangles' bounding box, world units.
     """
+    return scene_tree_built(geometry)[0]
+
+
+def scene_tree_built(geometry):
+    """(``scene_tree``'s tuple, whether it was built now rather than reused)."""
     digest = hashlib.blake2b(np.ascontiguousarray(geometry.vertices).tobytes())
     digest.update(np.ascontiguousarray(geometry.triangles).tobytes())
     key = digest.hexdigest()
     trees = SERVICE.trees
-    if key not in trees:
+    built = key not in trees
+    if built:
         tree = BVHTree.FromPolygons(
             geometry.vertices.tolist(), geometry.triangles.tolist(), all_triangles=True
         )
@@ -220,7 +278,7 @@ def scene_tree(geometry):
         occupancy = Occupancy(geometry.vertices, geometry.triangles, *bounds, pad=pad)
         trees.clear()
         trees[key] = tree, bounds, occupancy, scale
-    return trees[key]
+    return trees[key], built
 
 
 def sampler_for(ray_field, tol_px, bounds, should_stop=None, occupancy=None, processes=1):
@@ -271,7 +329,8 @@ def render_rows(frame, row0, row1, should_stop=None):
 
     Returns
     -------
-    dict pass name -> (row1 - row0, W, C) float32 array, row 0 at the top.
+    dict pass name -> (row1 - row0, W, C) float32 array, row 0 at the top: the passes
+    of ``PASSES`` and ``HIT_PASS``.
 
     Raises
     ------
@@ -313,6 +372,9 @@ def render_rows(frame, row0, row1, should_stop=None):
         "Normal": shaded.normal.reshape(*shape, 3),
         "IndexOB": index.reshape(*shape, 1),
         "Membership": centre.membership.astype(np.float32).reshape(*shape, 1),
+        HIT_PASS[0]: np.where(hits.hit[:, None], hits.location, 0.0)
+        .astype(np.float32)
+        .reshape(*shape, 3),
     }
 
 

@@ -51,9 +51,10 @@ def shared_passes(width, height):
     ------
     OSError when shared memory cannot be had.
     """
+    kinds = [(name, channels) for name, channels, _i, _k in pipeline.PASSES]
     return {
         name: runtime().shared_array((height, width, channels), np.float32)
-        for name, channels, _i, _k in pipeline.PASSES
+        for name, channels in kinds + [pipeline.HIT_PASS]
     }
 
 

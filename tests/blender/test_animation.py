@@ -9,6 +9,7 @@ camera, Blender's own ``view_frame`` of the camera evaluated at that frame and
 time; the object it hits is compared with the render's IndexOB in the camera's mask
 eroded by 2 px (the hidden-surface agreement of docs/report.md's metrics)."""
 
+import json
 import math
 
 import bpy
@@ -19,6 +20,7 @@ from mathutils import Vector
 from fixtures.blender import samples
 from fixtures.blender.scenes import two_camera_scene
 from multiscale_camera.adapters.scene import rig_from_scene
+from multiscale_camera.core.methods import FrameReuse
 from multiscale_camera.core.quality import erode
 from multiscale_camera.render import fields, pipeline
 from multiscale_camera.render.raycast import march
@@ -128,6 +130,8 @@ def test_animation_render_reads_each_frames_cameras(empty_scene, tmp_path):
 
 @pytest.mark.slow
 def test_static_rig_renders_identical_frames(empty_scene, tmp_path):
+    """...and its second frame builds nothing: the field comes from the cache, the BVH
+    is the first frame's, and its first hits did not move (the report's ``frame``)."""
     scene = empty_scene
     two_camera_scene(scene, WIDTH, HEIGHT)
     scene.frame_start, scene.frame_end = 1, 2
@@ -137,6 +141,60 @@ def test_static_rig_renders_identical_frames(empty_scene, tmp_path):
     one, two = (read_passes(tmp_path / f"frame_{f:04d}.exr") for f in (1, 2))
     for name in ("Combined", "Depth", "Normal", "IndexOB", "Membership"):
         np.testing.assert_array_equal(one[name], two[name], err_msg=name)
+    frame = json.loads(scene.multiscale.report)["frame"]
+    assert frame["number"] == 2
+    assert frame["built"] == []
+    assert frame["reused"] == ["field", "BVH"]
+    assert frame["jump_p95_px"] == 0.0
+
+
+def nudged_rig(scene):
+    """The two-camera scene on SCALAR_FIELD with camera 2 keyed to move 2 mm a frame
+    over ``FRAMES`` (camera 1 holds still): a rig in motion whose steady layout holds."""
+    c1, c2 = two_camera_scene(scene, WIDTH, HEIGHT)
+    scene.multiscale.method = "SCALAR_FIELD"
+    scene.frame_start, scene.frame_end = FRAMES[0], FRAMES[-1]
+    for frame in FRAMES:
+        c2.location.x = 0.5 + 0.002 * (frame - FRAMES[0])
+        c2.keyframe_insert("location", frame=frame)
+    scene.frame_set(FRAMES[0])
+    return c1, c2
+
+
+@pytest.mark.slow
+def test_a_frame_rendered_after_others_matches_it_rendered_cold(empty_scene, tmp_path):
+    """The last frame of a sequence (its field built after the frame before, taking
+    camera 1's claims and a warm start) against the same frame rendered alone by a
+    process that kept nothing: the image within 1e-3."""
+    scene = empty_scene
+    nudged_rig(scene)
+    scene.multiscale.cache_folder = str(tmp_path / "cache")
+    scene.render.image_settings.media_type = "MULTI_LAYER_IMAGE"
+    scene.render.filepath = str(tmp_path / "seq" / "frame_####")
+    fields.SERVICE.reuse = FrameReuse()
+    bpy.ops.render.render(animation=True)
+    last = FRAMES[-1]
+    frame = json.loads(scene.multiscale.report)["frame"]
+    assert frame["number"] == last
+    assert frame["reused"] == ["claims of 'C1'", "BVH"], frame
+    assert "membership solve (warm start)" in frame["built"], frame
+    assert frame["worst_jump_p95_px"] is not None
+    warm = read_passes(tmp_path / "seq" / f"frame_{last:04d}.exr")
+    fields.SERVICE.clear()  # the cache's fields, memory and disk
+    fields.SERVICE.reuse = FrameReuse()  # and what the sequence kept
+    scene.frame_set(last)
+    scene.render.filepath = str(tmp_path / "cold.exr")
+    bpy.ops.render.render(write_still=True)
+    cold_frame = json.loads(scene.multiscale.report)["frame"]
+    assert "membership solve" in cold_frame["built"], cold_frame
+    cold = read_passes(tmp_path / "cold.exr")
+    for name in ("Combined", "Depth", "Normal", "Membership"):
+        gap = np.abs(warm[name] - cold[name])
+        if name == "Depth":
+            gap = gap / np.maximum(np.abs(cold[name]), 1.0)
+        print(f"{name}: worst {gap.max():.2e}")
+        assert gap.max() <= 1e-3, name
+    np.testing.assert_array_equal(warm["IndexOB"], cold["IndexOB"])
 
 
 @pytest.mark.slow
@@ -185,39 +243,85 @@ def first_hits(scene):
     return index, hits.location, seg.start_depth + hits.distance
 
 
+def move_ratios(scene, states, pixel_camera, moving):
+    """{region: (pixels, p95 move t -> t + d/2, p95 move t -> t + d, ratio)} of the
+    first hits of three states of ``scene`` (``states``: callables that set t, t + d/2
+    and t + d), over the pixels that see the same object in all three: camera
+    ``moving``'s preserved region (its mask eroded by 2 px) and the transitions (no
+    camera's mask). Moves are in ``pixel_camera``'s pixels at the hit's distance at t
+    (the unit cancels in the ratio)."""
+    runs = []
+    for state in states:
+        state()
+        runs.append(first_hits(scene))
+    states[0]()
+    rig = rig_from_scene(scene)
+    preserved = erode(rig.masks[moving], 2).ravel()
+    transition = ~rig.masks.any(axis=0).ravel()
+    (i0, p0, z0), (ih, ph, _), (i1, p1, _) = runs
+    same = (i0 == ih) & (ih == i1) & (i0 > 0)
+    data = pixel_camera.data
+    pixel = z0 * (data.sensor_width / data.lens) / rig.size[0]
+    half = np.linalg.norm(ph - p0, axis=1) / pixel
+    full = np.linalg.norm(p1 - p0, axis=1) / pixel
+    out = {}
+    for name, region in (("preserved", preserved), ("transition", transition)):
+        chosen = same & region & (full > 0)
+        h95, f95 = np.percentile(half[chosen], 95), np.percentile(full[chosen], 95)
+        out[name] = (int(chosen.sum()), float(h95), float(f95), float(f95 / h95))
+        print(f"{name}: {chosen.sum()} px, p95 {h95:.3f} / {f95:.3f} px, ratio {f95 / h95:.3f}")
+    return out
+
+
+def assert_moves_linearly(ratios):
+    """The p95 move to t + d is 1.6 to 2.4 times that to t + d/2 in every region (a
+    field that re-snapped its layout between the states would jump instead)."""
+    for name, (pixels, _half, _full, ratio) in ratios.items():
+        assert pixels >= 30, f"{name}: {pixels} pixels"
+        assert 1.6 <= ratio <= 2.4, f"{name}: ratio {ratio:.3f}"
+
+
 @pytest.mark.slow
 def test_moving_camera_moves_rays_continuously(empty_scene):
     """Camera 2 moves on a straight line at constant speed: at t, t + d/2 and t + d, over
     the pixels that see the same object in all three, the p95 move of the first hit
     from t to t + d is 1.6 to 2.4 times the one from t to t + d/2, both in camera 2's
-    preserved region and in the transition between the cameras (a field that re-snapped
-    its layout between frames would jump instead)."""
+    preserved region and in the transition between the cameras."""
     scene = empty_scene
     c1, c2 = two_camera_scene(scene, 64, 48)
     start, velocity = Vector(c2.location), Vector((0.16, 0.1, -0.06))
-    runs = []
-    for t in (0.0, 0.5, 1.0):
-        c2.location = start + velocity * t
-        bpy.context.view_layer.update()
-        runs.append(first_hits(scene))
-    rig = rig_from_scene(scene)
-    preserved = erode(rig.masks[1], 2).ravel()
-    transition = ~(rig.masks[0] | rig.masks[1]).ravel()
-    (i0, p0, z0), (ih, ph, _), (i1, p1, _) = runs
-    same = (i0 == ih) & (ih == i1) & (i0 > 0)
-    # moves in camera 1's pixels at the hit's distance: the unit cancels in the ratio
-    pixel = z0 * (c1.data.sensor_width / c1.data.lens) / 64
-    half = np.linalg.norm(ph - p0, axis=1) / pixel
-    full = np.linalg.norm(p1 - p0, axis=1) / pixel
-    for name, region in (("preserved", preserved), ("transition", transition)):
-        chosen = same & region & (full > 0)
-        assert chosen.sum() >= 30, f"{name}: {chosen.sum()} pixels"
-        ratio = np.percentile(full[chosen], 95) / np.percentile(half[chosen], 95)
-        print(
-            f"{name}: {chosen.sum()} px, p95 {np.percentile(half[chosen], 95):.3f} / "
-            f"{np.percentile(full[chosen], 95):.3f} px, ratio {ratio:.3f}"
-        )
-        assert 1.6 <= ratio <= 2.4, f"{name}: ratio {ratio:.3f}"
+
+    def at(t):
+        def state():
+            c2.location = start + velocity * t
+            bpy.context.view_layer.update()
+
+        return state
+
+    assert_moves_linearly(move_ratios(scene, [at(0.0), at(0.5), at(1.0)], c1, 1))
+
+
+# Frames of the dolly for its flicker test: t, t + d/2, t + d (its keys move both
+# cameras uniformly, so these are equal steps of the motion).
+DOLLY_FLICKER_FRAMES = (1, 7, 13)
+
+
+@pytest.mark.slow
+def test_dolly_moves_rays_continuously(empty_scene):
+    """The flicker test on sample_blends/dolly.blend's scene (160x90, its own HIGH
+    quality): camera 3 dollies in and camera 2 pans, uniformly; over frames t, t + d/2
+    and t + d the p95 first-hit move to t + d is 1.6 to 2.4 times that to t + d/2, in
+    camera 3's preserved region and in the transitions."""
+    scene = empty_scene
+    samples.build_dolly(scene)
+    scene.render.resolution_percentage = 25
+    cam1 = scene.objects["Cam1 Square"]
+
+    def at(frame):
+        return lambda: scene.frame_set(frame)
+
+    ratios = move_ratios(scene, [at(f) for f in DOLLY_FLICKER_FRAMES], cam1, 2)
+    assert_moves_linearly(ratios)
 
 
 def test_dolly_sample_moves_uniformly(empty_scene):

@@ -20,6 +20,7 @@ from .fill import (
 )
 from .grid import FieldSampler, Grid, sample
 from .harmonic import mask_weights
+from .layout import SNAP_CELLS, ladder_cell, steady_grid, steady_levels
 from .nested import (
     BAND_CELLS,
     Levels,
@@ -66,6 +67,7 @@ __all__ = [
     "MIDPOINT",
     "MIN_CELLS_ACROSS_NEAR",
     "RK4",
+    "SNAP_CELLS",
     "STEP_CELLS",
     "STEP_WIDTH_GAIN",
     "FieldSampler",
@@ -91,6 +93,7 @@ __all__ = [
     "explicit_diffusion",
     "fill_membership",
     "isolated_voxels",
+    "ladder_cell",
     "mask_weights",
     "merge",
     "near_plane_width",
@@ -100,6 +103,8 @@ __all__ = [
     "scheduled_rays",
     "solve_levels",
     "solve_membership",
+    "steady_grid",
+    "steady_levels",
     "splat_camera",
     "step_cells",
     "straight_claims",

@@ -291,7 +291,8 @@ class Fill:
     constrained : (nx, ny, nz) bool. conflicts : int, voxels that preserved rays of two
     cameras pass through (left free). per_camera : tuple of int, core voxels each camera
     keeps. overlaps : (N, N) int64, voxels preserved rays of both i and j pass through.
-    cores : tuple of (nx, ny, nz) bool, each camera's core voxels.
+    cores, halos : tuple of (nx, ny, nz) bool, each camera's core and halo voxels
+    (``splat_camera``), which a later fill on the same grid may take (``known``).
     """
 
     values: np.ndarray
@@ -300,6 +301,7 @@ class Fill:
     per_camera: tuple
     overlaps: np.ndarray
     cores: tuple = ()
+    halos: tuple = ()
 
     @property
     def conflict_mask(self):
@@ -316,11 +318,13 @@ class Fill:
         return out
 
 
-def fill_membership(rig, grid, families, should_stop=None):
+def fill_membership(rig, grid, families, should_stop=None, known=None):
     """Eq. 4: M = i along the preserved rays of camera i; shared voxels stay free.
 
     ``should_stop``: callable () -> bool or None, asked as each camera's rays are
-    splatted (raises Cancelled).
+    splatted (raises Cancelled). ``known``: None, or a sequence with, per camera, None
+    or its (core, halo) already splatted on this grid (a camera whose family and mask
+    are unchanged since an earlier fill: ``methods.reuse``), taken instead of splatting.
 
     Each camera claims the voxels its preserved rays pass through (core) and a
     one-voxel halo around them. A core claim outranks another camera's halo, so where
@@ -330,9 +334,13 @@ def fill_membership(rig, grid, families, should_stop=None):
     halos = np.zeros(grid.shape, dtype=np.uint8)
     core_of = np.zeros(grid.shape, dtype=np.float32)
     halo_of = np.zeros(grid.shape, dtype=np.float32)
-    per = []
+    per, around = [], []
     for i, fam in enumerate(families):
-        core, halo = splat_camera(grid, fam, rig.masks[i], should_stop=should_stop)
+        claims = known[i] if known is not None else None
+        if claims is None:
+            claims = splat_camera(grid, fam, rig.masks[i], should_stop=should_stop)
+        core, halo = claims
+        around.append(halo)
         cores += core
         halos += halo
         core_of[core] = i + 1
@@ -356,4 +364,5 @@ def fill_membership(rig, grid, families, should_stop=None):
         tuple(int((c & constrained).sum()) for c in per),
         overlaps,
         tuple(per),
+        tuple(around),
     )

@@ -366,12 +366,15 @@ class LevelSolve:
     converged: bool
 
 
-def _fill_level(fill_membership, rig, families, grid, context):
-    """A worker's fill of one level (``solve_levels``)."""
-    return fill_membership(rig, grid, families, should_stop=context)
+def _fill_level(fill_membership, rig, families, item, context):
+    """A worker's fill of one level (``solve_levels``): ``item`` is (grid, known)."""
+    grid, known = item
+    return fill_membership(rig, grid, families, should_stop=context, known=known)
 
 
-def solve_levels(rig, grids, families, fill_membership, should_stop=None, processes=1):
+def solve_levels(
+    rig, grids, families, fill_membership, should_stop=None, processes=1, known=None, warm=None
+):
     """Fill and solve every level, coarsest first; a finer level's boundary voxels hold
     its parent's membership (Dirichlet), its own constraints hold inside.
 
@@ -385,23 +388,30 @@ def solve_levels(rig, grids, families, fill_membership, should_stop=None, proces
         (``fill.fill_membership``; module-level, so that workers find it by name).
     should_stop : optional callable, asked during each level's fill and solve.
     processes : int, worker processes for the fills (1: in-process).
+    known : None, or per level the ``known`` claims of ``fill_membership`` (cameras
+        already splatted on that level's grid). warm : None, or per level None or an
+        (nx, ny, nz) membership to start the level's solve from (a previous frame's on
+        the same grid) instead of the parent's values.
 
     Returns
     -------
     LevelSolve
     """
 
+    known = list(known) if known is not None else [None] * len(grids)
+    warm = list(warm) if warm is not None else [None] * len(grids)
     shared = None
     if processes > 1:
         task = partial(_fill_level, fill_membership, rig, families)
-        shared = runtime().map(task, grids, processes, should_stop).results
+        items = list(zip(grids, known, strict=True))
+        shared = runtime().map(task, items, processes, should_stop).results
     fields, fills, its, res, ok = [], [], 0, 0.0, True
     for lev, grid in enumerate(grids):
         check_stop(should_stop)
         if shared is not None:
             fill, shared[lev] = shared[lev], None
         else:
-            fill = fill_membership(rig, grid, families, should_stop=should_stop)
+            fill = fill_membership(rig, grid, families, should_stop=should_stop, known=known[lev])
         check_stop(should_stop)
         values, constrained, x0 = fill.values, fill.constrained, None
         if lev:
@@ -411,6 +421,8 @@ def solve_levels(rig, grids, families, fill_membership, should_stop=None, proces
             shell[1:-1, 1:-1, 1:-1] = False
             values = np.where(shell, x0, values).astype(np.float32)
             constrained = constrained | shell
+        if warm[lev] is not None:
+            x0 = warm[lev]
         solve = solve_membership(values, constrained, x0=x0, should_stop=should_stop)
         fields.append(solve.x)
         fills.append(fill)

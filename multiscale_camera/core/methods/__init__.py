@@ -12,6 +12,7 @@ from .fingerprint import field_key
 from .image_blend import CurveBlendField, prepare_image_blend
 from .linear import LinearField, nearest_mask_pixels, prepare_linear
 from .registry import METHODS, prepare, prepare_auto
+from .reuse import FrameReuse, family_digest
 from .scalar_field import prepare_scalar_field
 from .traced import (
     MAX_STRIDE,
@@ -29,6 +30,8 @@ from .vector_field import (
 )
 
 __all__ = [
+    "FrameReuse",
+    "family_digest",
     "MAX_STRIDE",
     "METHODS",
     "QUALITY",

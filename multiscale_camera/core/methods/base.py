@@ -27,6 +27,8 @@ class Settings:
     processes : int, worker processes that share the trace and the nested levels'
         fills (0: one per core; 1: in Blender's process). Not part of the field's
         identity: every count traces the same rays (to about float32 rounding).
+    steady : bool, grids on a world-fixed lattice (``field.layout``) so that a rig in
+        motion keeps its layout from frame to frame (an animated rig's fields).
     """
 
     accuracy_px: float = 0.5
@@ -34,6 +36,7 @@ class Settings:
     cubic: bool = False
     nested: bool = None
     processes: int = field(default=0, repr=False, compare=False)
+    steady: bool = False
 
 
 # Quality presets: accuracy target in pixels and voxel budget (about 0.1, 0.4 and

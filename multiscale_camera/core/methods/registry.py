@@ -55,13 +55,17 @@ def prepare_auto(rig, settings=None, diag=None):
 METHODS["AUTO"] = prepare_auto
 
 
-def prepare(rig, method, settings=None, diag=None):
+def prepare(rig, method, settings=None, diag=None, reuse=None):
     """Prepare the ray field of ``method`` (the enum name of ``scene.multiscale.method``)
-    for ``rig``, steered by ``diag`` (core.diagnostics.Diagnostics or None)."""
+    for ``rig``, steered by ``diag`` (core.diagnostics.Diagnostics or None). ``reuse``
+    (``reuse.FrameReuse`` or None): what SCALAR_FIELD may take from earlier builds of a
+    sequence, and keeps for the next (other methods build from scratch)."""
     try:
         builder = METHODS[method]
     except KeyError:
         raise RigError(
             f"Method '{method}' is not available in this version; use one of: " + ", ".join(METHODS)
         ) from None
+    if builder is prepare_scalar_field:
+        return builder(rig, settings or Settings(), diag, reuse)
     return builder(rig, settings or Settings(), diag)

@@ -20,6 +20,7 @@ from ..field import (
     fill_membership,
     solve_levels,
     solve_membership,
+    steady_levels,
 )
 from ..geometry import Family
 from ..quality import check_rig
@@ -28,33 +29,39 @@ from .base import Settings, record_seconds
 from .traced import TracedField, capped_message, field_grid, trace_field
 
 
-def prepare_scalar_field(rig, settings=None, diag=None):
+def prepare_scalar_field(rig, settings=None, diag=None, reuse=None):
     """SCALAR_FIELD (paper eq. 4 to 6): a membership field solved on a grid blends
     exact per-camera tangent fields; rays are its RK4 streamlines. ``diag``
-    (core.diagnostics.Diagnostics or None) steers the build and gets its seconds."""
+    (core.diagnostics.Diagnostics or None) steers the build and gets its seconds.
+    ``reuse`` (``reuse.FrameReuse`` or None): claims and solutions of earlier builds on
+    the same grids to take (a sequence's frames), and where this build's are kept."""
     settings = settings or Settings()
     diag = diagnostics_of(diag)
     nested = settings.nested
     if nested is None:
         nested = choose_grid(rig, settings.accuracy_px, settings.max_voxels).capped
     if nested and len(rig.cameras) > 1:
-        return _prepare_nested(rig, settings, diag)
+        return _prepare_nested(rig, settings, diag, reuse)
     run = diag.child()
     fld = TracedField(rig=rig, method="SCALAR_FIELD")
     fld.warnings += check_rig(rig)
     with run.stage("fill"):
         fld.grid = field_grid(fld, settings)
+        known, warm = _reusable(reuse, rig, (fld.grid,), settings)
         families = [Family(rig.cameras, i, rig.beta) for i in range(len(rig.cameras))]
-        fill = fill_membership(rig, fld.grid, families, should_stop=run.should_stop)
+        fill = fill_membership(rig, fld.grid, families, should_stop=run.should_stop, known=known[0])
     run.check()
     with run.stage("solve"):
-        solve = solve_membership(fill.values, fill.constrained, should_stop=run.should_stop)
+        solve = solve_membership(
+            fill.values, fill.constrained, x0=warm[0], should_stop=run.should_stop
+        )
     if not solve.converged:
         raise SolverDidNotConverge(
             f"The membership solve stopped at relative residual {solve.residuals[-1]:.2e} after "
             f"{solve.iterations} iterations; simplify the masks or lower the quality"
         )
     fld.membership = solve.x
+    _keep(reuse, rig, (fld.grid,), (fill,), (solve.x,), settings)
     with run.stage("trace"):
         tracer = FieldTracer(
             rig, fld.grid, solve.x, cubic=settings.cubic, processes=settings.processes
@@ -66,8 +73,28 @@ def prepare_scalar_field(rig, settings=None, diag=None):
         residual=float(solve.residuals[-1]) if solve.residuals else 0.0,
         converged=bool(solve.converged),
     )
+    _record(reuse, fld, rig, known, warm)
     diag.merge(run)
     return fld
+
+
+def _reusable(reuse, rig, grids, settings):
+    """(known claims, warm starts) per grid from ``reuse`` (Nones without it)."""
+    if reuse is None:
+        return [None] * len(grids), [None] * len(grids)
+    return reuse.known(rig, grids), reuse.warm(grids, repr(settings))
+
+
+def _keep(reuse, rig, grids, fills, fields, settings):
+    if reuse is not None:
+        reuse.keep(rig, grids, fills, fields, repr(settings))
+
+
+def _record(reuse, fld, rig, known, warm):
+    """What the build took and built, in ``fld.stats["reuse"]`` (with ``reuse``)."""
+    if reuse is not None:
+        names = [c.name for c in rig.cameras]
+        fld.stats["reuse"] = reuse.record(names, known, warm, fld.seconds)
 
 
 def _record_trace_seconds(fld, run, tracer):
@@ -77,7 +104,7 @@ def _record_trace_seconds(fld, run, tracer):
     record_seconds(fld, dict(run.seconds, tangents=tangents, trace=run.seconds["trace"] - tangents))
 
 
-def _prepare_nested(rig, settings, diag):
+def _prepare_nested(rig, settings, diag, reuse=None):
     """SCALAR_FIELD on nested grids (``nested``): the same equations, with cells that
     shrink with the bundle toward the smaller cameras. Fill and solve interleave level
     by level: both count as "fill", and "solve" holds none."""
@@ -90,21 +117,22 @@ def _prepare_nested(rig, settings, diag):
         levels = choose_levels(rig, settings.accuracy_px, settings.max_voxels, across, outer.bounds)
         if levels.capped:
             fld.warnings.append(capped_message(settings, levels.wanted_cell, levels.grids[-1].cell))
+        grids = steady_levels(levels.grids) if settings.steady else levels.grids
+        known, warm = _reusable(reuse, rig, grids, settings)
         families = [Family(rig.cameras, i, rig.beta) for i in range(len(rig.cameras))]
         workers = worker_count(settings.processes)
         solved = solve_levels(
-            rig, levels.grids, families, fill_membership, run.should_stop, workers
+            rig, grids, families, fill_membership, run.should_stop, workers, known, warm
         )
     if not solved.converged:
         raise SolverDidNotConverge(
             f"The membership solve stopped at relative residual {solved.residual:.2e} after "
             f"{solved.iterations} iterations; simplify the masks or lower the quality"
         )
-    fld.grid, fld.membership = levels.grids[0], solved.fields[0]
+    fld.grid, fld.membership = grids[0], solved.fields[0]
+    _keep(reuse, rig, grids, solved.fills, solved.fields, settings)
     with run.stage("trace"):
-        domain = fld.domain = NestedDomain(
-            levels.grids, solved.fields, ScaleField(rig.cameras), across
-        )
+        domain = fld.domain = NestedDomain(grids, solved.fields, ScaleField(rig.cameras), across)
         tracer = FieldTracer(
             rig,
             fld.grid,
@@ -113,12 +141,13 @@ def _prepare_nested(rig, settings, diag):
             domain=domain,
             processes=settings.processes,
         )
-        fill = _composite_fill(levels.grids, solved.fills)
-        trace_field(fld, tracer, fill, settings, run, levels=levels.grids)
+        fill = _composite_fill(grids, solved.fills)
+        trace_field(fld, tracer, fill, settings, run, levels=grids)
     _record_trace_seconds(fld, run, tracer)
     fld.solver.update(
         iterations=solved.iterations, residual=solved.residual, converged=solved.converged
     )
+    _record(reuse, fld, rig, known, warm)
     diag.merge(run)
     return fld
 

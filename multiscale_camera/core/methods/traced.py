@@ -16,6 +16,7 @@ from ..field import (
     merge,
     near_plane_width,
     run_on,
+    steady_grid,
     step_cells,
 )
 from ..quality import conflict_messages
@@ -345,12 +346,13 @@ def lattice_stride(rig, grid):
 
 
 def field_grid(fld, settings):
-    """The grid of a field method (``choose_grid``), with a warning on ``fld`` when the
-    voxel budget caps the cell the accuracy target asks for."""
+    """The grid of a field method (``choose_grid``; laid on the world lattice when
+    ``settings.steady``), with a warning on ``fld`` when the voxel budget caps the cell
+    the accuracy target asks for."""
     choice = choose_grid(fld.rig, settings.accuracy_px, settings.max_voxels)
     if choice.capped:
         fld.warnings.append(capped_message(settings, choice.wanted_cell, choice.grid.cell))
-    return choice.grid
+    return steady_grid(choice.grid) if settings.steady else choice.grid
 
 
 def capped_message(settings, wanted, cell):

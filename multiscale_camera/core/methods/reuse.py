@@ -1,0 +1,124 @@
+"""Reuse between the builds of a sequence (an animation's frames): what a build may take
+from the one before it without changing its answer.
+
+SCALAR_FIELD on a steady layout (``Settings.steady``, ``field.layout``) keeps its grids
+while the rig stays inside them, so from one frame to the next:
+
+- a camera's claims on a grid (eq. 4's core and halo, ``field.splat_camera``) depend
+  on its family (the cameras up to it, ``beta``) and its mask alone: a camera that did
+  not move, nor any before it, claims the same voxels, which are taken as they were;
+- the membership solve (eq. 5) starts from the previous frame's solution on the same
+  grid instead of the parent level's values (or zero). It stops at the same relative
+  residual, so the answer differs from a cold start's by the solver's tolerance (a
+  test holds the rays to 0.01 px of a cold build);
+- everything else (the other cameras' claims, the trace) is built again: every ray of
+  a transition depends on the cameras on either side of it.
+
+``FrameReuse`` holds that between builds (the field service keeps one per process) and
+says per build what was taken and what was built (``record``).
+"""
+
+import hashlib
+import threading
+
+import numpy as np
+
+
+def family_digest(rig, i):
+    """Hex digest of what camera ``i``'s claims depend on: cameras 1..i (placement,
+    lens, sensor, shift, clipping, size), ``beta`` and camera i's mask."""
+    h = hashlib.sha1()
+    h.update(repr((rig.beta, rig.size, i)).encode())
+    for cam in rig.cameras[: i + 1]:
+        h.update(np.ascontiguousarray(cam.matrix_world, dtype=np.float64).tobytes())
+        h.update(
+            repr(
+                (
+                    cam.lens,
+                    cam.sensor_width,
+                    cam.sensor_height,
+                    cam.sensor_fit,
+                    cam.shift_x,
+                    cam.shift_y,
+                    cam.clip_start,
+                    cam.clip_end,
+                    cam.pixel_aspect_x,
+                    cam.pixel_aspect_y,
+                )
+            ).encode()
+        )
+    h.update(np.packbits(np.ascontiguousarray(rig.masks[i])).tobytes())
+    return h.hexdigest()
+
+
+class FrameReuse:
+    """Claims and solutions of the last builds, by grid; thread safe (one build at a
+    time reads or writes it, under its lock).
+
+    claims : dict (Grid, family digest) -> (core, halo), (nx, ny, nz) bool each.
+    solved : dict (Grid, method, settings) -> (nx, ny, nz) float32 membership.
+    last : dict, what the last build took and built (``record``).
+    """
+
+    def __init__(self):
+        self.claims = {}
+        self.solved = {}
+        self.last = {}
+        self._lock = threading.Lock()
+
+    def known(self, rig, grids):
+        """Per grid of ``grids``, per camera: its (core, halo) kept from an earlier
+        build, or None (``fill.fill_membership``'s ``known``)."""
+        digests = [family_digest(rig, i) for i in range(len(rig.cameras))]
+        with self._lock:
+            return [[self.claims.get((g, d)) for d in digests] for g in grids]
+
+    def warm(self, grids, tag):
+        """Per grid of ``grids``: the membership a build tagged ``tag`` (method and
+        settings) solved on it, or None."""
+        with self._lock:
+            return [self.solved.get((g, tag)) for g in grids]
+
+    def keep(self, rig, grids, fills, fields, tag):
+        """Keep the claims of every camera and the solved membership of each grid of
+        this build; forget other grids' (a steady layout that moved leaves them behind)."""
+        digests = [family_digest(rig, i) for i in range(len(rig.cameras))]
+        with self._lock:
+            for grid, fill, membership in zip(grids, fills, fields, strict=True):
+                for d, core, halo in zip(digests, fill.cores, fill.halos, strict=True):
+                    self.claims[(grid, d)] = (core, halo)
+                self.solved[(grid, tag)] = membership
+            used = set(grids)
+            for table in (self.claims, self.solved):
+                for k in [k for k in table if k[0] not in used]:
+                    del table[k]
+
+    def record(self, names, known, warm, seconds):
+        """What a build took and built, for its report (``stats["reuse"]``).
+
+        names : camera names. known, warm : as handed to the build (per grid).
+        seconds : dict stage -> float. Returns a dict: ``claims_reused`` and
+        ``claims_built`` (camera names: whose claims were taken on every grid, and
+        whose were splatted on some), ``solve`` ("warm" on every grid, "cold", or
+        "warm on k of n grids"), ``rebuilt`` (the stages run), ``seconds``."""
+        reused = [n for i, n in enumerate(names) if all(k[i] is not None for k in known)]
+        built = [n for n in names if n not in reused]
+        warm_count = sum(w is not None for w in warm)
+        solve = (
+            "warm"
+            if warm_count == len(warm)
+            else "cold"
+            if warm_count == 0
+            else f"warm on {warm_count} of {len(warm)} grids"
+        )
+        rebuilt = (["fill"] if built else []) + ["solve", "trace"]
+        out = {
+            "claims_reused": reused,
+            "claims_built": built,
+            "solve": solve,
+            "rebuilt": rebuilt,
+            "seconds": {k: round(float(v), 3) for k, v in seconds.items()},
+        }
+        with self._lock:
+            self.last = out
+        return dict(out)
