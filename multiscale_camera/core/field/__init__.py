@@ -20,6 +20,7 @@ from .fill import (
 )
 from .grid import FieldSampler, Grid, sample
 from .harmonic import mask_weights
+from .layout import arc_length_rays, scheduled_rays
 from .nested import (
     BAND_CELLS,
     Levels,
@@ -53,9 +54,7 @@ from .tracer import (
     STEP_CELLS,
     STEP_WIDTH_GAIN,
     FieldTracer,
-    arc_length_rays,
     blend_weights,
-    scheduled_rays,
     step_cells,
 )
 
