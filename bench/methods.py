@@ -65,14 +65,19 @@ TIMEOUT_S = 900
 TARGETS = {"p95": 0.5, "max": 2.0, "build": 10.0, "forced_build": 60.0, "memory_mb": 3072}
 
 
+# What a row's figures depend on: a change elsewhere (docs/) leaves its commit clean.
+MEASURED = ("multiscale_camera", "fixtures", "bench/methods.py")
+
+
 def _commit():
-    """The measured tree's commit (with "+" if it has changes), or None outside git."""
+    """The measured tree's commit (with "+" if the code it measures has changes: the
+    package, the fixtures, this script), or None outside git."""
     try:
         head = subprocess.run(
             ["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True
         ).stdout.strip()
         dirty = subprocess.run(
-            ["git", "status", "--porcelain", "--untracked-files=no"],
+            ["git", "status", "--porcelain", "--untracked-files=no", "--", *MEASURED],
             cwd=ROOT,
             capture_output=True,
             text=True,
