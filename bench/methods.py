@@ -11,10 +11,10 @@ its mask keeps), folds by the exact counter, stalled rays, Newton failures, the 
 memory of every process. SCALAR_FIELD runs on one uniform grid (the paper's), on nested
 grids, and as the add-on chooses (SCALAR_FIELD_DEFAULT). Every rig is built with the
 properties' defaults (the quality's settings, accuracy target 0.5 px), whatever the
-sample files hold. Prints a table and writes bench/results.json; with it (or --docs)
-the speed-accuracy chart docs/figures/speed_accuracy.png, the failure table in
-docs/methods.md and the acceptance table in docs/performance.md (between their
-GENERATED markers).
+sample files hold. Prints a table and writes bench/results.json (or --out); with
+--docs also the speed-accuracy chart docs/figures/speed_accuracy.png, the failure table
+in docs/methods.md and, at 1920x1080, the acceptance table in docs/performance.md
+(between their GENERATED markers), which make bench-1080 draws from its rows.
 """
 
 import argparse
@@ -222,7 +222,9 @@ def main():
         help="also redraw the chart and the tables of docs/ from --out",
     )
     parser.add_argument(
-        "--redraw", action="store_true", help="only redraw the chart and table from results.json"
+        "--redraw",
+        action="store_true",
+        help="only redraw the chart and the tables of docs/ from --out",
     )
     parser.add_argument("--methods", nargs="+", help="only these methods")
     parser.add_argument("--qualities", nargs="+", help="only these qualities")
@@ -235,8 +237,7 @@ def main():
         "--out",
         type=Path,
         default=OUT,
-        help="where the rows go (another file than bench/results.json leaves the chart and "
-        "the failure table of docs/ alone)",
+        help="where the rows go",
     )
     parser.add_argument(
         "--one", nargs=3, metavar=("RIG", "METHOD", "QUALITY"), help=argparse.SUPPRESS
@@ -322,7 +323,7 @@ def main():
     results = {"size": [args.width, args.height], "rows": rows}
     out.write_text(json.dumps(results, indent=1))
     print(f"wrote {out}")
-    if args.docs or out == OUT.resolve():
+    if args.docs:
         chart(results)
         table(results, out)
         acceptance(results, out)
@@ -386,9 +387,11 @@ def chart(results):
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker
 
     rows = [r for r in results["rows"] if "build_seconds" in r]
-    rigs = [name for name in RIGS if any(r["rig"] == name for r in rows)]
+    late = [r for r in results["rows"] if "timed_out" in r]
+    rigs = [name for name in RIGS if any(r["rig"] == name for r in rows + late)]
     ncols = min(PANEL_COLUMNS, len(rigs))
     nrows = -(-len(rigs) // ncols)
     fig, axes = plt.subplots(nrows, ncols, figsize=(4.2 * ncols, 3.8 * nrows), squeeze=False)
@@ -411,6 +414,22 @@ def chart(results):
                 )
         ax.set_xscale("log")
         ax.set_yscale("log")
+        for k, r in enumerate(r for r in late if r["rig"] == rig):
+            # x in seconds, y as a fraction of the panel's height
+            ax.axvline(r["timed_out"], color="tab:red", lw=1.0, ls=":")
+            ax.text(
+                r["timed_out"],
+                0.92 - 0.08 * k,
+                f"{r['method']} timed out ",
+                transform=ax.get_xaxis_transform(),
+                ha="right",
+                fontsize=7,
+                color="tab:red",
+            )
+        if not any(r["rig"] == rig for r in rows):
+            ax.set_ylim(1e-3, 10.0)
+            ax.set_xlim(1.0, 2 * max(r["timed_out"] for r in late if r["rig"] == rig))
+        ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
         ax.axhline(TARGETS["p95"], color="grey", lw=0.8, ls="--")
         ax.set_title(RIGS[rig], fontsize=10)
         ax.set_xlabel("Compute Field, s")
@@ -511,9 +530,10 @@ def table(results, source=OUT):
     lines = [
         f"Measured by {_command(results, source)} at {w}x{h} (`bench/{source.name}`, report",
         "version 2). Each cell: what Compute Field took (build and report; for AUTO, what it",
-        "built) and what missed the targets (worst camera's along-ray p95 over "
-        f"{TARGETS['p95']} px or max over {TARGETS['max']:g} px, folded quads, stalled rays,",
-        "Newton failures, voxels two masks both claim), or that it holds.",
+        "built) and what missed the targets (worst camera's along-ray p95 over",
+        f"{TARGETS['p95']} px or max over {TARGETS['max']:g} px, folded quads, stalled rays, "
+        "Newton failures,",
+        "voxels two masks both claim), or that it holds.",
         "",
         "| rig | " + " | ".join(f"`{m}` {q}" for m, q in columns) + " |",
         "|---|" + "---|" * len(columns),
@@ -564,11 +584,12 @@ def acceptance(results, source=OUT):
     rows = results["rows"]
     lines = [
         f"Measured by {_command(results, source)} (`bench/{source.name}`). Targets: every",
-        f"camera's along-ray p95 <= {TARGETS['p95']} px and max <= {TARGETS['max']:g} px on the",
-        "pixels it keeps, zero folds (exact counter), zero stalled rays and Newton failures,",
-        f"Compute Field <= {TARGETS['build']:g} s (default) or <= {TARGETS['forced_build']:g} s",
-        f"(forced SCALAR_FIELD), every process's peak memory added up <= "
-        f"{TARGETS['memory_mb'] / 1024:g} GB.",
+        f"camera's along-ray p95 <= {TARGETS['p95']} px and max <= {TARGETS['max']:g} px on "
+        "the pixels it keeps,",
+        "zero folds (exact counter), zero stalled rays and Newton failures, Compute Field",
+        f"<= {TARGETS['build']:g} s (default) or <= {TARGETS['forced_build']:g} s (forced "
+        "SCALAR_FIELD), every process's",
+        f"peak memory added up <= {TARGETS['memory_mb'] / 1024:g} GB.",
         "",
         "| rig | method (built) | Compute Field s | load | p95/max px per camera | folds "
         "| stalled, Newton | peak MB (all) | commit | meets the targets |",
