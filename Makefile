@@ -116,7 +116,7 @@ demo-anim: sample_blends/dolly.blend
 
 # Speed and accuracy figures (minutes, not part of `make test`): the membership solver
 # against the paper's explicit diffusion (capped at 8 minutes a size: a capped run gives
-# a lower bound on the ratio), then every method at every quality on five rigs at 480x270
+# a lower bound on the ratio), then every method at every quality on every bench rig at 480x270
 # (the 1000x rig on nested grids takes minutes a build even there), then the
 # Cycles hand-off against plain Cycles at 480x270, 64 samples, on the three-camera test
 # scene and on the 100k-triangle scene of bench-render (about 3 minutes on 2 cores),
