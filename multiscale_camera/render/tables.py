@@ -17,10 +17,10 @@ import numpy as np
 
 from ..core.geometry import RayBundle
 from ..core.runtime import runtime
-from ..core.sampling import Segments
+from ..core.sampling import Segments, ray_ends
 from . import pipeline, workers
 from .processes import blender_launcher, frame_here, portable
-from .raycast import bundle_segments, clip_to_box, march
+from .raycast import bundle_segments, march
 
 # A handed-on ray starts at least this fraction of the scene's size before its hit: far
 # below anything visible, far above float32 rounding of the stored origins.
@@ -44,8 +44,9 @@ class RayTables:
     object_index : (H, W) float32: the hit object's ``pass_index`` (0 for a miss).
     casts : int, segment casts the march made.
     clipped : (H, W) bool: misses whose ray ended at its far plane (the cameras'
-        ``clip_end``, ``core.sampling.clip_far``); their origin lies past the scene's
-        box on the last segment's line, so a straight renderer sees only the world there.
+        ``clip_end``, ``core.sampling.clip_far``); their origin and direction are those
+        where the ray ends (its last segment of non-zero length, ``clipped_misses``),
+        run on past the scene's box, so a straight renderer sees only the world there.
     """
 
     origin: np.ndarray
@@ -238,9 +239,13 @@ def _march_here(frame, out, keep_polylines, tile, stop=None):
     seg = frame.sampler.segments(ix + 0.5, iy + 0.5, ix, iy)
     hits = march(frame.tree, seg, stop, frame.bounds, frame.geometry, frame.occupancy)
     o, d, t = first_hit_segments(seg, hits, START_MARGIN * frame.scale)
-    cut = clipped_before_geometry(seg, hits, frame.bounds)
-    if cut.any():
-        o[cut] = past_box(o[cut], d[cut], *frame.bounds, frame.scale)
+    # a ray cut at its far plane is handed on from where it ends, run on past the
+    # scene's box, so a straight renderer shows no surface beyond the plane
+    cut, end, tangent = clipped_misses(seg, hits)
+    d[cut] = tangent[cut]
+    o[cut] = end[cut]
+    if cut.any() and frame.bounds is not None:
+        o[cut] = past_box(end[cut], tangent[cut], *frame.bounds, frame.scale)
     clipped[slice(row0, row1)] = cut.reshape(row1 - row0, width)
     rows = slice(row0, row1)
     origin[rows] = o.reshape(row1 - row0, width, 3)
@@ -261,25 +266,22 @@ def _march_here(frame, out, keep_polylines, tile, stop=None):
     return hits.casts, lines
 
 
-def clipped_before_geometry(seg, hits, bounds):
-    """(R,) bool: misses that ended at their far plane where their line, run on, would
-    still meet the scene's box ``bounds`` (None: no geometry, so none); a straight
-    renderer handed such a ray from its last segment could show what the far plane
-    hides."""
-    if seg.clipped is None or bounds is None:
-        return np.zeros(len(seg), dtype=bool)
-    rays = np.flatnonzero(seg.clipped & ~hits.hit)
-    # each ray ends on its last segment of non-zero length (a ray clipped before its
-    # last vertex has empty segments after it)
-    last = np.zeros(len(seg), dtype=np.int64)
-    np.maximum.at(last, seg.ray, np.where(seg.length > 0, np.arange(len(seg.ray)), 0))
-    last = last[rays]
-    end = seg.origin[last] + seg.direction[last] * seg.length[last][:, None]
-    direction = seg.direction[last]
-    meets, _t0, _t1 = clip_to_box(end, direction, np.full(len(rays), np.inf), *bounds)
-    out = np.zeros(len(seg), dtype=bool)
-    out[rays[meets]] = True
-    return out
+def clipped_misses(seg, hits):
+    """The misses that ended at their far plane, and where each ray ends.
+
+    seg : Segments of R rays (``core.sampling.clip_far``'s). hits : their Hits.
+
+    Returns
+    -------
+    cut : (R,) bool, rays cut at their far plane that hit nothing before it.
+    end, direction : (R, 3) float64: the far end of each ray's last segment of non-zero
+        length and that segment's direction (a ray that starts beyond its far plane: its
+        first segment's start and direction; ``core.sampling.ray_ends``).
+    """
+    end, direction = ray_ends(seg)
+    if seg.clipped is None:
+        return np.zeros(len(seg), dtype=bool), end, direction
+    return seg.clipped & ~hits.hit, end, direction
 
 
 def past_box(origin, direction, lo, hi, scale):
