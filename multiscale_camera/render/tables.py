@@ -17,10 +17,10 @@ import numpy as np
 
 from ..core.geometry import RayBundle
 from ..core.runtime import runtime
-from ..core.sampling import Segments, ray_ends
+from ..core.sampling import Segments, last_segments
 from . import pipeline, workers
 from .processes import blender_launcher, frame_here, portable
-from .raycast import bundle_segments, march
+from .raycast import bundle_segments, clip_to_box, march
 
 # A handed-on ray starts at least this fraction of the scene's size before its hit: far
 # below anything visible, far above float32 rounding of the stored origins.
@@ -32,7 +32,7 @@ class RayTables:
     """First-hit rays of an image of H x W pixels, row 0 at the top, world space.
 
     origin : (H, W, 3) float64, world units: start of the segment that holds the first
-        hit (for a miss: start of the ray's last segment).
+        hit (for a miss: start of the ray's last segment of non-zero length).
     direction : (H, W, 3) float64, unit: that segment's direction.
     distance : (H, W) float64, world units: from ``origin`` to the hit along
         ``direction`` (inf for a miss).
@@ -44,9 +44,11 @@ class RayTables:
     object_index : (H, W) float32: the hit object's ``pass_index`` (0 for a miss).
     casts : int, segment casts the march made.
     clipped : (H, W) bool: misses whose ray ended at its far plane (the cameras'
-        ``clip_end``, ``core.sampling.clip_far``); their origin and direction are those
-        where the ray ends (its last segment of non-zero length, ``clipped_misses``),
-        run on past the scene's box, so a straight renderer sees only the world there.
+        ``clip_end``, ``core.sampling.clip_far``) where the line of the ray's own last
+        segment of non-zero length, run on past the plane, meets the scene's box; their
+        origin lies past the box on that line (``clipped_misses``), so a straight
+        renderer sees only the world there. Every other miss cut at its far plane is
+        that segment itself, whose line meets nothing.
     """
 
     origin: np.ndarray
@@ -239,12 +241,12 @@ def _march_here(frame, out, keep_polylines, tile, stop=None):
     seg = frame.sampler.segments(ix + 0.5, iy + 0.5, ix, iy)
     hits = march(frame.tree, seg, stop, frame.bounds, frame.geometry, frame.occupancy)
     o, d, t = first_hit_segments(seg, hits, START_MARGIN * frame.scale)
-    # a ray cut at its far plane is handed on from where it ends, run on past the
-    # scene's box, so a straight renderer shows no surface beyond the plane
-    cut, end, tangent = clipped_misses(seg, hits)
-    d[cut] = tangent[cut]
-    o[cut] = end[cut]
-    if cut.any() and frame.bounds is not None:
+    # a miss cut at its far plane is handed on as its own last segment of non-zero
+    # length (the march found nothing on it); where that line runs on into the scene's
+    # box past the plane, from past the box, so a straight renderer shows nothing beyond
+    miss, cut, start, end, tangent = clipped_misses(seg, hits, frame.bounds)
+    o[miss], d[miss] = start[miss], tangent[miss]
+    if cut.any():
         o[cut] = past_box(end[cut], tangent[cut], *frame.bounds, frame.scale)
     clipped[slice(row0, row1)] = cut.reshape(row1 - row0, width)
     rows = slice(row0, row1)
@@ -266,22 +268,33 @@ def _march_here(frame, out, keep_polylines, tile, stop=None):
     return hits.casts, lines
 
 
-def clipped_misses(seg, hits):
-    """The misses that ended at their far plane, and where each ray ends.
+def clipped_misses(seg, hits, bounds):
+    """The misses that ended at their far plane, each as its own last segment of
+    non-zero length (its first segment when it has none: a ray that starts beyond its
+    far plane; ``core.sampling.last_segments``).
 
     seg : Segments of R rays (``core.sampling.clip_far``'s). hits : their Hits.
+    bounds : ((3,), (3,)) float64 scene box, or None (no geometry).
 
     Returns
     -------
-    cut : (R,) bool, rays cut at their far plane that hit nothing before it.
-    end, direction : (R, 3) float64: the far end of each ray's last segment of non-zero
-        length and that segment's direction (a ray that starts beyond its far plane: its
-        first segment's start and direction; ``core.sampling.ray_ends``).
+    miss : (R,) bool, rays cut at their far plane that hit nothing before it.
+    cut : (R,) bool, those of them whose line, run on past where the ray ends, meets the
+        box: a straight renderer handed the segment could show what the far plane hides.
+    start, end, direction : (R, 3) float64: that segment's start, far end and direction.
     """
-    end, direction = ray_ends(seg)
-    if seg.clipped is None:
-        return np.zeros(len(seg), dtype=bool), end, direction
-    return seg.clipped & ~hits.hit, end, direction
+    last = last_segments(seg)
+    start, direction = seg.origin[last], seg.direction[last]
+    end = start + direction * seg.length[last][:, None]
+    miss = np.zeros(len(seg), dtype=bool) if seg.clipped is None else seg.clipped & ~hits.hit
+    cut = np.zeros(len(seg), dtype=bool)
+    if bounds is not None and miss.any():
+        rays = np.flatnonzero(miss)
+        meets, _t0, _t1 = clip_to_box(
+            end[rays], direction[rays], np.full(len(rays), np.inf), *bounds
+        )
+        cut[rays[meets]] = True
+    return miss, cut, start, end, direction
 
 
 def past_box(origin, direction, lo, hi, scale):

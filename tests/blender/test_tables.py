@@ -93,21 +93,27 @@ def test_a_clipped_miss_is_handed_on_from_its_own_end_not_another_rays():
     )
     hits = march(PLANE, seg)
     assert not hits.hit.any()
-    cut, end, direction = clipped_misses(seg, hits)
-    assert cut.tolist() == [True, True]
+    # a box both lines run into past their ends, and one neither meets
+    lo, hi = np.array([-1.0, -1.0, -1.0]), np.array([1.0, 5.0, 1.0])
+    miss, cut, start, end, direction = clipped_misses(seg, hits, (lo, hi))
+    assert miss.tolist() == [True, True] and cut.tolist() == [True, True]
     # written out: ray 0 ends where its turned segment crosses depth 1.2 along the axis
     a = s0 + d[0] * 0.05
     t = (1.2 - (a - near.eye) @ near.forward) / (turned @ near.forward)
     assert 0 < t < 1
+    np.testing.assert_allclose(start[0], a, atol=1e-9)
     np.testing.assert_allclose(end[0], a + turned * t, atol=1e-9)
     np.testing.assert_allclose(direction[0], turned, atol=1e-9)
+    np.testing.assert_allclose(start[1], s1, atol=1e-9)
     np.testing.assert_allclose(end[1], s1, atol=1e-9)
     np.testing.assert_allclose(direction[1], d[1], atol=1e-9)
     # past the box: nothing of the box lies ahead of the handed-on origin
-    lo, hi = np.array([-1.0, -1.0, -1.0]), np.array([1.0, 5.0, 1.0])
-    start = past_box(end, direction, lo, hi, 0.5)
-    for o, e, u in zip(start, end, direction):
+    origin = past_box(end, direction, lo, hi, 0.5)
+    for o, e, u in zip(origin, end, direction):
         ahead = o + u * np.linspace(0.0, 100.0, 10001)[:, None]
         assert not np.all((ahead >= lo) & (ahead <= hi), axis=1).any()
         # and the origin lies on the ray's own line, ahead of where it ends
         assert np.linalg.norm(np.cross(o - e, u)) < 1e-9 and (o - e) @ u > 0
+    far = (np.array([50.0, 50.0, 50.0]), np.array([51.0, 51.0, 51.0]))
+    miss, cut, *_ = clipped_misses(seg, hits, far)
+    assert miss.tolist() == [True, True] and cut.tolist() == [False, False]
