@@ -5,8 +5,9 @@ share, so that all three count the same objects (docs/failures.md, *Scene conten
 A render leaves out, for camera rays:
 
 - objects disabled in renders (``hide_render``): their own, or their instancer's (an
-  instance, a particle); an object disabled in renders still shows as a particle, not
-  inside an instanced collection (as Blender 5's render depsgraph has them);
+  instance, a particle); an object disabled in renders still shows as a particle or a
+  Geometry Nodes instance, not inside an instanced collection nor as the child of a
+  vertex or face instancer (as Blender 5's render depsgraph has them);
 - objects in no collection the render shows: collections disabled in renders
   (``Collection.hide_render``, also through a parent collection) and collections
   excluded from the view layer (``LayerCollection.exclude``; a depsgraph never holds
@@ -17,7 +18,9 @@ A render leaves out, for camera rays:
   (``show_instancer_for_render``).
 
 Holdouts (``Object.is_holdout``, or a collection set to Holdout) are seen: they hide
-what lies behind them and show transparent (alpha 0), as in Cycles.
+what lies behind them and show transparent (alpha 0), as in Cycles, whose object sync
+decides holdout from the instancer alone (a particle of a holdout object is no hole) and
+lets holdout win over Indirect Only.
 
 A render's depsgraph already holds nothing disabled in renders; a viewport depsgraph
 (the rig check's) holds those, and lacks what is hidden in the viewport only (disabled
@@ -66,17 +69,28 @@ def camera_kind(obj, holder, view_layer, shown=None):
     out). ``shown``: ``render_shown`` of the scene, for a viewport depsgraph, whose
     objects include those disabled in renders; None for a render's depsgraph."""
     if shown is not None:
-        # a particle shows an object disabled in renders; an instanced collection does not
-        own = obj.hide_render and (obj == holder or holder.instance_type == "COLLECTION")
-        if own or holder.hide_render or holder.name_full not in shown:
+        if obj.hide_render and not shows_disabled_source(obj, holder):
+            return None
+        if holder.hide_render or holder.name_full not in shown:
             return None
     if not (obj.visible_camera and holder.visible_camera):
         return None
+    # as Cycles' object sync: the holder alone decides holdout, and holdout wins over
+    # Indirect Only
+    if holder.is_holdout or holder.holdout_get(view_layer=view_layer):
+        return HOLDOUT
     if holder.indirect_only_get(view_layer=view_layer):
         return None
-    if obj.is_holdout or holder.is_holdout or holder.holdout_get(view_layer=view_layer):
-        return HOLDOUT
     return SHOWN
+
+
+def shows_disabled_source(obj, holder):
+    """Whether a render shows ``obj``, disabled in renders, as an instance of ``holder``:
+    as a particle or a Geometry Nodes instance it does; as itself, inside an instanced
+    collection, or as the child of a vertex or face instancer it does not."""
+    if obj == holder or holder.instance_type == "COLLECTION":
+        return False
+    return not (holder.instance_type in ("VERTS", "FACES") and obj.parent == holder)
 
 
 def shows_self(obj):

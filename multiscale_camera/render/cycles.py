@@ -142,7 +142,7 @@ def render(engine, depsgraph, frame):
     report = HandoffReport()
     # Esc, or Ctrl-C headless (the engine's ``should_stop``; Blender's own check alone
     # never hears Ctrl-C there)
-    stop = getattr(engine, "should_stop", engine.test_break)
+    stop = engine.should_stop
     camera = engine.camera_override or depsgraph.scene_eval.camera
     if camera is None or camera.type != "CAMERA":
         engine.fail("Multiscale: Cycles shading needs a scene camera")

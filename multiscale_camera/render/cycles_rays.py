@@ -193,7 +193,7 @@ def pinhole_classes(tables, cameras, tolerance_px=PINHOLE_TOLERANCE_PX):
     px, py = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
     classes = np.zeros((height, width), dtype=np.int32)
     length = np.sqrt(dot3(tables.direction, tables.direction))
-    if getattr(tables, "clipped", None) is not None:
+    if tables.clipped is not None:
         length = np.where(tables.clipped, 0.0, length)
     for i, camera in enumerate(cameras):
         origin, direction = pinhole_rays(camera, px, py)

@@ -14,7 +14,7 @@ from ..core.diagnostics import Diagnostics, Level
 from ..core.geometry import Rig
 from ..core.quality import obstruction_messages
 from ..core.runtime import gave_up, runtime, worker_count
-from ..core.sampling import DEFAULT_TOLERANCE_PX, Occupancy, RaySampler, sample_offsets
+from ..core.sampling import Occupancy, RaySampler, sample_offsets
 from .checks import geometry_cast
 from .fields import SERVICE, WORKERS_GIVEN_UP
 from .memory import guard_memory
@@ -177,7 +177,7 @@ def prepare_frame(depsgraph, diag=None, report=False):
             if published is not None:
                 published = with_surface(published, errors)
     settings = scene.multiscale
-    tol = getattr(settings, "simplify_px", DEFAULT_TOLERANCE_PX)
+    tol = settings.simplify_px
     processes = processes_of(scene)
     with diag.stage("simplify"), runtime().journal() as simplified:
         sampler = sampler_for(ray_field, tol, bounds, diag.should_stop, occupancy, processes)
@@ -321,7 +321,7 @@ def _rgba(frame, hits, shaded):
     on a holdout shows transparent black, whatever the film (as Cycles' holdouts)."""
     alpha = np.where(hits.hit | (not frame.transparent), 1.0, 0.0).astype(np.float32)
     colour = shaded.colour * alpha[:, None] if frame.transparent else shaded.colour
-    holdout = getattr(frame.geometry, "holdout", None)
+    holdout = frame.geometry.holdout
     if holdout is not None and holdout.any():
         held = hits.hit.copy()
         held[held] = holdout[hits.triangle[held]]
@@ -363,6 +363,8 @@ def render_rows(frame, row0, row1, should_stop=None):
     shape = (row1 - row0, width)
     index = np.zeros(len(hits.hit), dtype=np.float32)
     index[hits.hit] = frame.geometry.pass_index[hits.triangle[hits.hit]]
+    if frame.geometry.holdout is not None:  # Cycles writes no object index on a holdout
+        index[hits.hit] *= ~frame.geometry.holdout[hits.triangle[hits.hit]]
     depth = np.where(hits.hit, centre.start_depth + hits.distance, MISS_DEPTH)
     if frame.volumes:
         # volumes are marched along the pixel's own bent ray (its centre), membership and all

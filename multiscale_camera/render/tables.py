@@ -17,7 +17,7 @@ import numpy as np
 
 from ..core.geometry import RayBundle
 from ..core.runtime import runtime
-from ..core.sampling import Segments
+from ..core.sampling import Segments, last_segments
 from . import pipeline, workers
 from .processes import blender_launcher, frame_here, portable
 from .raycast import bundle_segments, clip_to_box, march
@@ -32,7 +32,7 @@ class RayTables:
     """First-hit rays of an image of H x W pixels, row 0 at the top, world space.
 
     origin : (H, W, 3) float64, world units: start of the segment that holds the first
-        hit (for a miss: start of the ray's last segment).
+        hit (for a miss: start of the ray's last segment of non-zero length).
     direction : (H, W, 3) float64, unit: that segment's direction.
     distance : (H, W) float64, world units: from ``origin`` to the hit along
         ``direction`` (inf for a miss).
@@ -44,8 +44,11 @@ class RayTables:
     object_index : (H, W) float32: the hit object's ``pass_index`` (0 for a miss).
     casts : int, segment casts the march made.
     clipped : (H, W) bool: misses whose ray ended at its far plane (the cameras'
-        ``clip_end``, ``core.sampling.clip_far``); their origin lies past the scene's
-        box on the last segment's line, so a straight renderer sees only the world there.
+        ``clip_end``, ``core.sampling.clip_far``) where the line of the ray's own last
+        segment of non-zero length, run on past the plane, meets the scene's box; their
+        origin lies past the box on that line (``clipped_misses``), so a straight
+        renderer sees only the world there. Every other miss cut at its far plane is
+        that segment itself, whose line meets nothing.
     """
 
     origin: np.ndarray
@@ -238,9 +241,13 @@ def _march_here(frame, out, keep_polylines, tile, stop=None):
     seg = frame.sampler.segments(ix + 0.5, iy + 0.5, ix, iy)
     hits = march(frame.tree, seg, stop, frame.bounds, frame.geometry, frame.occupancy)
     o, d, t = first_hit_segments(seg, hits, START_MARGIN * frame.scale)
-    cut = clipped_before_geometry(seg, hits, frame.bounds)
+    # a miss cut at its far plane is handed on as its own last segment of non-zero
+    # length (the march found nothing on it); where that line runs on into the scene's
+    # box past the plane, from past the box, so a straight renderer shows nothing beyond
+    miss, cut, start, end, tangent = clipped_misses(seg, hits, frame.bounds)
+    o[miss], d[miss] = start[miss], tangent[miss]
     if cut.any():
-        o[cut] = past_box(o[cut], d[cut], *frame.bounds, frame.scale)
+        o[cut] = past_box(end[cut], tangent[cut], *frame.bounds, frame.scale)
     clipped[slice(row0, row1)] = cut.reshape(row1 - row0, width)
     rows = slice(row0, row1)
     origin[rows] = o.reshape(row1 - row0, width, 3)
@@ -261,25 +268,33 @@ def _march_here(frame, out, keep_polylines, tile, stop=None):
     return hits.casts, lines
 
 
-def clipped_before_geometry(seg, hits, bounds):
-    """(R,) bool: misses that ended at their far plane where their line, run on, would
-    still meet the scene's box ``bounds`` (None: no geometry, so none); a straight
-    renderer handed such a ray from its last segment could show what the far plane
-    hides."""
-    if seg.clipped is None or bounds is None:
-        return np.zeros(len(seg), dtype=bool)
-    rays = np.flatnonzero(seg.clipped & ~hits.hit)
-    # each ray ends on its last segment of non-zero length (a ray clipped before its
-    # last vertex has empty segments after it)
-    last = np.zeros(len(seg), dtype=np.int64)
-    np.maximum.at(last, seg.ray, np.where(seg.length > 0, np.arange(len(seg.ray)), 0))
-    last = last[rays]
-    end = seg.origin[last] + seg.direction[last] * seg.length[last][:, None]
-    direction = seg.direction[last]
-    meets, _t0, _t1 = clip_to_box(end, direction, np.full(len(rays), np.inf), *bounds)
-    out = np.zeros(len(seg), dtype=bool)
-    out[rays[meets]] = True
-    return out
+def clipped_misses(seg, hits, bounds):
+    """The misses that ended at their far plane, each as its own last segment of
+    non-zero length (its first segment when it has none: a ray that starts beyond its
+    far plane; ``core.sampling.last_segments``).
+
+    seg : Segments of R rays (``core.sampling.clip_far``'s). hits : their Hits.
+    bounds : ((3,), (3,)) float64 scene box, or None (no geometry).
+
+    Returns
+    -------
+    miss : (R,) bool, rays cut at their far plane that hit nothing before it.
+    cut : (R,) bool, those of them whose line, run on past where the ray ends, meets the
+        box: a straight renderer handed the segment could show what the far plane hides.
+    start, end, direction : (R, 3) float64: that segment's start, far end and direction.
+    """
+    last = last_segments(seg)
+    start, direction = seg.origin[last], seg.direction[last]
+    end = start + direction * seg.length[last][:, None]
+    miss = np.zeros(len(seg), dtype=bool) if seg.clipped is None else seg.clipped & ~hits.hit
+    cut = np.zeros(len(seg), dtype=bool)
+    if bounds is not None and miss.any():
+        rays = np.flatnonzero(miss)
+        meets, _t0, _t1 = clip_to_box(
+            end[rays], direction[rays], np.full(len(rays), np.inf), *bounds
+        )
+        cut[rays[meets]] = True
+    return miss, cut, start, end, direction
 
 
 def past_box(origin, direction, lo, hi, scale):

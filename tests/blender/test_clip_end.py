@@ -77,11 +77,15 @@ def test_camera_whose_clip_end_lies_before_an_object_shows_background_there(scen
 
 
 def ray_ends(seg):
-    """(R, 3): where each ray ends (the far end of its last segment of non-zero length)."""
-    ends = seg.origin + seg.direction * seg.length[:, None]
-    last = np.zeros(len(seg), dtype=np.int64)
-    np.maximum.at(last, seg.ray, np.where(seg.length > 0, np.arange(len(seg.ray)), 0))
-    return ends[last]
+    """(R, 3): where each ray ends, ray by ray: the far end of its own last segment of
+    non-zero length, or its start when every one of its segments is empty."""
+    ends = np.empty((len(seg), 3))
+    for r in range(len(seg)):
+        own = range(seg.offsets[r], seg.offsets[r + 1])
+        kept = [s for s in own if seg.length[s] > 0]
+        s = kept[-1] if kept else own[0]
+        ends[r] = seg.origin[s] + seg.direction[s] * seg.length[s]
+    return ends
 
 
 def test_a_transition_between_two_clip_ends_has_no_hard_cut(scene):

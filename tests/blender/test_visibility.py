@@ -5,10 +5,13 @@ case (docs/failures.md, *Scene content*)."""
 import bpy
 import numpy as np
 import pytest
+from scipy.ndimage import binary_erosion
 
+from fixtures.blender.handoff import cycles_settings
 from fixtures.blender.objects import add_mesh
 from fixtures.blender.scenes import two_camera_scene
 from multiscale_camera.adapters.meshes import scene_geometry
+from multiscale_camera.adapters.scene import rig_from_scene
 from multiscale_camera.io.cache import FieldCache
 from multiscale_camera.render import fields, pipeline
 from multiscale_camera.render.tables import ray_tables
@@ -132,9 +135,12 @@ def test_holdout_hides_what_lies_behind_it_and_shows_transparent(
     assert geometry.holdout[geometry.object_of == cube].all()
     assert not geometry.holdout[geometry.object_of != cube].any()
     combined = passes["Combined"]
-    # the cube's pixels (the same as before: a holdout still stops the rays) are
-    # transparent black; the others keep their colour and alpha 1
-    assert np.array_equal(passes["IndexOB"][..., 0] == CUBE, cube_pixels)
+    # the cube's pixels (the same as before: a holdout still stops the rays, whose
+    # tables keep its index) are transparent black with no object index, as Cycles
+    # writes none on a holdout; the others keep their colour and alpha 1
+    assert np.all(passes["IndexOB"][..., 0][cube_pixels] == 0.0)
+    assert np.all(combined[cube_pixels][:, 3] == 0.0) and combined[..., 3].min() == 0.0
+    np.testing.assert_array_equal(passes["IndexOB"][~cube_pixels], before["IndexOB"][~cube_pixels])
     assert np.all(combined[cube_pixels] == 0.0)
     assert np.all(combined[~cube_pixels][:, 3] == 1.0)
     np.testing.assert_array_equal(combined[~cube_pixels], before["Combined"][~cube_pixels])
@@ -182,8 +188,38 @@ def test_rig_check_and_render_count_the_same_objects_in_a_mixed_scene(scene, tmp
     add_mesh("cube", (2, 1, 1), 5, (0.5, 0.5, 0.5)).visible_camera = False
     add_mesh("cube", (-2, 3, 1), 6, (0.5, 0.5, 0.5)).hide_render = True
     particle_emitter(scene)
+    # vertex and face instancers whose child is disabled in renders (the render shows no
+    # copy of it), and Geometry Nodes instancing of an object disabled in renders
+    for kind, x in (("VERTS", -3.0), ("FACES", 3.0)):
+        instancer = add_mesh("cube", (x, -1, 0.5), 8, (0.4, 0.4, 0.4), size=0.5)
+        instancer.name, instancer.instance_type = f"I{kind}", kind
+        child = add_mesh("uv_sphere", (x, -1, 0.5), 9, (0.2, 0.2, 0.2), radius=0.1)
+        child.name = f"C{kind}"
+        child.parent = instancer
+        child.hide_render = True
+    geometry_nodes_instancer(scene.objects["Cube"])
     checked, rendered, _passes, _tables = counted(scene, tmp_path, monkeypatch)
+    assert "CVERTS" not in rendered and "CFACES" not in rendered
+    assert "GN" in rendered
     assert checked == rendered
+
+
+def geometry_nodes_instancer(source):
+    """A plane whose Geometry Nodes put a copy of ``source`` on each of its points."""
+    plane = add_mesh("plane", (0, 2, 0.5), 10, (0.3, 0.3, 0.3), size=1)
+    plane.name = "GN"
+    tree = bpy.data.node_groups.new("Instances", "GeometryNodeTree")
+    tree.interface.new_socket("Geometry", in_out="INPUT", socket_type="NodeSocketGeometry")
+    tree.interface.new_socket("Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
+    given, out = tree.nodes.new("NodeGroupInput"), tree.nodes.new("NodeGroupOutput")
+    place = tree.nodes.new("GeometryNodeInstanceOnPoints")
+    info = tree.nodes.new("GeometryNodeObjectInfo")
+    info.inputs["Object"].default_value = source
+    tree.links.new(given.outputs[0], place.inputs["Points"])
+    tree.links.new(info.outputs["Geometry"], place.inputs["Instance"])
+    tree.links.new(place.outputs[0], out.inputs[0])
+    plane.modifiers.new("Instances", "NODES").node_group = tree
+    return plane
 
 
 def test_object_disabled_in_renders_inside_an_instanced_collection_is_left_out(
@@ -200,3 +236,53 @@ def test_object_disabled_in_renders_inside_an_instanced_collection_is_left_out(
     agree_with_cube(scene, tmp_path, monkeypatch)
     bpy.data.objects["Cube"].hide_render = True
     agree_without_cube(scene, tmp_path, monkeypatch)
+
+
+def plain_cycles_agrees(scene, tmp_path, monkeypatch):
+    """Our render against a plain Cycles render of each rig camera, in that camera's
+    preserved region (its mask eroded by 2 px): the same Object Index and alpha.
+    Returns Cycles' (Object Index, alpha) over those regions, for the test to show it
+    covers its case."""
+    cycles_settings(scene, samples=1)
+    scene.render.film_transparent = False
+    ours = counted(scene, tmp_path, monkeypatch)[2]
+    rig = rig_from_scene(scene)
+    scene.render.engine = "CYCLES"
+    seen = []
+    for number, name in enumerate(("C1", "C2")):
+        scene.camera = scene.objects[name]
+        scene.render.filepath = str(tmp_path / f"plain_{name}.exr")
+        bpy.ops.render.render(write_still=True)
+        plain = read_passes(tmp_path / f"plain_{name}.exr")
+        preserved = binary_erosion(rig.masks[number], iterations=2)
+        index, alpha = plain["IndexOB"][..., 0], plain["Combined"][..., 3]
+        seen.append((index[preserved], alpha[preserved]))
+        np.testing.assert_array_equal(ours["IndexOB"][..., 0][preserved], index[preserved])
+        np.testing.assert_array_equal(ours["Combined"][..., 3][preserved], alpha[preserved])
+    index, alpha = (np.concatenate(a) for a in zip(*seen))
+    return index, alpha
+
+
+def test_holdout_wins_over_indirect_only_as_in_cycles(scene, tmp_path, monkeypatch):
+    """A collection set to both Holdout and Indirect Only: Cycles cuts a hole (alpha 0)
+    where its sphere is (camera 2 looks at it); the render did not (it left the sphere
+    out, showing the ground)."""
+    coll = bpy.data.collections.new("Both")
+    scene.collection.children.link(coll)
+    coll.objects.link(scene.objects["Sphere"])
+    scene.collection.objects.unlink(scene.objects["Sphere"])
+    layer = bpy.context.view_layer.layer_collection.children["Both"]
+    layer.holdout = layer.indirect_only = True
+    _index, alpha = plain_cycles_agrees(scene, tmp_path, monkeypatch)
+    assert (alpha == 0.0).sum() > 10
+
+
+def test_particles_of_a_holdout_object_are_no_holes_as_in_cycles(scene, tmp_path, monkeypatch):
+    """Cycles decides holdout from the instancer alone: copies of a holdout cube shown
+    as particles of an emitter that is no holdout show as the cube does, not as holes."""
+    emitter = particle_emitter(scene)
+    emitter.scale = (3.0, 3.0, 1.0)
+    emitter.particle_systems[0].settings.count = 200
+    scene.objects["Cube"].is_holdout = True
+    index, alpha = plain_cycles_agrees(scene, tmp_path, monkeypatch)
+    assert (index == CUBE).sum() > 10 and (alpha == 1.0).all()

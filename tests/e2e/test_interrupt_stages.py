@@ -33,9 +33,11 @@ scene.multiscale.method = {method!r}
 scene.multiscale.shading = {shading!r}
 scene.render.filepath = {out!r}
 sent = []
+opened = []  # the stages open now, innermost last
 
 def interrupt():
     sent.append(time.perf_counter())
+    print("OPEN", opened[-1] if opened else None, flush=True)
     os.kill(os.getpid(), signal.SIGINT)
 
 def arm(name):
@@ -48,21 +50,30 @@ stage = diagnostics.Diagnostics.stage
 @contextmanager
 def armed(self, name):
     arm(name)
-    with stage(self, name):
-        yield self
+    opened.append(name)
+    try:
+        with stage(self, name):
+            yield self
+    finally:
+        opened.pop()
 
 diagnostics.Diagnostics.stage = armed
 for name in ("ray_tables", "write_tables"):
     def wrapped(*args, _name=name, _f=getattr(cycles, name), **kwargs):
         arm(_name)
-        return _f(*args, **kwargs)
+        opened.append(_name)
+        try:
+            return _f(*args, **kwargs)
+        finally:
+            opened.pop()
     setattr(cycles, name, wrapped)
 try:
     result = {call}
 except RuntimeError as err:
     result = str(err).strip()
 end = time.perf_counter()
-print("SECONDS", end - sent[0] if sent else None, flush=True)
+if sent:
+    print("SECONDS", end - sent[0], flush=True)
 print("RESULT", result, flush=True)
 """
 
@@ -76,7 +87,8 @@ def interrupted_at(
     stage, call, tmp_path, method="SCALAR_FIELD", shading="SOLID", size=(320, 240), delay=0.25
 ):
     """Run ``call`` in `blender -b` and SIGINT it ``delay`` s into ``stage``; (seconds
-    from the signal to the call's end, what the call gave, the output)."""
+    from the signal to the call's end, what the call gave, the output). Fails when the
+    signal was never sent or ``stage`` was no longer the open stage when it was."""
     out = tmp_path / "existing.png"
     out.write_bytes(b"the user's own image")
     code = SCRIPT.format(
@@ -104,11 +116,19 @@ def interrupted_at(
     output = proc.communicate(timeout=600)[0]
     assert f"STAGE {stage}" in output, output
     seconds = result = None
+    open_at_signal = []
     for line in output.splitlines():
+        if line.startswith("OPEN "):
+            open_at_signal.append(line[len("OPEN ") :].strip())
         if line.startswith("SECONDS "):
             seconds = float(line.split()[1])
         if line.startswith("RESULT "):
             result = line[len("RESULT ") :].strip()
+    assert open_at_signal, f"no SIGINT was sent: the call ended before the timer fired\n{output}"
+    assert open_at_signal == [stage], (
+        f"SIGINT came with stage {open_at_signal[0]!r} open, not {stage!r}\n{output}"
+    )
+    assert seconds is not None, output
     assert out.read_bytes() == b"the user's own image"
     assert not [n for n in os.listdir("/dev/shm") if n.startswith(f"{PREFIX}{proc.pid}_")]
     assert not [n for n in os.listdir(temp) if n.startswith("multiscale-cycles-")]

@@ -2,14 +2,21 @@
 preserved region, as Cycles clips a pinhole camera (at depth ``clip_end`` along the view
 axis), and a blend of the planes, continuous in the membership, in transitions."""
 
+import warnings
+
 import numpy as np
+import pytest
 
 from fixtures.rigs import camera
 from multiscale_camera.core.sampling import (
     clip_far,
     far_planes,
+    last_segments,
     reach_to_far_planes,
     segments_from_points,
+)
+from multiscale_camera.core.sampling import (
+    ray_ends as core_ray_ends,
 )
 
 C1 = camera("C1", (0, -16, 8), (0, 0, 0), clip_start=4.0, clip_end=30.0)
@@ -35,11 +42,15 @@ def pinhole_segments(cam, px, py, membership, bend=False):
 
 
 def ray_ends(seg):
-    """(R, 3): where each ray ends (the far end of its last segment of non-zero length)."""
-    ends = seg.origin + seg.direction * seg.length[:, None]
-    last = np.zeros(len(seg), dtype=np.int64)
-    np.maximum.at(last, seg.ray, np.where(seg.length > 0, np.arange(len(seg.ray)), 0))
-    return ends[last]
+    """(R, 3): where each ray ends, ray by ray: the far end of its own last segment of
+    non-zero length, or its start when every one of its segments is empty."""
+    ends = np.empty((len(seg), 3))
+    for r in range(len(seg)):
+        own = range(seg.offsets[r], seg.offsets[r + 1])
+        kept = [s for s in own if seg.length[s] > 0]
+        s = kept[-1] if kept else own[0]
+        ends[r] = seg.origin[s] + seg.direction[s] * seg.length[s]
+    return ends
 
 
 def test_a_preserved_ray_ends_on_its_cameras_far_plane_as_a_pinhole_camera_clips():
@@ -117,3 +128,98 @@ def test_reach_meets_every_cameras_far_plane_even_in_the_corners():
     for cam in (C1, C2):
         d = cam.directions(np.array([0.0]), np.array([0.0]))[0]
         assert reach >= cam.clip_end / (d @ cam.forward) - 1e-9
+
+
+def test_reach_meets_the_far_plane_in_every_corner_of_a_shifted_camera():
+    """A shifted camera's widest corner is off the middle: every one of its four corners
+    (and its pixel centres at the edges) needs clip_end / cos(angle off axis)."""
+    for shift in ((0.3, 0.0), (0.0, -0.4), (-0.5, 0.25)):
+        cam = camera("S", (0, -16, 8), (0, 0, 0), clip_end=30.0, shift_x=shift[0], shift_y=shift[1])
+        plain = camera("P", (0, -16, 8), (0, 0, 0), clip_end=30.0)
+        reach = reach_to_far_planes((cam,))
+        px = np.array([0.0, 64.0, 0.0, 64.0, 0.5, 63.5, 32.0, 32.0])
+        py = np.array([0.0, 0.0, 48.0, 48.0, 24.0, 24.0, 0.5, 47.5])
+        d = cam.directions(px, py)
+        need = cam.clip_end / (d @ cam.forward)
+        assert reach >= need.max() - 1e-9
+        assert reach <= need.max() + 1e-9  # the widest corner sets it, no more
+        # the shift matters: the unshifted camera's reach is too short for this one
+        assert reach_to_far_planes((plain,)) < need.max() - 1e-3
+
+
+def two_rays(first_start, second_start, d0, d1, reach=10.0):
+    """Two straight rays of two unit segments each, from the given starts."""
+    starts = (first_start, second_start)
+    points = np.array([[s + d * k for k in range(3)] for s, d in zip(starts, (d0, d1))])
+    ray = np.repeat(np.arange(2), 3)
+    return segments_from_points(
+        points.reshape(-1, 3), ray, 2, np.full(2, reach), np.zeros(2), np.ones(2)
+    )
+
+
+def test_a_ray_that_starts_beyond_its_far_plane_ends_at_its_own_start():
+    """Ray 1 starts 0.5 past camera N's far plane: all its segments are empty, and it
+    ends where it starts (not on ray 0's segment)."""
+    near = camera("N", (0, -4, 0), (0, 0, 0), clip_start=1.0, clip_end=1.2)
+    d = near.directions(np.array([32.0, 10.0]), np.array([24.0, 5.0]))
+    s0 = near.eye + d[0] * (1.0 / (d[0] @ near.forward))
+    s1 = near.eye + d[1] * (1.7 / (d[1] @ near.forward))
+    out = clip_far(two_rays(s0, s1, d[0], d[1]), (near,))
+    assert out.clipped.tolist() == [True, True]
+    assert np.all(out.length[3:] == 0.0)
+    end0 = near.eye + d[0] * (1.2 / (d[0] @ near.forward))
+    expected = np.array([end0, s1])
+    np.testing.assert_allclose(ray_ends(out), expected, atol=1e-12)
+    end, direction = core_ray_ends(out)
+    np.testing.assert_allclose(end, expected, atol=1e-12)
+    np.testing.assert_allclose(direction, d, atol=1e-12)
+    assert last_segments(out).tolist() == [0, out.offsets[1]]  # ray 1's own first segment
+
+
+def test_a_ray_cut_mid_bend_ends_on_its_far_plane_along_its_bent_direction():
+    """A ray whose first (turned) segment crosses the far plane ends there, heading the
+    turned way; its later segments are empty."""
+    cam = camera("B", (0, -4, 0), (0, 0, 0), clip_start=1.0, clip_end=1.2)
+    px, py = np.array([20.0, 40.0]), np.array([30.0, 10.0])
+    seg = pinhole_segments(cam, px, py, np.ones(2), bend=True)
+    out = clip_far(seg, (cam,))
+    d = cam.directions(px, py)
+    start = cam.eye + d * (cam.clip_start / (d @ cam.forward))[:, None]
+    turned = d + np.array([0.01, 0.0, 0.0])
+    turned /= np.linalg.norm(turned, axis=1, keepdims=True)
+    # forward . (start + s turned - eye) = clip_end
+    s = (cam.clip_end - (start - cam.eye) @ cam.forward) / (turned @ cam.forward)
+    assert np.all((s > 0) & (s < 0.5))  # the cut falls within the turned segment
+    expected = start + turned * s[:, None]
+    np.testing.assert_allclose(ray_ends(out), expected, atol=1e-9)
+    end, direction = core_ray_ends(out)
+    np.testing.assert_allclose(end, expected, atol=1e-9)
+    np.testing.assert_allclose(direction, turned, atol=1e-9)
+    assert out.clipped.all()
+    np.testing.assert_array_equal(out.length.reshape(2, 2)[:, 1], 0.0)
+
+
+@pytest.mark.parametrize("tilt", [1e-15, -1e-15, 0.0, 1e-9, -1e-9])
+def test_a_ray_nearly_parallel_to_its_far_plane_is_cut_only_if_it_starts_beyond(tilt):
+    """Rays running along the far plane (forward . direction = tilt ~ 0, either sign):
+    the one a unit before the plane keeps its whole length (it would cross the plane only
+    ~1/tilt away, past its reach); the one a unit beyond is empty from its start. No
+    NaN, no warning."""
+    cam = camera("P", (0, -16, 8), (0, 0, 0), clip_end=30.0)
+    across = np.cross(cam.forward, (0.0, 0.0, 1.0))
+    across /= np.linalg.norm(across)
+    u = across + tilt * cam.forward
+    u /= np.linalg.norm(u)
+    before = cam.eye + cam.forward * (cam.clip_end - 1.0)
+    beyond = cam.eye + cam.forward * (cam.clip_end + 1.0)
+    seg = two_rays(before, beyond, u, u)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        out = clip_far(seg, (cam,))
+        end, direction = core_ray_ends(out)
+    assert out.clipped.tolist() == [False, True]
+    np.testing.assert_array_equal(out.length[:2], seg.length[:2])
+    np.testing.assert_array_equal(out.length[2:], 0.0)
+    assert np.isfinite(out.length).all() and np.isfinite(end).all()
+    np.testing.assert_allclose(end[1], beyond, atol=1e-12)
+    np.testing.assert_allclose(direction, [u, u], atol=1e-12)

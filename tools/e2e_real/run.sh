@@ -107,7 +107,7 @@ import json, sys
 steps = json.load(open(sys.argv[1]))["steps"]
 for s in steps:
     if s["step"] in ("cancelled", "skipped", "failed"):
-        info = {k: s[k] for k in ("seconds", "after_heard", "reason") if k in s}
+        info = {k: s[k] for k in ("key_to_end", "heard_to_end", "reason") if k in s}
         print("cancel:", s["step"], s.get("stage"), info)
 names = [s["step"] for s in steps]
 sys.exit(0 if names and names[-1] == "done" and "failed" not in names else 1)

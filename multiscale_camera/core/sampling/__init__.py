@@ -6,7 +6,7 @@ never cast (``occupancy``). Built on ``geometry``; it reads a field only through
 rays.
 """
 
-from .clipping import clip_far, far_planes, reach_to_far_planes
+from .clipping import clip_far, far_planes, last_segments, ray_ends, reach_to_far_planes
 from .occupancy import Occupancy
 from .sampler import RaySampler, blackman_harris_inverse, sample_offsets
 from .simplification import (
@@ -35,7 +35,9 @@ __all__ = [
     "footprint",
     "greedy_keep",
     "in_chunks",
+    "last_segments",
     "polyline_measures",
+    "ray_ends",
     "reach_to_far_planes",
     "sample_offsets",
     "segments_from_points",

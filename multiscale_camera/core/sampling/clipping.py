@@ -95,3 +95,27 @@ def clip_far(seg, cameras):
         castable &= seg.castable
     clipped = np.bincount(seg.ray, weights=cut, minlength=len(seg)) > 0
     return replace(seg, length=length, castable=castable, clipped=clipped)
+
+
+def last_segments(seg):
+    """(R,) int64: index of each ray's last segment of non-zero length, or of its first
+    segment when it has none (a ray that starts beyond its far plane).
+
+    seg : Segments of R rays (every ray has at least one segment).
+    """
+    if len(seg) == 0:
+        return np.zeros(0, dtype=np.int64)
+    own = np.arange(len(seg.ray), dtype=np.int64)
+    kept = np.where(seg.length > 0, own, seg.offsets[:-1][seg.ray])
+    return np.maximum.reduceat(kept, seg.offsets[:-1])
+
+
+def ray_ends(seg):
+    """Where each ray ends and its direction there: the far end of its last segment of
+    non-zero length (``last_segments``), or its start when it has none.
+
+    Returns end : (R, 3) float64, world units, and direction : (R, 3) float64 unit.
+    """
+    last = last_segments(seg)
+    end = seg.origin[last] + seg.direction[last] * seg.length[last][:, None]
+    return end, seg.direction[last]
