@@ -18,25 +18,30 @@ what a build of an animated rig may take from the frame before it (``reuse``,
 
 from __future__ import annotations
 
+import hashlib
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import bpy
+import numpy as np
 
 from ..adapters.scene import cache_folder_of, field_settings, rig_from_scene
+from ..adapters.shot import animation_digest, shot_rigs
 from ..adapters.volumes import VolumeGridCache
 from ..core.diagnostics import Diagnostics, Level
 from ..core.errors import Cancelled
 from ..core.geometry import Rig
-from ..core.methods import FrameReuse, Settings, field_key, prepare
+from ..core.methods import FrameReuse, Settings, field_key, plan_shot, prepare
 from ..core.quality import build_report, crossing_messages, empty_mask_messages, to_json
 from ..core.runtime import gave_up, runtime
 from ..io.cache import DEFAULT_LIMIT_MB, FieldCache
 from ..io.locks import POLL_SECONDS as LOCK_POLL_SECONDS
 from .sequence import Sequence
 
+# Methods whose grids a rig in motion keeps for a whole shot (``FieldService.shot_layout``).
+SHOT_METHODS = ("SCALAR_FIELD", "AUTO")
 # Worker processes of a build, the simplification or the ray tables gave way.
 WORKERS_GIVEN_UP = (
     "Worker processes died, stopped making progress or could not be used; their work "
@@ -151,6 +156,7 @@ class FieldService:
         self.volume_grids = VolumeGridCache()  # decoded volume sources, every frame
         self.reuse = FrameReuse()  # claims and solutions of the last animated build
         self.sequence = Sequence()  # the last frame's first hits: frame-to-frame jumps
+        self.shots = {}  # the layout of the last shot (``shot_layout``)
         self._listeners: list[Callable] = []
         self._build: FieldBuild | None = None
 
@@ -165,6 +171,8 @@ class FieldService:
         group = scene.multiscale
         rig = rig if rig is not None else rig_from_scene(scene, depsgraph)
         settings = field_settings(scene)
+        if settings.steady and group.method in SHOT_METHODS:
+            settings = replace(settings, layout=self.shot_layout(scene, rig, settings, depsgraph))
         notices = tuple(rig.notices) + tuple(empty_mask_messages(rig))
         notices += tuple(crossing_messages(rig))
         folder, said = cache_folder_of(scene)
@@ -180,6 +188,28 @@ class FieldService:
             limit_mb=float(getattr(group, "cache_limit_mb", DEFAULT_LIMIT_MB)),
             folder=folder,
         )
+
+    def shot_layout(self, scene, rig, settings, depsgraph=None):
+        """The layout of the shot ``scene``'s frame range makes for a rig in motion
+        (``core.methods.plan_shot``), the same at every frame of it: worked out once
+        per shot (its cameras' animation, masks, size and settings) and kept. None where
+        the frames cannot be stepped (a render on a thread of its own): each frame then
+        gets a layout of its own."""
+        mask_bytes = np.packbits(np.ascontiguousarray(rig.masks)).tobytes()
+        key = (
+            animation_digest(scene),
+            hashlib.sha1(mask_bytes).hexdigest(),
+            rig.size,
+            rig.beta,
+            tuple(c.name for c in rig.cameras),
+            repr(settings),
+        )
+        if key not in self.shots:
+            rigs = shot_rigs(scene, rig, depsgraph)
+            if rigs is None:
+                return None
+            self.shots = {key: plan_shot(rigs, settings)}  # one shot at a time
+        return self.shots[key]
 
     def cached(self, request: FieldRequest, memory_only: bool = False):
         """The cached field of ``request`` (memory, then disk unless ``memory_only``),
@@ -363,11 +393,20 @@ class FieldService:
         self._use(request)
         return self.cache.put(request.key, fld)
 
+    def forget_sequence(self):
+        """Drop what a sequence of frames kept (first hits, reuse store, shot layout):
+        a file load starts afresh, whatever the new file's scenes are called."""
+        self.sequence = Sequence()
+        self.reuse = FrameReuse()
+        self.shots = {}
+
     def clear(self) -> int:
         """Forget every field (memory and disk), cancel a background build. Returns the
         files removed."""
         if self._build is not None:
             self._build.cancel()
+        self.reuse = FrameReuse()  # claims and solutions kept from the last builds
+        self.shots = {}
         return self.cache.clear()
 
 

@@ -29,7 +29,7 @@ METHODS = {
 }
 
 
-def prepare_auto(rig, settings=None, diag=None):
+def prepare_auto(rig, settings=None, diag=None, reuse=None):
     """AUTO: the cheapest method that meets the accuracy target on this rig.
 
     IMAGE_BLEND is the cheapest (no 3D grid) and its preserved rays are exact by
@@ -39,8 +39,17 @@ def prepare_auto(rig, settings=None, diag=None):
     for). LINEAR folds wherever a transition has more than one nearest preserved pixel,
     and VECTOR_FIELD's preserved rays drift (docs/methods.md), so neither is a candidate.
     The choice and why are in ``stats["auto"]``.
+
+    A rig in motion (``settings.steady``) gets SCALAR_FIELD at every frame: one method
+    for the whole shot (IMAGE_BLEND's folds, counted frame by frame, could switch it
+    mid-shot), built with ``reuse`` (``reuse.FrameReuse`` or None) as SCALAR_FIELD is.
     """
     diag = diagnostics_of(diag)
+    settings = settings or Settings()
+    if settings.steady:
+        out = prepare_scalar_field(rig, settings, diag, reuse)
+        out.stats["auto"] = "SCALAR_FIELD: the rig moves, and a shot keeps one method"
+        return out
     fld = prepare_image_blend(rig, settings, diag)
     folds = int(fold_map(fld)[0].sum())
     if folds == 0:
@@ -59,13 +68,14 @@ def prepare(rig, method, settings=None, diag=None, reuse=None):
     """Prepare the ray field of ``method`` (the enum name of ``scene.multiscale.method``)
     for ``rig``, steered by ``diag`` (core.diagnostics.Diagnostics or None). ``reuse``
     (``reuse.FrameReuse`` or None): what SCALAR_FIELD may take from earlier builds of a
-    sequence, and keeps for the next (other methods build from scratch)."""
+    sequence, and keeps for the next (AUTO on a rig in motion too; other methods build
+    from scratch)."""
     try:
         builder = METHODS[method]
     except KeyError:
         raise RigError(
             f"Method '{method}' is not available in this version; use one of: " + ", ".join(METHODS)
         ) from None
-    if builder is prepare_scalar_field:
+    if builder in (prepare_scalar_field, prepare_auto):
         return builder(rig, settings or Settings(), diag, reuse)
     return builder(rig, settings or Settings(), diag)
