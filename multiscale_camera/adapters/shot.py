@@ -1,7 +1,8 @@
-"""A shot: the scene's frame range, for a rig in motion. Its layout (the grids of every
-frame, ``core.methods.plan_shot``) needs each frame's cameras; they are read by stepping
-the scene through its frames and back, which only Blender's main thread may do (a
-render started from the window runs its engine on a thread of its own)."""
+"""A shot: the frames a rig in motion is keyed over (else the scene's frame range). Its
+layout (the grids of every frame, ``core.methods.plan_shot``) needs each frame's
+cameras; they are read by stepping the scene through its frames and back, which only
+Blender's main thread may do (a render started from the window runs its engine on a
+thread of its own)."""
 
 import hashlib
 import threading
@@ -22,11 +23,42 @@ except ImportError:  # Blender 4.2, 4.3: the action holds them
 MAX_SHOT_FRAMES = 240
 
 
+def _blocks(scene):
+    """Every ID a list camera's state at a frame comes from: its camera data, the
+    object and its parents (original data blocks)."""
+    for item in scene.multiscale.cameras:
+        obj = item.camera
+        obj = getattr(obj, "original", None) or obj
+        if obj is None:
+            continue
+        yield obj.data
+        while obj is not None:
+            yield obj
+            obj = obj.parent
+
+
+def shot_range(scene):
+    """(first, last) frame of the shot: the span of the list cameras' keys (their data's
+    and their parents' too), the same in every process whatever frames it was asked to
+    render (``blender -s A -e B`` sets the scene's range); the scene's frame range where
+    nothing is keyed (drivers or constraints alone)."""
+    scene = getattr(scene, "original", None) or scene
+    spans = [
+        curve.range()
+        for block in _blocks(scene)
+        if getattr(block, "animation_data", None) is not None
+        for curve in _fcurves(block.animation_data)
+    ]
+    if not spans:
+        return int(scene.frame_start), int(scene.frame_end)
+    return int(np.floor(min(a for a, _b in spans))), int(np.ceil(max(b for _a, b in spans)))
+
+
 def shot_frames(scene):
-    """The frames of ``scene``'s range (frame_start..frame_end) a shot's layout reads."""
-    first, last = int(scene.frame_start), int(scene.frame_end)
-    count = last - first + 1
-    if count <= MAX_SHOT_FRAMES:
+    """The frames of the shot (``shot_range``) its layout reads: every one, or
+    MAX_SHOT_FRAMES evenly spread over a longer shot, both ends kept."""
+    first, last = shot_range(scene)
+    if last - first + 1 <= MAX_SHOT_FRAMES:
         return list(range(first, last + 1))
     return sorted({int(round(f)) for f in np.linspace(first, last, MAX_SHOT_FRAMES)})
 
@@ -118,21 +150,15 @@ def _block_bytes(block):
 
 
 def animation_digest(scene):
-    """Hex digest of what the list's cameras do over the scene's range: the range, and
-    for each camera, its data and its parents, their keys, drivers and constraints
-    (and their own values where nothing animates them). Objects that drive or
-    constrain a camera from elsewhere are named, not followed: a frame whose rig left a
-    stale layout gets one of its own."""
+    """Hex digest of what the list's cameras do over the shot: its range
+    (``shot_range``), and for each camera, its data and its parents, their keys,
+    drivers and constraints (and their own values where nothing animates them).
+    Objects that drive or constrain a camera from elsewhere are named, not followed: a
+    frame whose rig left a stale layout gets one of its own."""
     scene = getattr(scene, "original", None) or scene
-    h = hashlib.sha1(repr((scene.frame_start, scene.frame_end)).encode())
-    for item in scene.multiscale.cameras:
-        obj = item.camera
-        obj = getattr(obj, "original", None) or obj
-        if obj is None:
-            continue
-        h.update(_block_bytes(obj.data))
-        while obj is not None:
-            h.update(_block_bytes(obj))
-            h.update(np.array(obj.matrix_parent_inverse, dtype=np.float64).tobytes())
-            obj = obj.parent
+    h = hashlib.sha1(repr(shot_range(scene)).encode())
+    for block in _blocks(scene):
+        h.update(_block_bytes(block))
+        if hasattr(block, "matrix_parent_inverse"):
+            h.update(np.array(block.matrix_parent_inverse, dtype=np.float64).tobytes())
     return h.hexdigest()

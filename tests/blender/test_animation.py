@@ -11,6 +11,7 @@ eroded by 2 px (the hidden-surface agreement of docs/report.md's metrics)."""
 
 import json
 import math
+from dataclasses import replace
 
 import bpy
 import numpy as np
@@ -22,7 +23,7 @@ from fixtures.blender.scenes import two_camera_scene
 from multiscale_camera.adapters.masks import ANIMATED_MASK
 from multiscale_camera.adapters.scene import rig_from_scene
 from multiscale_camera.core.field import choose_grid, steady_grid, steady_levels
-from multiscale_camera.core.methods import FrameReuse, frame_levels
+from multiscale_camera.core.methods import FrameReuse, frame_levels, plan_shot
 from multiscale_camera.core.quality import erode
 from multiscale_camera.render import fields, pipeline
 from multiscale_camera.render.raycast import march
@@ -448,3 +449,23 @@ def test_clear_and_a_file_load_forget_the_sequence(empty_scene):
     bpy.ops.wm.read_homefile(use_empty=True)
     assert service.sequence.last == {}
     assert service.reuse.solved == {}
+
+
+def test_a_workers_frame_range_keeps_the_shots_layout(empty_scene):
+    """``blender -s A -e B`` sets the scene's frame range: a shot layout taken from it
+    differed between farm workers given different ranges. It spans the cameras' keys."""
+    scene = empty_scene
+    animated_rig(scene)  # keys on frames 1 and 3: both cameras move, camera 2 zooms
+    scene.multiscale.method = "SCALAR_FIELD"
+    layouts = []
+    for start, end in ((1, 3), (2, 3), (3, 3), (1, 10)):
+        scene.frame_start, scene.frame_end = start, end
+        scene.frame_set(3)
+        depsgraph = bpy.context.evaluated_depsgraph_get()
+        layouts.append(fields.SERVICE.request(depsgraph.scene, depsgraph=depsgraph).settings.layout)
+    assert layouts[0] is not None
+    assert all(layout == layouts[0] for layout in layouts), layouts
+    # frame 3 alone would ask for other grids: the range matters
+    rig = rig_from_scene(scene, bpy.context.evaluated_depsgraph_get())
+    settings = fields.SERVICE.request(scene).settings
+    assert plan_shot([rig], replace(settings, layout=None)) != layouts[0]
