@@ -162,17 +162,21 @@ class FieldService:
 
     # --- requests ------------------------------------------------------------------
 
-    def request(self, scene, rig: Rig | None = None, depsgraph=None) -> FieldRequest:
+    def request(
+        self, scene, rig: Rig | None = None, depsgraph=None, step_frames: bool = True
+    ) -> FieldRequest:
         """The field request of ``scene`` (main thread; an evaluated scene, so that
         object matrices are current), for ``rig`` when the caller has read it already.
         With ``depsgraph`` (a render's) the cameras are read as it evaluated them, at
-        its frame (``adapters.scene.rig_from_scene``). Raises RigError when the rig
-        cannot render."""
+        its frame (``adapters.scene.rig_from_scene``). ``step_frames`` False (a request
+        made while drawing) takes a rig in motion's shot layout only when it is known
+        already (``shot_layout``). Raises RigError when the rig cannot render."""
         group = scene.multiscale
         rig = rig if rig is not None else rig_from_scene(scene, depsgraph)
         settings = field_settings(scene)
         if settings.steady and group.method in SHOT_METHODS:
-            settings = replace(settings, layout=self.shot_layout(scene, rig, settings, depsgraph))
+            layout = self.shot_layout(scene, rig, settings, depsgraph, step_frames)
+            settings = replace(settings, layout=layout)
         notices = tuple(rig.notices) + tuple(empty_mask_messages(rig))
         notices += tuple(crossing_messages(rig))
         folder, said = cache_folder_of(scene)
@@ -189,12 +193,13 @@ class FieldService:
             folder=folder,
         )
 
-    def shot_layout(self, scene, rig, settings, depsgraph=None):
+    def shot_layout(self, scene, rig, settings, depsgraph=None, step_frames=True):
         """The layout of the shot ``scene``'s frame range makes for a rig in motion
         (``core.methods.plan_shot``), the same at every frame of it: worked out once
         per shot (its cameras' animation, masks, size and settings) and kept. None where
-        the frames cannot be stepped (a render on a thread of its own): each frame then
-        gets a layout of its own."""
+        the frames cannot be stepped (a render on a thread of its own, or not
+        ``step_frames``) and the shot's layout is not known: each frame then gets a
+        layout of its own."""
         mask_bytes = np.packbits(np.ascontiguousarray(rig.masks)).tobytes()
         key = (
             animation_digest(scene),
@@ -205,7 +210,7 @@ class FieldService:
             repr(settings),
         )
         if key not in self.shots:
-            rigs = shot_rigs(scene, rig, depsgraph)
+            rigs = shot_rigs(scene, rig, depsgraph) if step_frames else None
             if rigs is None:
                 return None
             self.shots = {key: plan_shot(rigs, settings)}  # one shot at a time

@@ -122,12 +122,14 @@ def clear_fields():
     SERVICE.clear()
 
 
-def prepare_frame(depsgraph, diag=None, report=False):
+def prepare_frame(depsgraph, diag=None, report=False, step_frames=True):
     """Build (or reuse) the ray field and the scene's BVH.
 
     ``diag`` (core.diagnostics.Diagnostics or None) steers the work (Esc) and becomes
     the frame's: what the frame has to say and its seconds per stage. With ``report``
     the field is measured (once per field) and the frame carries its build report.
+    ``step_frames`` False (the viewport's picture, drawn) takes a rig in motion's shot
+    layout only when it is known (``FieldService.request``).
 
     Raises
     ------
@@ -139,7 +141,7 @@ def prepare_frame(depsgraph, diag=None, report=False):
     # volumes first: a missing or unusable volume file stops the render before the build
     volumes, volume_notices = prepare_volumes(depsgraph)
     with diag.stage("field"), runtime().journal() as runs:  # what the field's workers did
-        request = SERVICE.request(scene, depsgraph=depsgraph)
+        request = SERVICE.request(scene, depsgraph=depsgraph, step_frames=step_frames)
         result = SERVICE.get(request, diag, measure=report)
     if not result.built:  # said as "field (cached)" in the timings
         diag.seconds["field (cached)"] = diag.seconds.pop("field")

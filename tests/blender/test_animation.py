@@ -469,3 +469,27 @@ def test_a_workers_frame_range_keeps_the_shots_layout(empty_scene):
     rig = rig_from_scene(scene, bpy.context.evaluated_depsgraph_get())
     settings = fields.SERVICE.request(scene).settings
     assert plan_shot([rig], replace(settings, layout=None)) != layouts[0]
+
+
+def test_a_drawn_request_does_not_step_frames(empty_scene):
+    """The viewport's picture and the ray preview ask while drawing: they take the
+    shot's layout when a render or a build has worked it out, and never step the scene
+    through its frames for it."""
+    scene = empty_scene
+    animated_rig(scene)
+    scene.multiscale.method = "SCALAR_FIELD"
+    scene.frame_set(2)
+    fields.SERVICE.forget_sequence()
+    stepped = []
+    bpy.app.handlers.frame_change_pre.append(lambda *_a: stepped.append(1))
+    try:
+        depsgraph = bpy.context.evaluated_depsgraph_get()
+        drawn = fields.SERVICE.request(depsgraph.scene, depsgraph=depsgraph, step_frames=False)
+        assert drawn.settings.layout is None and stepped == []
+        rendered = fields.SERVICE.request(depsgraph.scene, depsgraph=depsgraph)
+        assert rendered.settings.layout is not None and len(stepped) > 0
+        again = fields.SERVICE.request(depsgraph.scene, depsgraph=depsgraph, step_frames=False)
+        assert again.key == rendered.key
+    finally:
+        bpy.app.handlers.frame_change_pre.pop()
+    assert scene.frame_current == 2
