@@ -1,19 +1,27 @@
 """Benchmark: every ray-generation method at every quality on a set of rigs.
 
     .venv/bin/python bench/methods.py [--width 960 --height 540] [--rigs ...]
+    .venv/bin/python bench/methods.py --plan default --width 1920 --height 1080 \
+        --out bench/methods_1920x1080.json --docs        (make bench-1080)
 
 Each configuration runs in a fresh process (so its peak memory is its own) and builds
-the field and its report: seconds per stage, preserved-ray error per camera (p50, p95,
-max, in that camera's pixels), folds, stalled rays, peak memory. SCALAR_FIELD runs on
-one uniform grid (the paper's) and on nested grids. Prints a table and writes
-bench/results.json, the speed-accuracy chart docs/figures/speed_accuracy.png and the
-failure table in docs/methods.md (between its GENERATED markers).
+the field and its report, as Compute Field does: seconds per stage, preserved-ray error
+per camera along the whole ray (p50, p95, max, in that camera's pixels, on the pixels
+its mask keeps), folds by the exact counter, stalled rays, Newton failures, the peak
+memory of every process. SCALAR_FIELD runs on one uniform grid (the paper's), on nested
+grids, and as the add-on chooses (SCALAR_FIELD_DEFAULT). Every rig is built with the
+properties' defaults (the quality's settings, accuracy target 0.5 px), whatever the
+sample files hold. Prints a table and writes bench/results.json (or --out); with
+--docs also the speed-accuracy chart docs/figures/speed_accuracy.png, the failure table
+in docs/methods.md and, at 1920x1080, the acceptance table in docs/performance.md
+(between their GENERATED markers), which make bench-1080 draws from its rows.
 """
 
 import argparse
 import json
 import os
 import resource
+import signal
 import subprocess
 import sys
 import time
@@ -25,33 +33,51 @@ sys.path.insert(0, str(ROOT))
 OUT = ROOT / "bench" / "results.json"
 CHART = ROOT / "docs" / "figures" / "speed_accuracy.png"
 TABLE = ROOT / "docs" / "methods.md"
+ACCEPTANCE = ROOT / "docs" / "performance.md"
+# fixtures/rigs.py's rigs (demo_rig and galleon_rig are the sample files' cameras and masks)
 RIGS = {
     "zoom_rig": "2 cameras, 4x, turned 20 degrees",
     "three_camera_rig": "3 cameras, 6x overall",
     "zoom25_rig": "3 cameras, 25x",
     "zoom1000_rig": "3 cameras, 1000x",
+    "turned_rig": "3 cameras, views turned 41 and 50 degrees",
     "turn100_rig": "2 cameras turned 100 degrees",
     "contradictory_rig": "2 cameras, overlapping masks",
+    "demo_rig": "the demo (3 cameras, 17x)",
+    "galleon_rig": "the galleon (3 cameras, 1000x)",
 }
 # SCALAR_FIELD_NESTED is SCALAR_FIELD with Settings.nested forced on, SCALAR_FIELD
-# here with it forced off (one uniform grid); the add-on chooses between them.
+# here with it forced off (one uniform grid); SCALAR_FIELD_DEFAULT lets it choose, as
+# the add-on does when the user picks SCALAR_FIELD.
 FIELD_METHODS = ("VECTOR_FIELD", "SCALAR_FIELD", "SCALAR_FIELD_NESTED")
+CHOSEN_FIELD = "SCALAR_FIELD_DEFAULT"
+# The default pass (make bench-1080): AUTO at STANDARD, the properties' defaults, on
+# every rig, and the paper's method, as the add-on builds it, on these.
+FORCED_FIELD_RIGS = ("zoom1000_rig", "turned_rig")
 IMAGE_METHODS = ("IMAGE_BLEND", "LINEAR")
 # AUTO, the default: what it builds (IMAGE_BLEND unless its rays fold) and its figures.
 DEFAULT_METHODS = ("AUTO",)
 QUALITIES = ("PREVIEW", "STANDARD", "HIGH")
 # A configuration that runs longer than this is recorded as timed out.
 TIMEOUT_S = 900
+# The acceptance targets at 1920x1080 (docs/performance.md): every camera's along-ray
+# p95 and max (px), default build and forced SCALAR_FIELD build (s), peak memory (MB).
+TARGETS = {"p95": 0.5, "max": 2.0, "build": 10.0, "forced_build": 60.0, "memory_mb": 3072}
+
+
+# What a row's figures depend on: a change elsewhere (docs/) leaves its commit clean.
+MEASURED = ("multiscale_camera", "fixtures", "bench/methods.py")
 
 
 def _commit():
-    """The measured tree's commit (with "+" if it has changes), or None outside git."""
+    """The measured tree's commit (with "+" if the code it measures has changes: the
+    package, the fixtures, this script), or None outside git."""
     try:
         head = subprocess.run(
             ["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True
         ).stdout.strip()
         dirty = subprocess.run(
-            ["git", "status", "--porcelain", "--untracked-files=no"],
+            ["git", "status", "--porcelain", "--untracked-files=no", "--", *MEASURED],
             cwd=ROOT,
             capture_output=True,
             text=True,
@@ -61,21 +87,25 @@ def _commit():
     return (head + ("+" if dirty else "")) or None
 
 
-def _workers_peak_mb():
-    """The largest peak resident size of a worker process, MB: the runtime's workers stay
-    alive (Linux's /proc tells their peaks), ended ones are counted by rusage."""
+def _workers_peaks_mb():
+    """Peak resident sizes of the worker processes, MB: the runtime's workers stay alive
+    (Linux's /proc tells each one's peak); ended ones count as one, the largest, which
+    rusage keeps."""
     from multiscale_camera.core.runtime import runtime
 
-    peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss  # kB
+    peaks = []
     for pid in runtime().pids():
         try:
             with open(f"/proc/{pid}/status") as status:
                 for line in status:
                     if line.startswith("VmHWM:"):
-                        peak = max(peak, int(line.split()[1]))
+                        peaks.append(int(line.split()[1]))
         except OSError:
             pass
-    return round(peak / 1024, 1)
+    ended = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss  # kB
+    if ended and (not peaks or ended > max(peaks)):
+        peaks.append(ended)
+    return [round(kb / 1024, 1) for kb in peaks]
 
 
 def run_one(rig_name, method, quality, width, height):
@@ -89,15 +119,26 @@ def run_one(rig_name, method, quality, width, height):
 
     cams, masks = getattr(rigs, rig_name)(width, height)
     settings = settings_for(quality)
-    if method.startswith("SCALAR_FIELD"):
+    if method in ("SCALAR_FIELD", "SCALAR_FIELD_NESTED"):
         settings = replace(settings, nested=method.endswith("NESTED"))
     start = time.perf_counter()
     try:
-        fld = prepare(Rig(cams, masks), method.replace("_NESTED", ""), settings)
+        fld = prepare(
+            Rig(cams, masks), method.replace("_NESTED", "").replace("_DEFAULT", ""), settings
+        )
     except RigError as err:
-        return {"rig": rig_name, "method": method, "quality": quality, "refused": str(err)}
+        return {
+            "rig": rig_name,
+            "method": method,
+            "quality": quality,
+            "refused": str(err),
+            "commit": _commit(),
+        }
     build = time.perf_counter() - start
     report = build_report(fld, quality, build)
+    total = time.perf_counter() - start
+    peak_main = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
+    workers = _workers_peaks_mb()
     return {
         "rig": rig_name,
         "method": method,
@@ -105,7 +146,10 @@ def run_one(rig_name, method, quality, width, height):
         "built": fld.method,
         "size": [width, height],
         "build_seconds": round(build, 3),
-        "report_seconds": round(time.perf_counter() - start - build, 3),
+        "report_seconds": round(total - build, 3),
+        # what Compute Field takes: the build and its report
+        "compute_field_seconds": round(total, 3),
+        "auto": fld.stats.get("auto"),
         "seconds": {k: round(v, 3) for k, v in report["seconds"].items()},
         "grids": report["grids"],
         "traced_rays": int(fld.stats.get("traced", 0)),
@@ -113,11 +157,8 @@ def run_one(rig_name, method, quality, width, height):
         "commit": _commit(),
         "load_1min": round(os.getloadavg()[0], 2),
         "cameras": report["cameras"],
-        "worst_p95_px": max(
-            c["preserved_px"]["p95"]
-            for c in report["cameras"]
-            if c["preserved_px"]["p95"] is not None
-        ),
+        "worst_p95_px": _worst(report["cameras"], "p95"),
+        "worst_max_px": _worst(report["cameras"], "max"),
         "folds": report["folds"],
         "stalled": report["stalled"],
         "newton_lost": report.get("newton_lost", 0),
@@ -125,15 +166,33 @@ def run_one(rig_name, method, quality, width, height):
         "report_version": report["version"],
         "conflicts": report["conflicts"],
         "warnings": report["warnings"],
-        "peak_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
+        "peak_mb": peak_main,
         # the largest worker process that shared the trace (its own interpreter and
         # numpy, and the shared memory of the tracer's grids it mapped)
-        "peak_mb_worker": _workers_peak_mb(),
+        "peak_mb_worker": max(workers, default=0.0),
+        "peak_mb_workers": workers,
+        # every process's peak added up: an upper bound on the memory held at once
+        # (shared pages count once per process that mapped them)
+        "peak_mb_all": round(peak_main + sum(workers), 1),
     }
 
 
-def configurations(rigs):
-    """(rig, method, quality) triples: image methods at STANDARD, field methods at all."""
+def _worst(cameras, key):
+    """The worst camera's ``key`` ("p95" or "max") of preserved_px, or None."""
+    values = [c["preserved_px"][key] for c in cameras if c["preserved_px"][key] is not None]
+    return max(values, default=None)
+
+
+def configurations(rigs, plan="all"):
+    """(rig, method, quality) triples. ``plan`` "all": image methods at STANDARD, field
+    methods at all; "default": AUTO at STANDARD (the properties' defaults) on every rig,
+    and SCALAR_FIELD as the add-on builds it on FORCED_FIELD_RIGS."""
+    if plan == "default":
+        for rig in rigs:
+            yield rig, "AUTO", "STANDARD"
+            if rig in FORCED_FIELD_RIGS:
+                yield rig, CHOSEN_FIELD, "STANDARD"
+        return
     for rig in rigs:
         for method in DEFAULT_METHODS + IMAGE_METHODS:
             yield rig, method, "STANDARD"
@@ -148,7 +207,24 @@ def main():
     parser.add_argument("--height", type=int, default=540)
     parser.add_argument("--rigs", nargs="+", default=list(RIGS))
     parser.add_argument(
-        "--redraw", action="store_true", help="only redraw the chart and table from results.json"
+        "--plan",
+        choices=("all", "default"),
+        default="all",
+        help="all: every method at every quality; default: AUTO/STANDARD on every rig and "
+        "SCALAR_FIELD as the add-on builds it on the 1000x and turned rigs",
+    )
+    parser.add_argument(
+        "--timeout", type=float, default=TIMEOUT_S, help="seconds a configuration may take"
+    )
+    parser.add_argument(
+        "--docs",
+        action="store_true",
+        help="also redraw the chart and the tables of docs/ from --out",
+    )
+    parser.add_argument(
+        "--redraw",
+        action="store_true",
+        help="only redraw the chart and the tables of docs/ from --out",
     )
     parser.add_argument("--methods", nargs="+", help="only these methods")
     parser.add_argument("--qualities", nargs="+", help="only these qualities")
@@ -161,8 +237,7 @@ def main():
         "--out",
         type=Path,
         default=OUT,
-        help="where the rows go (another file than bench/results.json leaves the chart and "
-        "the failure table of docs/ alone)",
+        help="where the rows go",
     )
     parser.add_argument(
         "--one", nargs=3, metavar=("RIG", "METHOD", "QUALITY"), help=argparse.SUPPRESS
@@ -175,7 +250,8 @@ def main():
     if args.redraw:
         results = json.loads(out.read_text())
         chart(results)
-        table(results)
+        table(results, out)
+        acceptance(results, out)
         return
     rows = []
     header = (
@@ -184,7 +260,7 @@ def main():
         f"{'newton':>6} {'MB':>6}"
     )
     print(header)
-    for rig, method, quality in configurations(args.rigs):
+    for rig, method, quality in configurations(args.rigs, args.plan):
         if (args.methods and method not in args.methods) or (
             args.qualities and quality not in args.qualities
         ):
@@ -202,10 +278,19 @@ def main():
             quality,
         ]
         try:
-            proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=TIMEOUT_S)
+            proc = _run(cmd, args.timeout)
         except subprocess.TimeoutExpired:
-            print(f"{rig:17} {method:13} {quality:9} timed out after {TIMEOUT_S} s")
-            rows.append({"rig": rig, "method": method, "quality": quality, "timed_out": TIMEOUT_S})
+            print(f"{rig:17} {method:13} {quality:9} timed out after {args.timeout:g} s")
+            rows.append(
+                {
+                    "rig": rig,
+                    "method": method,
+                    "quality": quality,
+                    "timed_out": args.timeout,
+                    "commit": _commit(),
+                    "load_1min": round(os.getloadavg()[0], 2),
+                }
+            )
             continue
         if proc.returncode:
             print(
@@ -220,9 +305,7 @@ def main():
         if "refused" in row:
             print(f"{rig:17} {method:13} {quality:9} refused: {row['refused'][:60]}")
             continue
-        worst_max = max(
-            c["preserved_px"]["max"] for c in row["cameras"] if c["preserved_px"]["max"] is not None
-        )
+        worst_max = row["worst_max_px"]
         st = row["seconds"]
         print(
             f"{rig:17} {method:13} {quality:9} {st['fill']:6.2f} {st['solve']:6.2f} "
@@ -240,14 +323,36 @@ def main():
     results = {"size": [args.width, args.height], "rows": rows}
     out.write_text(json.dumps(results, indent=1))
     print(f"wrote {out}")
-    if out == OUT.resolve():
+    if args.docs:
         chart(results)
-        table(results)
+        table(results, out)
+        acceptance(results, out)
+
+
+def _run(cmd, timeout):
+    """Run one configuration's process (its own group, so that a time-out ends its
+    workers too); return the CompletedProcess or raise TimeoutExpired."""
+    with subprocess.Popen(
+        cmd,
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    ) as proc:
+        try:
+            stdout, stderr = proc.communicate(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.communicate()
+            raise
+    return subprocess.CompletedProcess(cmd, proc.returncode, stdout, stderr)
 
 
 def _order(row):
     """Sort key: the order ``configurations`` runs rows in."""
-    rigs, methods = list(RIGS), list(DEFAULT_METHODS + IMAGE_METHODS + FIELD_METHODS)
+    rigs = list(RIGS)
+    methods = list(DEFAULT_METHODS + IMAGE_METHODS + FIELD_METHODS + (CHOSEN_FIELD,))
     return (
         rigs.index(row["rig"]) if row["rig"] in rigs else len(rigs),
         methods.index(row["method"]) if row["method"] in methods else len(methods),
@@ -262,25 +367,39 @@ MARKERS = {
     "VECTOR_FIELD": "^",
     "SCALAR_FIELD": "o",
     "SCALAR_FIELD_NESTED": "D",
+    CHOSEN_FIELD: "P",
 }
 COLOURS = {"PREVIEW": "tab:orange", "STANDARD": "tab:blue", "HIGH": "tab:green"}
+PANEL_COLUMNS = 3
+
+
+def _seconds(r):
+    """What Compute Field takes for row ``r`` (build and report), or the build alone in
+    rows measured before the report was timed with it."""
+    return r.get("compute_field_seconds", r["build_seconds"])
 
 
 def chart(results):
-    """docs/figures/speed_accuracy.png: build time (log) against the worst camera's p95
-    preserved error (log), one panel per rig, one marker per method and quality, the
-    number of folded quads written beside markers that fold."""
+    """docs/figures/speed_accuracy.png: Compute Field's time (log) against the worst
+    camera's p95 along-ray error (log), one panel per rig, one marker per method and
+    quality, the number of folded quads written beside markers that fold."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker
 
     rows = [r for r in results["rows"] if "build_seconds" in r]
-    rigs = [name for name in RIGS if any(r["rig"] == name for r in rows)]
-    fig, axes = plt.subplots(1, len(rigs), figsize=(4.2 * len(rigs), 4.2), squeeze=False)
-    for ax, rig in zip(axes[0], rigs):
+    late = [r for r in results["rows"] if "timed_out" in r]
+    rigs = [name for name in RIGS if any(r["rig"] == name for r in rows + late)]
+    ncols = min(PANEL_COLUMNS, len(rigs))
+    nrows = -(-len(rigs) // ncols)
+    fig, axes = plt.subplots(nrows, ncols, figsize=(4.2 * ncols, 3.8 * nrows), squeeze=False)
+    for ax in axes.flat[len(rigs) :]:
+        ax.set_visible(False)
+    for ax, rig in zip(axes.flat, rigs):
         for r in (r for r in rows if r["rig"] == rig):
-            x, y = r["build_seconds"], max(r["worst_p95_px"], 1e-3)
+            x, y = _seconds(r), max(r["worst_p95_px"], 1e-3)
             ax.scatter(
                 x, y, marker=MARKERS[r["method"]], color=COLOURS[r["quality"]], s=46, zorder=3
             )
@@ -295,22 +414,67 @@ def chart(results):
                 )
         ax.set_xscale("log")
         ax.set_yscale("log")
-        ax.axhline(1.0, color="grey", lw=0.8, ls="--")
+        for k, r in enumerate(r for r in late if r["rig"] == rig):
+            # x in seconds, y as a fraction of the panel's height
+            ax.axvline(r["timed_out"], color="tab:red", lw=1.0, ls=":")
+            ax.text(
+                r["timed_out"],
+                0.92 - 0.08 * k,
+                f"{r['method']} timed out ",
+                transform=ax.get_xaxis_transform(),
+                ha="right",
+                fontsize=7,
+                color="tab:red",
+            )
+        if not any(r["rig"] == rig for r in rows):
+            ax.set_ylim(1e-3, 10.0)
+            ax.set_xlim(1.0, 2 * max(r["timed_out"] for r in late if r["rig"] == rig))
+        ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+        ax.axhline(TARGETS["p95"], color="grey", lw=0.8, ls="--")
         ax.set_title(RIGS[rig], fontsize=10)
-        ax.set_xlabel("build time, s")
+        ax.set_xlabel("Compute Field, s")
+        ax.set_ylabel("worst camera's p95, px")
         ax.grid(True, which="both", lw=0.3)
-    axes[0][0].set_ylabel("worst camera's p95 preserved error, px (floor 0.001)")
+    methods = {r["method"] for r in rows}
+    qualities = {r["quality"] for r in rows}
     handles = [
         plt.Line2D([], [], marker=m, ls="", color="black", label=name)
         for name, m in MARKERS.items()
-    ] + [plt.Line2D([], [], marker="o", ls="", color=c, label=q) for q, c in COLOURS.items()]
+        if name in methods
+    ] + [
+        plt.Line2D([], [], marker="o", ls="", color=c, label=q)
+        for q, c in COLOURS.items()
+        if q in qualities
+    ]
     fig.legend(handles=handles, loc="lower center", ncol=8, fontsize=8, frameon=False)
     w, h = results["size"]
-    fig.suptitle(f"Speed against accuracy at {w}x{h} (red: folded quads)", fontsize=11)
-    fig.tight_layout(rect=(0, 0.07, 1, 0.95))
+    fig.suptitle(
+        f"Speed against along-ray accuracy at {w}x{h} (dashed: {TARGETS['p95']} px; red: "
+        "folded quads; p95 floored at 0.001 px)",
+        fontsize=11,
+    )
+    fig.tight_layout(rect=(0, 0.05, 1, 0.96))
     CHART.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(CHART, dpi=110)
+    fig.savefig(CHART, dpi=100)
     print(f"wrote {CHART.relative_to(ROOT)}")
+
+
+def _failures(r):
+    """What row ``r`` misses of the accuracy targets: a list of short phrases."""
+    bad = []
+    if r["worst_p95_px"] is not None and r["worst_p95_px"] > TARGETS["p95"]:
+        bad.append(f"p95 {r['worst_p95_px']:.3g} px")
+    if r.get("worst_max_px") is not None and r["worst_max_px"] > TARGETS["max"]:
+        bad.append(f"max {r['worst_max_px']:.3g} px")
+    if r["folds"]:
+        bad.append(f"{r['folds']} folds")
+    if r["stalled"]:
+        bad.append(f"{r['stalled']} stalled")
+    if r.get("newton_lost"):
+        bad.append(f"{r['newton_lost']} Newton failures")
+    if r.get("conflicts"):
+        bad.append(f"{r['conflicts']} conflicting voxels")
+    return bad
 
 
 def _verdict(r):
@@ -318,60 +482,136 @@ def _verdict(r):
     if "refused" in r:
         return "refused: " + r["refused"].split(":")[0].split(";")[0]
     if "timed_out" in r:
-        return f"timed out (> {r['timed_out']} s)"
+        return f"timed out (> {r['timed_out']:g} s)"
     if "error" in r:
         return "crashed"
-    bad = []
-    if r["worst_p95_px"] > 1.0:
-        bad.append(f"p95 {r['worst_p95_px']:.3g} px")
-    if r["folds"]:
-        bad.append(f"{r['folds']} folds")
-    if r["stalled"]:
-        bad.append(f"{r['stalled']} stalled")
-    if r.get("conflicts"):
-        bad.append(f"{r['conflicts']} conflicting voxels")
-    head = f"{r['build_seconds']:.3g} s"
+    bad = _failures(r)
+    head = f"{_seconds(r):.3g} s"
+    if r["method"] == "AUTO" and r.get("built"):
+        head += f" ({r['built']})"
     return head + (
         ": " + ", ".join(bad) if bad else ": holds (p95 " + f"{r['worst_p95_px']:.2g} px)"
     )
 
 
-def table(results):
-    """The failure table in docs/methods.md, between its GENERATED markers."""
+def _replace_generated(path, name, body):
+    """Put ``body`` between ``<!-- GENERATED: name -->`` and the next END marker of
+    ``path``."""
+    start, end = f"<!-- GENERATED: {name} -->", "<!-- END GENERATED -->"
+    doc = path.read_text()
+    a = doc.index(start) + len(start)
+    b = doc.index(end, a)
+    path.write_text(doc[:a] + "\n" + body + "\n" + doc[b:])
+    print(f"wrote the {name} in {path.relative_to(ROOT)}")
+
+
+def _command(results, source):
+    """The command that measured ``results`` into ``source``."""
+    w, h = results["size"]
+    if source.resolve() == OUT.resolve():
+        return "`make bench`" if (w, h) == (480, 270) else f"`bench/methods.py` at {w}x{h}"
+    return (
+        "`make bench-1080`" if (w, h) == (1920, 1080) else f"`bench/methods.py --out {source.name}`"
+    )
+
+
+def table(results, source=OUT):
+    """The failure table in docs/methods.md, between its GENERATED markers: one line
+    per rig, one column per method and quality measured."""
     rows = results["rows"]
     rigs = [name for name in RIGS if any(r["rig"] == name for r in rows)]
     w, h = results["size"]
-    lines = [
-        f"Measured by `make bench` at {w}x{h} (`bench/results.json`). Each cell: build time",
-        "and what went wrong (p95 over 1 px, folded quads, stalled rays, voxels two masks",
-        "both claim), or that it holds.",
-        "",
-        "| method | quality | " + " | ".join(RIGS[r] for r in rigs) + " |",
-        "|---|---|" + "---|" * len(rigs),
+    columns = [
+        (m, q)
+        for m in DEFAULT_METHODS + IMAGE_METHODS + FIELD_METHODS + (CHOSEN_FIELD,)
+        for q in QUALITIES
+        if any((r["method"], r["quality"]) == (m, q) for r in rows)
     ]
-    for method in DEFAULT_METHODS + IMAGE_METHODS + FIELD_METHODS:
-        for quality in QUALITIES:
-            cells = [
-                next(
-                    (
-                        r
-                        for r in rows
-                        if (r["rig"], r["method"], r["quality"]) == (g, method, quality)
-                    ),
-                    None,
+    lines = [
+        f"Measured by {_command(results, source)} at {w}x{h} (`bench/{source.name}`, report",
+        "version 2). Each cell: what Compute Field took (build and report; for AUTO, what it",
+        "built) and what missed the targets (worst camera's along-ray p95 over",
+        f"{TARGETS['p95']} px or max over {TARGETS['max']:g} px, folded quads, stalled rays, "
+        "Newton failures,",
+        "voxels two masks both claim), or that it holds.",
+        "",
+        "| rig | " + " | ".join(f"`{m}` {q}" for m, q in columns) + " |",
+        "|---|" + "---|" * len(columns),
+    ]
+    for g in rigs:
+        cells = [
+            next((r for r in rows if (r["rig"], r["method"], r["quality"]) == (g, m, q)), None)
+            for m, q in columns
+        ]
+        lines.append(f"| {RIGS[g]} | " + " | ".join(_verdict(c) if c else "" for c in cells) + " |")
+    _replace_generated(TABLE, "failure table", "\n".join(lines))
+
+
+def _camera_figures(r):
+    """'C1 0.01/0.03, C2 ...': each camera's along-ray p95/max in px."""
+    parts = []
+    for c in r["cameras"]:
+        p = c["preserved_px"]
+        if p["p95"] is None:
+            parts.append(f"{c['name']} unmeasured")
+        else:
+            parts.append(f"{c['name']} {p['p95']:.2g}/{p['max']:.2g}")
+    return ", ".join(parts)
+
+
+def _accepts(r, build_limit):
+    """'yes' or what row ``r`` misses of the acceptance targets."""
+    if "refused" in r:
+        return "refused (as it must: " + r["refused"].split(":")[0].split(";")[0] + ")"
+    if "timed_out" in r:
+        return f"no: timed out after {r['timed_out']:g} s"
+    if "error" in r:
+        return "no: crashed"
+    bad = _failures(r)
+    if _seconds(r) > build_limit:
+        bad.append(f"{_seconds(r):.3g} s > {build_limit:g} s")
+    if r.get("peak_mb_all", r["peak_mb"]) > TARGETS["memory_mb"]:
+        bad.append(f"{r.get('peak_mb_all', r['peak_mb']):.0f} MB")
+    return "yes" if not bad else "no: " + ", ".join(bad)
+
+
+def acceptance(results, source=OUT):
+    """The acceptance table at 1920x1080 in docs/performance.md (between its GENERATED
+    markers): per rig, the default build (AUTO, STANDARD) and forced SCALAR_FIELD
+    against the targets of ``TARGETS``. Only for 1920x1080 results."""
+    if results["size"] != [1920, 1080]:
+        return
+    rows = results["rows"]
+    lines = [
+        f"Measured by {_command(results, source)} (`bench/{source.name}`). Targets: every",
+        f"camera's along-ray p95 <= {TARGETS['p95']} px and max <= {TARGETS['max']:g} px on "
+        "the pixels it keeps,",
+        "zero folds (exact counter), zero stalled rays and Newton failures, Compute Field",
+        f"<= {TARGETS['build']:g} s (default) or <= {TARGETS['forced_build']:g} s (forced "
+        "SCALAR_FIELD), every process's",
+        f"peak memory added up <= {TARGETS['memory_mb'] / 1024:g} GB.",
+        "",
+        "| rig | method (built) | Compute Field s | load | p95/max px per camera | folds "
+        "| stalled, Newton | peak MB (all) | commit | meets the targets |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for g in RIGS:
+        for r in (r for r in rows if r["rig"] == g):
+            limit = TARGETS["build"] if r["method"] == "AUTO" else TARGETS["forced_build"]
+            method = f"`{r['method']}`" + (f" ({r['built']})" if r.get("built") else "")
+            if "build_seconds" not in r:
+                lines.append(
+                    f"| {RIGS[g]} | {method} | | {r.get('load_1min', '')} | | | | | "
+                    f"{r.get('commit', '')} | {_accepts(r, limit)} |"
                 )
-                for g in rigs
-            ]
-            if not any(cells):
                 continue
-            text = [_verdict(c) if c else "" for c in cells]
-            lines.append(f"| `{method}` | {quality} | " + " | ".join(text) + " |")
-    body = "\n".join(lines)
-    start, end = "<!-- GENERATED: failure table -->", "<!-- END GENERATED -->"
-    doc = TABLE.read_text()
-    a, b = doc.index(start) + len(start), doc.index(end)
-    TABLE.write_text(doc[:a] + "\n" + body + "\n" + doc[b:])
-    print(f"wrote the table in {TABLE.relative_to(ROOT)}")
+            lines.append(
+                f"| {RIGS[g]} | {method} | {_seconds(r):.3g} | {r['load_1min']} | "
+                f"{_camera_figures(r)} | {r['folds']} | {r['stalled']}, {r['newton_lost']} | "
+                f"{r.get('peak_mb_all', r['peak_mb']):.0f} | {r['commit']} | "
+                f"{_accepts(r, limit)} |"
+            )
+    _replace_generated(ACCEPTANCE, "acceptance 1920x1080", "\n".join(lines))
 
 
 if __name__ == "__main__":

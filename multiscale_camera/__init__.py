@@ -8,9 +8,9 @@ pure-numpy ``core`` package imports without Blender (the worker processes of
 
 def _modules():
     from .render import engine
-    from .ui import mask_overlay, operators, panels, preview, properties, volume
+    from .ui import live_picture, mask_overlay, operators, panels, preview, properties, volume
 
-    return (properties, volume, operators, panels, preview, mask_overlay, engine)
+    return (properties, volume, operators, panels, preview, mask_overlay, live_picture, engine)
 
 
 def register():

@@ -1,4 +1,12 @@
-"""Blender images -> boolean masks at the render size (row 0 at the top)."""
+"""Blender images -> boolean masks at the render size (row 0 at the top).
+
+A mask that is an image sequence is read at a frame: the number Blender's own image
+user gives for the scene's frame (``sequence_frame``: frames, start, offset, cyclic,
+kept on the camera's list item), whose file (``frame_path``) is loaded for its pixels.
+"""
+
+import os
+import re
 
 import bpy
 import numpy as np
@@ -15,12 +23,67 @@ ANIMATED_MASK = (
     "as preserving nothing; give it a still image (Image Editor > Image > Source: "
     "Single Image) or key the camera instead"
 )
+# A frame of a mask sequence whose file cannot be read.
+MISSING_FRAME = (
+    "Mask '{name}' has no frame {number} ('{path}' is missing or unreadable); treated as "
+    "empty at this frame: check the sequence's files, or the camera's mask Frames, "
+    "Start and Offset"
+)
 
 
 def animated_kind(image):
     """'an image sequence' or 'a movie' when ``image``'s pixels change with the frame,
     else None."""
     return None if image is None else ANIMATED_SOURCES.get(getattr(image, "source", ""))
+
+
+def sequence_frame(frame, frames, start=1, offset=0, cyclic=False):
+    """The frame number of an image sequence shown at scene frame ``frame``, as
+    Blender's image user maps it: the sequence plays ``frames`` frames from scene frame
+    ``start`` (held on its first and last frame before and after, or repeated when
+    ``cyclic``), numbered from 1 plus ``offset``. 0 frames: 0 (Blender's answer).
+
+    All ints; returns int."""
+    if frames <= 0:
+        return 0
+    number = frame - start + 1
+    if cyclic:
+        number %= frames
+        if number == 0:
+            number = frames
+    number = min(max(number, 0), frames)
+    return number + offset
+
+
+def frame_path(filepath, number):
+    """``filepath`` with the last run of digits in its file name replaced by
+    ``number``, zero-padded to that run's length (the numbering of Blender's image
+    sequences); unchanged when the name has no digits."""
+    folder, name = os.path.split(filepath)
+    stem, ext = os.path.splitext(name)
+    runs = list(re.finditer(r"\d+", stem))
+    if not runs:
+        return filepath
+    run = runs[-1]
+    digits = f"{number:0{len(run.group())}d}"
+    return os.path.join(folder, stem[: run.start()] + digits + stem[run.end() :] + ext)
+
+
+def sequence_pixels(image, number):
+    """(H, W, 4) float32 RGBA (row 0 at the top) of frame ``number`` of the image
+    sequence ``image``, loaded from its file; (None, path) when it cannot be read."""
+    path = bpy.path.abspath(frame_path(image.filepath, number), library=image.library)
+    if not os.path.isfile(path):
+        return None, path
+    try:
+        still = bpy.data.images.load(path, check_existing=False)
+    except RuntimeError:
+        return None, path
+    try:
+        still.colorspace_settings.name = image.colorspace_settings.name
+        return image_pixels(still), path
+    finally:
+        bpy.data.images.remove(still)
 
 
 def image_pixels(image):
@@ -47,8 +110,12 @@ def resample_nearest(mask, width, height):
     return mask[ys][:, xs]
 
 
-def mask_from_image(image, width, height):
+def mask_from_image(image, width, height, frame=None):
     """A bool (height, width) mask from a Blender image, and notices about it.
+
+    ``frame`` : int, the frame number to read when ``image`` is an image sequence
+    (``sequence_frame``); without it a sequence reads as not yet readable, as a movie
+    does.
 
     Returns
     -------
@@ -58,10 +125,16 @@ def mask_from_image(image, width, height):
     if image is None:
         return np.zeros((height, width), dtype=bool), []
     kind = animated_kind(image)
-    if kind is not None:
+    if kind is not None and (image.source != "SEQUENCE" or frame is None):
         notice = ANIMATED_MASK.format(name=image.name, kind=kind)
         return np.zeros((height, width), dtype=bool), [notice]
-    rgba = image_pixels(image)
+    if kind is not None:
+        rgba, path = sequence_pixels(image, frame)
+        if rgba is None:
+            notice = MISSING_FRAME.format(name=image.name, number=frame, path=path)
+            return np.zeros((height, width), dtype=bool), [notice]
+    else:
+        rgba = image_pixels(image)
     if rgba is None:
         return np.zeros((height, width), dtype=bool), [
             f"Mask '{image.name}' has no pixels (is its file missing?); treated as empty"

@@ -7,6 +7,7 @@ import bpy
 import numpy as np
 
 from .textures import texture_from_node
+from .visibility import HOLDOUT, camera_instances
 from .volumes import is_volume_source
 
 GEOMETRY_TYPES = {"MESH", "CURVE", "SURFACE", "META", "FONT"}
@@ -44,6 +45,8 @@ class SceneGeometry:
     normals : (T, 3, 3) float32, world-space unit corner normals (smooth faces interpolate
         their vertices' normals; flat faces carry the face normal at every corner).
     notices : list of str, what the user should know (unreadable textures, ...).
+    holdout : (T,) bool, triangles of holdout objects (they hide what lies behind them
+        and show transparent).
     """
 
     vertices: np.ndarray
@@ -57,6 +60,7 @@ class SceneGeometry:
     uv: np.ndarray = None
     normals: np.ndarray = None
     notices: list = field(default_factory=list)
+    holdout: np.ndarray = None
 
     def __len__(self):
         return len(self.triangles)
@@ -150,44 +154,18 @@ def _mesh_arrays(mesh, matrix):
     return co, tris.reshape(nt, 3), mat, uv, normals.astype(np.float32)
 
 
-def left_out_of_render(inst, shown):
-    """Whether a depsgraph instance is one a render leaves out: its object is disabled
-    in renders (``hide_render``), or the object that holds it in the scene (itself, or
-    the instancer of an instance) is disabled in renders or in no collection the render
-    shows (``shown``: ``render_shown``). A viewport depsgraph (the rig check's) holds
-    those; a render's has none of them."""
-    obj = inst.object.original
-    holder = inst.parent.original if inst.is_instance and inst.parent is not None else obj
-    return obj.hide_render or holder.hide_render or holder.name_full not in shown
-
-
-def render_shown(scene):
-    """set of str: full names of the objects a render of ``scene`` shows as far as
-    collections go: those reached from the scene's collection through collections not
-    disabled in renders (``Collection.hide_render``)."""
-    shown, stack = set(), [scene.collection]
-    while stack:
-        coll = stack.pop()
-        shown.update(o.name_full for o in coll.objects)
-        stack.extend(c for c in coll.children if not c.hide_render)
-    return shown
-
-
 def scene_geometry(depsgraph):
-    """Gather the render-visible geometry of an evaluated depsgraph (modifiers applied,
-    instances expanded) into one ``SceneGeometry``; of a viewport depsgraph, what a
-    render would see (``left_out_of_render``)."""
+    """Gather the geometry a render's camera rays see in an evaluated depsgraph
+    (modifiers applied, instances and particles expanded) into one ``SceneGeometry``;
+    of a viewport depsgraph (the rig check's), what a render would see: which objects
+    count is decided in one place, ``visibility.camera_instances``."""
     verts, tris, colours, index, owner, names = [], [], [], [], [], []
-    mats, uvs, normals = [], [], []
+    mats, uvs, normals, holdout = [], [], [], []
     materials, material_ids, notices, cache = [], {}, [], {}
     offset = 0
-    viewport = depsgraph.mode == "VIEWPORT"  # the rig check's: it holds hide_render objects
-    shown = render_shown(depsgraph.scene.original) if viewport else None
-    for inst in depsgraph.object_instances:
-        obj = inst.object
-        if obj.type not in GEOMETRY_TYPES or is_volume_source(obj):
-            continue
-        if viewport and left_out_of_render(inst, shown):
+    for seen in camera_instances(depsgraph, GEOMETRY_TYPES):
+        obj = seen.object
+        if is_volume_source(obj):
             continue
         mesh = obj.to_mesh()
         if mesh is None:
@@ -196,7 +174,7 @@ def scene_geometry(depsgraph):
             mesh.calc_loop_triangles()
             if len(mesh.loop_triangles) == 0:
                 continue
-            co, t, mat, uv, nor = _mesh_arrays(mesh, np.array(inst.matrix_world, dtype=np.float64))
+            co, t, mat, uv, nor = _mesh_arrays(mesh, seen.matrix)
             slots = [s.material for s in obj.material_slots] or [None]
             ids = []
             for material in slots:
@@ -220,6 +198,7 @@ def scene_geometry(depsgraph):
         index.append(np.full(len(t), obj.original.pass_index, dtype=np.int32))
         owner.append(np.full(len(t), len(names), dtype=np.int32))
         names.append(obj.original.name)
+        holdout.append(np.full(len(t), seen.kind == HOLDOUT))
     if not tris:
         return SceneGeometry(
             np.zeros((0, 3)),
@@ -233,6 +212,7 @@ def scene_geometry(depsgraph):
             np.zeros((0, 3, 2), np.float32),
             np.zeros((0, 3, 3), np.float32),
             notices,
+            np.zeros(0, bool),
         )
     return SceneGeometry(
         np.concatenate(verts),
@@ -246,4 +226,5 @@ def scene_geometry(depsgraph):
         np.concatenate(uvs),
         np.concatenate(normals),
         notices,
+        np.concatenate(holdout),
     )

@@ -10,7 +10,7 @@ from ..core.errors import RigError
 from ..core.geometry import Rig, resolve_conflicts
 from ..core.methods import settings_for
 from .cameras import pinhole_from_object, render_size
-from .masks import mask_from_image
+from .masks import mask_from_image, sequence_frame
 
 EMPTY_LIST = (
     "The camera list is empty: add cameras in the 3D viewport's sidebar "
@@ -113,7 +113,7 @@ def rig_from_scene(scene, depsgraph=None):
                 f"{obj.type.lower()}; pick a camera object"
             )
         cameras.append(pinhole_from_object(evaluated(obj, depsgraph), scene))
-        mask, said = mask_from_image(item.mask, width, height)
+        mask, said = mask_from_image(item.mask, width, height, mask_frame(item, scene))
         masks.append(mask)
         notices += said
     names = [c.name for c in cameras]
@@ -121,6 +121,22 @@ def rig_from_scene(scene, depsgraph=None):
         raise RigError("A camera appears twice in the camera list; each camera may appear once")
     masks, said = resolve_conflicts(np.stack(masks), names)
     return Rig(tuple(cameras), masks, beta=float(settings.beta), notices=tuple(notices + said))
+
+
+def mask_frame(item, scene):
+    """The frame number of ``item``'s mask sequence at ``scene``'s frame (the item
+    keeps frames, start, offset and cyclic as an image user does); None when the mask
+    is not an image sequence."""
+    image = item.mask
+    if image is None or image.source != "SEQUENCE":
+        return None
+    return sequence_frame(
+        scene.frame_current,
+        item.mask_frames,
+        item.mask_frame_start,
+        item.mask_frame_offset,
+        item.mask_cyclic,
+    )
 
 
 def evaluated(obj, depsgraph):

@@ -140,6 +140,9 @@ def render(engine, depsgraph, frame):
         engine.report({"WARNING"}, f"Multiscale: {reason}; rendering with Solid shading")
         return None
     report = HandoffReport()
+    # Esc, or Ctrl-C headless (the engine's ``should_stop``; Blender's own check alone
+    # never hears Ctrl-C there)
+    stop = getattr(engine, "should_stop", engine.test_break)
     camera = engine.camera_override or depsgraph.scene_eval.camera
     if camera is None or camera.type != "CAMERA":
         engine.fail("Multiscale: Cycles shading needs a scene camera")
@@ -158,18 +161,16 @@ def render(engine, depsgraph, frame):
         engine.update_stats("", "Multiscale: marching rays for Cycles")
         try:
             with runtime().journal() as runs:  # what the march's workers did
-                tables = ray_tables(
-                    frame, engine.test_break, progress=lambda f: engine.update_progress(0.2 * f)
-                )
+                tables = ray_tables(frame, stop, progress=lambda f: engine.update_progress(0.2 * f))
         except Cancelled:
             return report
         if gave_up(runs):
             engine.report({"WARNING"}, f"Multiscale: {WORKERS_GIVEN_UP}")
         lap("march")
-        if engine.test_break():
+        if stop():
             return report
         try:
-            params = write_tables(folder, tables, camera.matrix_world, frame, engine.test_break)
+            params = write_tables(folder, tables, camera.matrix_world, frame, stop)
         except Cancelled:
             return report
         cameras = frame.rig.cameras
@@ -198,10 +199,12 @@ def render(engine, depsgraph, frame):
         ):
             engine.add_pass(name, channels, chan_id)
         lap("tables")
+        if stop():  # Cycles' own stage hears Esc alone: never start it once stopped
+            return report
         engine.update_stats("", "Multiscale: Cycles")
         _run_cycles(engine, depsgraph, bpy.data)
         lap("cycles")
-        if engine.test_break():
+        if stop():
             return report
         _write_own_passes(engine, tables, index_name, _region(depsgraph.scene.render, *frame.size))
         lap("passes")

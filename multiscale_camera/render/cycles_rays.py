@@ -176,7 +176,8 @@ def pinhole_classes(tables, cameras, tolerance_px=PINHOLE_TOLERANCE_PX):
     that pixel's centre when their directions differ by at most ``tolerance_px`` of
     camera i's pixels, the table's origin lies that close to the pinhole ray's line (as
     seen from camera i's eye), and not before its start on camera i's near plane (the
-    march found nothing between the two).
+    march found nothing between the two). A ray cut at its far plane (``clipped``) is
+    no camera's: the shader's pinhole ray would run on past it.
 
     Parameters
     ----------
@@ -192,6 +193,8 @@ def pinhole_classes(tables, cameras, tolerance_px=PINHOLE_TOLERANCE_PX):
     px, py = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
     classes = np.zeros((height, width), dtype=np.int32)
     length = np.sqrt(dot3(tables.direction, tables.direction))
+    if getattr(tables, "clipped", None) is not None:
+        length = np.where(tables.clipped, 0.0, length)
     for i, camera in enumerate(cameras):
         origin, direction = pinhole_rays(camera, px, py)
         direction /= np.sqrt(dot3(direction, direction))[..., None]

@@ -56,6 +56,8 @@ class MultiscaleRenderEngine(bpy.types.RenderEngine):
         reported = self.say(diag, 0)
         if scene.multiscale.shading == "CYCLES":
             if cycles.render(self, depsgraph, frame):
+                if self._interrupted.is_set():  # the hand-off stopped for Ctrl-C: fail
+                    raise Cancelled()
                 return
         width, height = frame.size
         for name, channels, chan_id, _kind in pipeline.PASSES[1:]:

@@ -33,7 +33,7 @@ from ..adapters.volumes import VolumeGridCache
 from ..core.diagnostics import Diagnostics, Level
 from ..core.errors import Cancelled
 from ..core.geometry import Rig
-from ..core.methods import FrameReuse, Settings, field_key, plan_shot, prepare
+from ..core.methods import FrameReuse, Settings, field_key, plan_shot, prepare, settings_for
 from ..core.quality import build_report, crossing_messages, empty_mask_messages, to_json
 from ..core.runtime import gave_up, runtime
 from ..io.cache import DEFAULT_LIMIT_MB, FieldCache
@@ -159,21 +159,38 @@ class FieldService:
         self.shots = {}  # the layout of the last shot (``shot_layout``)
         self._listeners: list[Callable] = []
         self._build: FieldBuild | None = None
+        self.live = None  # the live picture (ui/live_picture.py), made by its register()
 
     # --- requests ------------------------------------------------------------------
 
     def request(
-        self, scene, rig: Rig | None = None, depsgraph=None, step_frames: bool = True
+        self,
+        scene,
+        rig: Rig | None = None,
+        depsgraph=None,
+        quality: str | None = None,
+        step_frames: bool = True,
     ) -> FieldRequest:
         """The field request of ``scene`` (main thread; an evaluated scene, so that
         object matrices are current), for ``rig`` when the caller has read it already.
         With ``depsgraph`` (a render's) the cameras are read as it evaluated them, at
-        its frame (``adapters.scene.rig_from_scene``). ``step_frames`` False (a request
-        made while drawing) takes a rig in motion's shot layout only when it is known
-        already (``shot_layout``). Raises RigError when the rig cannot render."""
+        its frame (``adapters.scene.rig_from_scene``). ``quality`` (an enum name of
+        ``scene.multiscale.quality``) replaces the scene's (the live picture asks for
+        PREVIEW). ``step_frames`` False (a request made while drawing) takes a rig in
+        motion's shot layout only when it is known already (``shot_layout``). Raises
+        RigError when the rig cannot render."""
         group = scene.multiscale
         rig = rig if rig is not None else rig_from_scene(scene, depsgraph)
         settings = field_settings(scene)
+        if quality is not None and quality != group.quality:
+            preset = settings_for(quality, group.accuracy_px)  # the rest as the scene's
+            settings = replace(
+                settings,
+                accuracy_px=preset.accuracy_px,
+                max_voxels=preset.max_voxels,
+                cubic=preset.cubic,
+                nested=preset.nested,
+            )
         if settings.steady and group.method in SHOT_METHODS:
             layout = self.shot_layout(scene, rig, settings, depsgraph, step_frames)
             settings = replace(settings, layout=layout)
@@ -185,7 +202,7 @@ class FieldService:
         return FieldRequest(
             rig=rig,
             method=group.method,
-            quality=group.quality,
+            quality=quality or group.quality,
             settings=settings,
             key=field_key(rig, group.method, settings),
             notices=notices,

@@ -17,6 +17,7 @@ from ..core.runtime import gave_up, runtime, worker_count
 from ..core.sampling import DEFAULT_TOLERANCE_PX, Occupancy, RaySampler, sample_offsets
 from .checks import geometry_cast
 from .fields import SERVICE, WORKERS_GIVEN_UP
+from .memory import guard_memory
 from .raycast import march
 from .shade import shade
 from .surface import surface_errors, surface_messages, with_surface
@@ -133,7 +134,9 @@ def prepare_frame(depsgraph, diag=None, report=False, step_frames=True):
 
     Raises
     ------
-    RigError, SolverDidNotConverge: the rig cannot be rendered (the message says why).
+    RigError, SolverDidNotConverge: the rig cannot be rendered (the message says why);
+    ``memory.MemoryBudgetError`` (a RigError) before the build when the build or the
+    render would need more memory than the scene's budget.
     Cancelled: ``diag`` said so.
     """
     diag = diag if diag is not None else Diagnostics()
@@ -142,6 +145,7 @@ def prepare_frame(depsgraph, diag=None, report=False, step_frames=True):
     volumes, volume_notices = prepare_volumes(depsgraph)
     with diag.stage("field"), runtime().journal() as runs:  # what the field's workers did
         request = SERVICE.request(scene, depsgraph=depsgraph, step_frames=step_frames)
+        guard_memory(scene, request, render=True)  # before anything large is allocated
         result = SERVICE.get(request, diag, measure=report)
     if not result.built:  # said as "field (cached)" in the timings
         diag.seconds["field (cached)"] = diag.seconds.pop("field")
@@ -315,9 +319,16 @@ def _cast_and_shade(frame, seg, should_stop):
 
 
 def _rgba(frame, hits, shaded):
-    """(R, 4) float32 Combined (premultiplied by alpha under film transparency)."""
+    """(R, 4) float32 Combined (premultiplied by alpha under film transparency). A hit
+    on a holdout shows transparent black, whatever the film (as Cycles' holdouts)."""
     alpha = np.where(hits.hit | (not frame.transparent), 1.0, 0.0).astype(np.float32)
     colour = shaded.colour * alpha[:, None] if frame.transparent else shaded.colour
+    holdout = getattr(frame.geometry, "holdout", None)
+    if holdout is not None and holdout.any():
+        held = hits.hit.copy()
+        held[held] = holdout[hits.triangle[held]]
+        alpha[held] = 0.0
+        colour = np.where(held[:, None], 0.0, colour)
     return np.concatenate([colour, alpha[:, None]], axis=1)
 
 

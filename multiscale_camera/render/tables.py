@@ -20,7 +20,7 @@ from ..core.runtime import runtime
 from ..core.sampling import Segments
 from . import pipeline, workers
 from .processes import blender_launcher, frame_here, portable
-from .raycast import bundle_segments, march
+from .raycast import bundle_segments, clip_to_box, march
 
 # A handed-on ray starts at least this fraction of the scene's size before its hit: far
 # below anything visible, far above float32 rounding of the stored origins.
@@ -43,6 +43,9 @@ class RayTables:
         stretch (the Membership pass).
     object_index : (H, W) float32: the hit object's ``pass_index`` (0 for a miss).
     casts : int, segment casts the march made.
+    clipped : (H, W) bool: misses whose ray ended at its far plane (the cameras'
+        ``clip_end``, ``core.sampling.clip_far``); their origin lies past the scene's
+        box on the last segment's line, so a straight renderer sees only the world there.
     """
 
     origin: np.ndarray
@@ -53,6 +56,7 @@ class RayTables:
     membership: np.ndarray
     object_index: np.ndarray
     casts: int
+    clipped: np.ndarray = None
 
 
 @dataclass(frozen=True)
@@ -191,6 +195,7 @@ def ray_tables(frame, should_stop=None, progress=None, keep_polylines=False):
         table((), bool, False),  # hit
         table((), np.float32, 0.0),  # membership
         table((), np.float32, 0.0),  # object index
+        table((), bool, False),  # clipped
     )
     shared = shared and runtime().shared.handle(out[0]) is not None
     here = partial(_march_here, frame, out, keep_polylines)
@@ -211,7 +216,7 @@ def ray_tables(frame, should_stop=None, progress=None, keep_polylines=False):
             progress(rows / height)
     casts = int(sum(counts))
     frame.casts += casts
-    tables = RayTables(*out, casts)
+    tables = RayTables(*out[:7], casts, out[7])
     if not keep_polylines:
         return tables
     return tables, _concatenate(lines)
@@ -224,15 +229,19 @@ def _march_tile(frame, out, tile, context):
 
 def _march_here(frame, out, keep_polylines, tile, stop=None):
     """March rows tile[0] .. tile[1] - 1 of ``frame`` into the tables ``out`` (origin,
-    direction, distance, depth, hit, membership, object index). Returns (segment
-    casts, Polylines of the tile or None)."""
-    origin, direction, distance, depth, hit, membership, index = out
+    direction, distance, depth, hit, membership, object index, clipped). Returns
+    (segment casts, Polylines of the tile or None)."""
+    origin, direction, distance, depth, hit, membership, index, clipped = out
     width = frame.size[0]
     row0, row1 = tile
     iy, ix = (a.ravel() for a in np.mgrid[row0:row1, 0:width])
     seg = frame.sampler.segments(ix + 0.5, iy + 0.5, ix, iy)
     hits = march(frame.tree, seg, stop, frame.bounds, frame.geometry, frame.occupancy)
     o, d, t = first_hit_segments(seg, hits, START_MARGIN * frame.scale)
+    cut = clipped_before_geometry(seg, hits, frame.bounds)
+    if cut.any():
+        o[cut] = past_box(o[cut], d[cut], *frame.bounds, frame.scale)
+    clipped[slice(row0, row1)] = cut.reshape(row1 - row0, width)
     rows = slice(row0, row1)
     origin[rows] = o.reshape(row1 - row0, width, 3)
     direction[rows] = d.reshape(row1 - row0, width, 3)
@@ -247,8 +256,44 @@ def _march_here(frame, out, keep_polylines, tile, stop=None):
     index[rows] = tile_index.reshape(row1 - row0, width)
     lines = None
     if keep_polylines:
-        lines = _polylines(frame.field.rays(ix, iy), seg, frame.sampler.reach)
+        whole = frame.sampler.segments(ix + 0.5, iy + 0.5, ix, iy, clip=False)
+        lines = _polylines(frame.field.rays(ix, iy), whole, frame.sampler.reach)
     return hits.casts, lines
+
+
+def clipped_before_geometry(seg, hits, bounds):
+    """(R,) bool: misses that ended at their far plane where their line, run on, would
+    still meet the scene's box ``bounds`` (None: no geometry, so none); a straight
+    renderer handed such a ray from its last segment could show what the far plane
+    hides."""
+    if seg.clipped is None or bounds is None:
+        return np.zeros(len(seg), dtype=bool)
+    rays = np.flatnonzero(seg.clipped & ~hits.hit)
+    # each ray ends on its last segment of non-zero length (a ray clipped before its
+    # last vertex has empty segments after it)
+    last = np.zeros(len(seg), dtype=np.int64)
+    np.maximum.at(last, seg.ray, np.where(seg.length > 0, np.arange(len(seg.ray)), 0))
+    last = last[rays]
+    end = seg.origin[last] + seg.direction[last] * seg.length[last][:, None]
+    direction = seg.direction[last]
+    meets, _t0, _t1 = clip_to_box(end, direction, np.full(len(rays), np.inf), *bounds)
+    out = np.zeros(len(seg), dtype=bool)
+    out[rays[meets]] = True
+    return out
+
+
+def past_box(origin, direction, lo, hi, scale):
+    """Points on the lines ``origin + t direction`` (t >= 0) beyond the box (lo, hi),
+    by ``scale`` more: a ray started there meets nothing of the scene.
+
+    origin, direction : (N, 3) float64 (direction unit); lo, hi : (3,) float64;
+    scale : float, world units. Returns (N, 3) float64.
+    """
+    inv = 1.0 / np.where(direction == 0.0, 1e-300, direction)
+    with np.errstate(over="ignore", invalid="ignore"):
+        far = np.maximum((lo - origin) * inv, (hi - origin) * inv)
+    exit_ = np.clip(np.nan_to_num(far.min(axis=1), posinf=0.0, neginf=0.0), 0.0, None)
+    return origin + direction * (exit_ + scale)[:, None]
 
 
 def _polylines(bundle, seg, reach):

@@ -16,6 +16,7 @@ from ..render.checks import validate_scene
 from ..render.export import export_rays
 from ..render.failures import failure_message
 from ..render.fields import SERVICE, publish_report
+from ..render.memory import MemoryBudgetError, guard_memory
 from ..render.surface import scene_surface_errors, with_surface
 from ..render.volume import prepare_volumes
 from .context import evaluated_scene, settings_of
@@ -143,17 +144,25 @@ class MULTISCALE_OT_compute_field(bpy.types.Operator):
         return self._finish(context, result, self._diag)
 
     def _request(self, context, should_stop=None):
-        """(FieldRequest, Diagnostics with ``should_stop``) after the rig check, or
-        (None, None). The check's warnings, reported already, start the Diagnostics so
-        none is said twice."""
+        """(FieldRequest, Diagnostics with ``should_stop``) after the rig check and the
+        memory guard, or (None, None). The check's warnings, reported already, start the
+        Diagnostics so none is said twice."""
         ok, rig, messages = run_validation(self, context)
         if not ok:
             publish_report(context.scene, None)
             return None, None
+        scene = evaluated_scene(context)
+        request = SERVICE.request(scene, rig)
+        try:  # before anything large is allocated
+            guard_memory(scene, request)
+        except MemoryBudgetError as err:
+            publish_report(context.scene, None)
+            self.report({"ERROR"}, str(err))
+            return None, None
         diag = Diagnostics(should_stop=should_stop)
         diag.extend(messages)
         self._checked = len(diag.messages)
-        return SERVICE.request(evaluated_scene(context), rig), diag
+        return request, diag
 
     def _finish(self, context, result, diag):
         # the rays' first hits in this scene: what the picture shows (docs/report.md)

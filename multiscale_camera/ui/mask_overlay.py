@@ -16,6 +16,7 @@ import gpu
 import numpy as np
 
 from ..adapters.masks import mask_from_image
+from ..render.fields import SERVICE
 from ..render.guide import guide_size
 from .mask_ops import guide_key, guide_state, make_guide
 from .mask_shapes import overlay_rgba
@@ -222,6 +223,9 @@ class MULTISCALE_PT_image_masks(bpy.types.Panel):
             col.label(text="Guide is stale" if state == "stale" else "No guide yet", icon="ERROR")
             if shown == settings.active_index:
                 col.operator("multiscale.guide_update", icon="FILE_REFRESH")
+        layout.prop(settings, "live_picture", toggle=True, icon="RENDER_RESULT")
+        if settings.live_picture and SERVICE.live is not None and SERVICE.live.status():
+            layout.label(text=SERVICE.live.status(), icon="INFO")
         row = layout.row(align=True)
         row.prop(settings, "show_mask_overlay", toggle=True, icon="OVERLAY")
         row.prop(settings, "overlay_opacity", text="")

@@ -9,6 +9,7 @@ from ..adapters.cameras import pinhole_from_object
 from ..adapters.masks import animated_kind
 from ..core.quality import guard_pairs, headline
 from ..render import cycles
+from ..render.fields import SERVICE
 from . import preview
 from .mask_ops import guide_state
 from .volume import draw_transfer_function
@@ -168,7 +169,16 @@ def draw_camera_settings(layout, context, item):
             col.label(text="raise Near Distance (or lower Beta)")
     layout.template_ID(item, "mask", new="multiscale.mask_new", open="image.open")
     kind = animated_kind(item.mask)
-    if kind is not None:
+    if kind is not None and item.mask.source == "SEQUENCE":
+        col = layout.column(align=True)
+        col.label(text="Mask sequence, read at each frame:", icon="SEQUENCE")
+        row = col.row(align=True)
+        row.prop(item, "mask_frames")
+        row.prop(item, "mask_frame_start")
+        row = col.row(align=True)
+        row.prop(item, "mask_frame_offset")
+        row.prop(item, "mask_cyclic", toggle=True)
+    elif kind is not None:
         col = layout.column(align=True)
         col.alert = True
         col.label(text=f"Animated mask ({kind.split(' ', 1)[1]}):", icon="ERROR")
@@ -251,10 +261,14 @@ class MULTISCALE_PT_preview(bpy.types.Panel):
         row.prop(settings, "preview_rays", text="Rays")
         if settings.show_preview and preview.note():
             layout.label(text=preview.note(), icon="INFO")
+        layout.prop(settings, "live_picture", toggle=True, icon="RENDER_RESULT")
+        if settings.live_picture and SERVICE.live is not None and SERVICE.live.status():
+            layout.label(text=SERVICE.live.status(), icon="INFO")
         row = layout.row(align=True)
         row.prop(settings, "cache_limit_mb", text="Cache (MB)")
         row.operator("multiscale.cache_clear", icon="TRASH")
         layout.prop(settings, "cache_folder", text="Folder")
+        layout.prop(settings, "memory_budget_mb", text="Memory Budget (MB, 0: free memory)")
 
 
 CLASSES = (

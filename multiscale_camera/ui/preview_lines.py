@@ -102,7 +102,9 @@ def preview_lines(fld, per_side=12):
     counts = (last + 1).reshape(len(ys), len(xs))
     folds = np.zeros((0, 3), dtype=np.float32)
     if len(xs) > 1 and len(ys) > 1:
-        folded = quad_folds(grid_verts, bending_active(grid_verts, rig.cameras[-1], counts))
+        folded = quad_folds(
+            grid_verts, bending_active(grid_verts, rig.cameras[-1], counts, rig.cameras[:-1])
+        )
         fy, fx = np.nonzero(folded)
         if len(fy):
             mid = (counts[fy, fx] // 2).clip(0, k - 1)

@@ -98,6 +98,29 @@ class MultiscaleCameraItem(bpy.types.PropertyGroup):
         type=bpy.types.Image,
         description="The mask New Mask replaced, kept to be put back",
     )
+    # An image sequence as the mask plays as Blender's image users play it.
+    mask_frames: IntProperty(
+        name="Frames",
+        default=100,
+        min=0,
+        description="Frames of the mask's image sequence to play (as an image user's Frames)",
+    )
+    mask_frame_start: IntProperty(
+        name="Start",
+        default=1,
+        description="Scene frame at which the mask's image sequence starts playing",
+    )
+    mask_frame_offset: IntProperty(
+        name="Offset",
+        default=0,
+        description="Added to the sequence's frame number (the file read is numbered "
+        "1 + offset at the start frame)",
+    )
+    mask_cyclic: BoolProperty(
+        name="Cyclic",
+        default=False,
+        description="Play the mask's image sequence again after its last frame",
+    )
 
 
 # Paths that may start with "//" (Blender 5 warns without the option, which older ones may lack).
@@ -174,6 +197,15 @@ class MultiscaleSettings(bpy.types.PropertyGroup):
         max=1 << 20,
         description="Size limit of the field cache on disk, megabytes (oldest fields go first)",
     )
+    memory_budget_mb: IntProperty(
+        name="Memory Budget",
+        default=0,
+        min=0,
+        max=1 << 24,
+        description="Most memory, in megabytes, that a field build or a render may take "
+        "(Blender's process and its workers together); larger work is refused before it "
+        "starts, saying what to lower. 0: what the machine has free, less a margin",
+    )
     guide_opacity: FloatProperty(
         name="Guide Opacity",
         default=0.5,
@@ -201,6 +233,13 @@ class MultiscaleSettings(bpy.types.PropertyGroup):
         max=1.0,
         subtype="FACTOR",
         description="Opacity of the other cameras' masks and the transition bands",
+    )
+    live_picture: BoolProperty(
+        name="Live Picture",
+        default=True,
+        description="While a mask is shown in an Image Editor, remake a small PREVIEW "
+        "render of the multiscale image in the background after each stroke or camera "
+        "move (the image 'Multiscale Live', and in the editor's corner)",
     )
     cache_folder: StringProperty(
         name="Cache Folder",

@@ -20,7 +20,6 @@ from mathutils import Vector
 
 from fixtures.blender import samples
 from fixtures.blender.scenes import two_camera_scene
-from multiscale_camera.adapters.masks import ANIMATED_MASK
 from multiscale_camera.adapters.scene import rig_from_scene
 from multiscale_camera.core.field import choose_grid, steady_grid, steady_levels
 from multiscale_camera.core.methods import FrameReuse, frame_levels, plan_shot
@@ -325,25 +324,6 @@ def test_dolly_moves_rays_continuously(empty_scene):
 
     ratios = move_ratios(scene, [at(f) for f in DOLLY_FLICKER_FRAMES], cam1, 2)
     assert_moves_linearly(ratios)
-
-
-def test_an_image_sequence_mask_is_said_not_read(empty_scene, tmp_path):
-    """A mask that is an image sequence once read as a mask without pixels ("is its
-    file missing?"); it now says it is animated, which is not read yet."""
-    scene = empty_scene
-    two_camera_scene(scene, 16, 12)
-    for frame in (1, 2):
-        still = bpy.data.images.new(f"frame {frame}", 16, 12)
-        still.filepath_raw = str(tmp_path / f"mask_{frame:04d}.png")
-        still.file_format = "PNG"
-        still.save()
-    sequence = bpy.data.images.load(str(tmp_path / "mask_0001.png"))
-    sequence.source = "SEQUENCE"
-    scene.multiscale.cameras[0].mask = sequence
-    rig = rig_from_scene(scene)
-    said = ANIMATED_MASK.format(name=sequence.name, kind="an image sequence")
-    assert said in rig.notices
-    assert not rig.masks[0].any()
 
 
 def test_dolly_sample_moves_uniformly(empty_scene):

@@ -5,7 +5,7 @@ a brute-force count of the same sections."""
 import numpy as np
 import pytest
 
-from fixtures.rigs import camera, look_at, zoom1000_rig, zoom_rig
+from fixtures.rigs import camera, look_at, turned_rig, zoom1000_rig, zoom_rig
 from multiscale_camera.core.geometry import Rig
 from multiscale_camera.core.methods import prepare_image_blend, prepare_linear
 from multiscale_camera.core.quality import along_ray, bending_active, fold_map, quad_folds
@@ -110,6 +110,86 @@ def test_a_ray_exact_at_its_near_plane_that_drifts_behind_it_is_measured(clip_en
         assert a == pytest.approx(want_angle, rel=1e-6) and 0.3 < a <= 0.4 + 1e-9
 
 
+def test_a_ray_that_starts_beyond_the_near_plane_beside_the_frustum_is_measured_from_its_entry():
+    """On a turned rig a ray starts on camera 1's near plane, which can lie beyond camera
+    3's near plane to one side of its frustum, and comes round to camera 3's plane from
+    behind. Its stretch is from that entry on: the measure once took every piece beyond
+    the plane by depth alone and said 1,000 to 3,000 px for exact rays."""
+    cam = camera("C", EYE, TARGET, W, H, lens=LENS, clip_start=1.5, clip_end=40.0)
+    r, u, f = _frame()
+    for drift, exact in ((0.0, True), (0.4, False)):
+        rays = _bent_rays(cam, PIXELS, drift)
+        # two vertices beyond the plane (depth 3 and 2 near distances), far to one side
+        side = [
+            np.array([ray[2] + 2.0 * 1.5 * f - 9.0 * r, ray[2] + 1.5 * f - 6.0 * r]) for ray in rays
+        ]
+        turned = np.array([np.vstack([s, ray]) for s, ray in zip(side, rays)])
+        depth = (turned - EYE) @ f
+        assert (depth[:, :2] > 1.5).all() and (depth[:, 2:4] < 1.5).all()
+        err, angle = along_ray(turned, cam, *np.array(PIXELS).T)
+        for ray, (x, y), e, a in zip(turned, PIXELS, err, angle):
+            want, want_angle = dense_worst(ray[4:], x, y, 1.5, 40.0)  # from the plane's point
+            far_off, _ = dense_worst(ray[:3], x, y, 1.5, 40.0)  # the start, beside the frustum
+            assert far_off > 100  # the image is 64 px wide
+            if exact:
+                assert e < 1e-9 and a < 1e-5
+            else:
+                assert want > 0.5 and e == pytest.approx(want, rel=1e-4)
+                assert a == pytest.approx(want_angle, rel=1e-6)
+
+
+def test_the_turned_rigs_image_blend_rays_are_each_cameras_pinhole_rays_from_its_near_plane():
+    """IMAGE_BLEND lays every preserved ray out as its camera's curve R_i: checked here
+    against each camera's straight ray from its near plane, computed from the camera's
+    matrix (look_at), lens and sensor; the report agrees (it said 1,000 to 2,300 px for
+    camera 3 when it measured by depth alone)."""
+    from multiscale_camera.core.quality import build_report, measured_pixels
+
+    cams, masks = turned_rig(96, 72)
+    fld = prepare_image_blend(Rig(cams, masks))
+    rep = build_report(fld, "STANDARD")
+    for i, cam in enumerate(cams):
+        m = np.asarray(cam.matrix_world, dtype=np.float64)
+        right, up, fwd, eye = m[:3, 0], m[:3, 1], -m[:3, 2], m[:3, 3]
+        k = cam.lens / 36.0 * 96  # pixels per unit at depth 1 (sensor fitted to the width)
+        ix, iy = measured_pixels(masks[i])
+        d = (
+            fwd
+            + right[None] * ((ix + 0.5 - 48) / k)[:, None]
+            - up[None] * ((iy + 0.5 - 36) / k)[:, None]
+        )
+        p = eye + d * (cam.clip_start / (d @ fwd))[:, None]  # the near-plane points
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        v = fld.rays(ix, iy).vertices.astype(np.float64)
+        near = np.argmin(np.linalg.norm(v - p[:, None], axis=-1), axis=1)
+        rows = np.arange(len(ix))
+        assert np.linalg.norm(v[rows, near] - p, axis=1).max() < 1e-5 * cam.clip_start
+        for j in range(v.shape[1]):  # every later vertex on the straight ray
+            after = near < j
+            off = v[after, j] - p[after]
+            across = off - (off * d[after]).sum(1, keepdims=True) * d[after]
+            assert np.linalg.norm(across, axis=1).max(initial=0) < 1e-5 * cam.clip_start
+            assert ((off * d[after]).sum(1) > 0).all()
+        if i == 2:  # the hard case is there: rays that start beyond camera 3's plane
+            assert (((v[:, 0] - eye) @ fwd) > cam.clip_start).mean() > 0.5
+        assert rep["cameras"][i]["preserved_px"]["max"] < 1e-3
+
+
+def test_fold_counter_matches_brute_force_on_the_turned_rig():
+    """IMAGE_BLEND truly folds on the turned rig; most of its rays start beyond camera
+    3's near plane, whose bending stretch the counter once took to be empty."""
+    cams, masks = turned_rig(40, 30)
+    fld = prepare_image_blend(Rig(cams, masks))
+    verts, active = _lattice(fld)
+    start_beyond = ((verts[..., 0, :] - cams[2].eye) @ cams[2].forward) > cams[2].clip_start
+    assert start_beyond.mean() > 0.5 and active[start_beyond].any(axis=-1).all()
+    folds = quad_folds(verts, active)
+    quads = [(y, x) for y in range(29) for x in range(39)]
+    brute = brute_force_folds(verts, active, quads).reshape(29, 39)
+    assert folds.sum() >= 20
+    np.testing.assert_array_equal(folds, brute)
+
+
 def test_a_ray_that_never_reaches_the_stretch_measures_infinite():
     cam = camera("C", EYE, TARGET, W, H, lens=LENS, clip_start=1.5, clip_end=40.0)
     r, u, f = _frame()
@@ -171,7 +251,7 @@ def _lattice(fld, y0=0, y1=None, x0=0, x1=None):
     iy, ix = np.meshgrid(ys, xs, indexing="ij")
     b = fld.rays(ix.ravel(), iy.ravel())
     verts = b.vertices.reshape(len(ys), len(xs), -1, 3)
-    return verts, bending_active(verts, fld.rig.cameras[-1])
+    return verts, bending_active(verts, fld.rig.cameras[-1], None, fld.rig.cameras[:-1])
 
 
 def test_fold_counter_matches_brute_force_where_linear_folds():

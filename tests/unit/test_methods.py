@@ -65,14 +65,26 @@ def test_auto_takes_image_blend_where_its_rays_do_not_fold():
     assert not fold_map(prepare_image_blend(Rig(cams, masks)))[0].any()
     fld = prepare(Rig(cams, masks), "AUTO", settings_for("PREVIEW"))
     assert fld.method == "IMAGE_BLEND"
-    assert fld.stats["auto"] == "IMAGE_BLEND: its rays do not fold on this rig"
+    assert fld.stats["auto"] == (
+        "IMAGE_BLEND: the cheapest method whose rays meet the target (p95 <= 2 px, max <= 8 px "
+        "along every preserved ray, no fold) on this rig"
+    )
 
 
-def test_auto_builds_the_scalar_field_where_image_blend_would_fold():
-    cams, masks = zoom_rig(96, 72, turn_deg=60)  # IMAGE_BLEND folds 43 quads here
+def test_auto_says_so_when_no_method_meets_the_target():
+    """Turned 60 degrees, IMAGE_BLEND folds 43 quads and SCALAR_FIELD 46 at PREVIEW; AUTO
+    once took SCALAR_FIELD on IMAGE_BLEND's folds alone and said nothing of its own."""
+    cams, masks = zoom_rig(96, 72, turn_deg=60)
     fld = prepare(Rig(cams, masks), "AUTO", settings_for("PREVIEW"))
     assert fld.method == "SCALAR_FIELD"
-    assert fld.stats["auto"] == "SCALAR_FIELD: IMAGE_BLEND would fold 43 quads on this rig"
+    misses = (
+        "IMAGE_BLEND would miss it: 43 folded quads; SCALAR_FIELD would miss it: 46 folded quads"
+    )
+    assert fld.stats["auto"] == "SCALAR_FIELD: no method meets the target on this rig; " + misses
+    assert fld.warnings[-1] == (
+        f"No method meets the accuracy target on this rig ({misses}); SCALAR_FIELD is used. "
+        "Move the masks' edges apart or turn the cameras less."
+    )
 
 
 def test_auto_takes_image_blend_on_the_1000x_rig_where_false_folds_sent_it_to_nested_grids():
@@ -82,4 +94,39 @@ def test_auto_takes_image_blend_on_the_1000x_rig_where_false_folds_sent_it_to_ne
     cams, masks = zoom1000_rig(120, 68)
     fld = prepare(Rig(cams, masks), "AUTO", settings_for("STANDARD"))
     assert fld.method == "IMAGE_BLEND"
-    assert fld.stats["auto"] == "IMAGE_BLEND: its rays do not fold on this rig"
+    assert fld.stats["auto"].startswith("IMAGE_BLEND: the cheapest method whose rays meet")
+
+
+@pytest.mark.slow
+def test_auto_does_not_take_image_blend_on_the_turned_rig_where_its_rays_fold():
+    """On the turned rig (views 40.6 and 49.5 degrees apart) IMAGE_BLEND's transition rays
+    fold. The fold count once skipped every ray that started beyond camera 3's near plane
+    (beside its frustum, on its guides), found none in one variant, and AUTO took
+    IMAGE_BLEND; the report measured camera 3 2,000 px off from that same start."""
+    from fixtures.rigs import turned_rig
+
+    cams, masks = turned_rig(64, 48)
+    fld = prepare(Rig(cams, masks), "AUTO", settings_for("PREVIEW"))
+    assert fld.method == "SCALAR_FIELD"
+    assert "IMAGE_BLEND would miss it: " in fld.stats["auto"]
+    assert "folded quads" in fld.stats["auto"]
+
+
+def test_auto_says_which_camera_misses_the_target_and_by_how_much():
+    from multiscale_camera.core.methods.registry import shortfall
+
+    def cam(name, pixels, p95, top):
+        return {"name": name, "pixels": pixels, "preserved_px": {"p50": 0, "p95": p95, "max": top}}
+
+    ok = [cam("A", 10, 0.5, 2.0), cam("B", 0, None, None)]
+    assert shortfall(ok, 0, 0.5) == ""
+    assert shortfall(ok, 3, 0.5) == "3 folded quads"
+    assert shortfall([cam("A", 10, 0.51, 1.0)], 0, 0.5) == (
+        "camera 'A' p95 0.51 px, max 1.00 px (target 0.5 and 2)"
+    )
+    assert shortfall([cam("A", 10, 0.2, 2.5)], 0, 0.5) == (
+        "camera 'A' p95 0.20 px, max 2.50 px (target 0.5 and 2)"
+    )
+    assert shortfall([cam("C", 10, None, None)], 1, 0.5) == (
+        "camera 'C' has rays that never reach its near plane; 1 folded quads"
+    )

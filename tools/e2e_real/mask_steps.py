@@ -12,6 +12,10 @@ timers, a screenshot of the whole screen after each (ImageMagick's ``import``).
    turns back).
 5. New Mask on camera 3's painted mask asks first (mask_confirm.png), then the
    3D viewport's panel offers to put the replaced mask back (mask_restore.png).
+6. Camera 3's mask put back, then a brush stroke (the mouse dragged with its button
+   down) on camera 2's mask in Paint mode: the live picture is remade in the
+   background and drawn in the editor's corner (mask_live.png); the log gives the
+   seconds from the stroke's end to it.
 
     SHOT_DIR=docs/images E2E_LOG=out/mask-log.json \\
       ../shared/tools/realblender/run.sh sample_blends/demo.blend \\
@@ -125,7 +129,20 @@ def paint(index):
 
 
 def setup():
+    bpy.context.scene.multiscale.live_picture = False  # on for step 6 only
     sidebar("VIEW_3D")
+    paint(1)
+
+
+def live_on():
+    """Camera 3's painted mask put back (New Mask left it empty), then the live picture
+    on, camera 2's mask painted."""
+    settings = bpy.context.scene.multiscale
+    settings.active_index = 2
+    with override():
+        result = bpy.ops.multiscale.mask_restore()
+    note("mask put back", result=sorted(result), mask=settings.cameras[2].mask.name)
+    settings.live_picture = True
     paint(1)
 
 
@@ -251,6 +268,59 @@ def restored():
     )
 
 
+def live_picture():
+    from bl_ext.user_default.multiscale_camera.render.fields import SERVICE
+
+    return SERVICE.live
+
+
+def live_ready():
+    """Camera 2's mask in the Image Editor, Paint mode: wait for the first live
+    picture (the one of the masks as they are) before the stroke."""
+    live = live_picture()
+    if live.message:
+        raise RuntimeError(live.message)
+    if live.updates == 0 or live.job is not None:
+        if time.time() - T0 > 900:
+            raise RuntimeError(f"no live picture ({live.message or 'timed out'})")
+        return AGAIN
+    state["live"], state["claimed"] = live.updates, claimed(1)
+    note("live picture", updates=live.updates, seconds=round(live.seconds, 2))
+    return None
+
+
+def brush_down():
+    """Press the brush on camera 2's mask, in the gap between camera 3's disk and
+    camera 2's ring, right of the centre; the stroke runs upwards."""
+    state["from"], state["to"] = screen_point(0.633, 0.44), screen_point(0.633, 0.56)
+    x, y = state["from"]
+    subprocess.run(["xdotool", "mousemove", str(int(x)), str(int(y))], check=False)
+    subprocess.run(["xdotool", "mousedown", "1"], check=False)
+
+
+def brush_up():
+    subprocess.run(["xdotool", "mouseup", "1"], check=False)
+    state["stroke_end"] = time.perf_counter()
+    now = claimed(1)
+    note("stroke", claimed_before=state["claimed"], claimed_after=now)
+    if now <= state["claimed"]:
+        raise RuntimeError("the brush stroke painted nothing")
+
+
+def live_updated():
+    """The live picture after the stroke: wait for it (Blender stays responsive)."""
+    live = live_picture()
+    if live.message:
+        raise RuntimeError(live.message)
+    if live.updates <= state["live"] or live.job is not None:
+        if time.perf_counter() - state["stroke_end"] > 600:
+            raise RuntimeError(f"the stroke gave no live picture ({live.message or 'timed out'})")
+        return AGAIN
+    took = time.perf_counter() - state["stroke_end"]
+    note("live picture after the stroke", seconds=round(took, 2), stages=live.stages)
+    return None
+
+
 STEPS = [
     ("setup", setup, 3.0),
     ("sidebar", lambda: sidebar("IMAGE_EDITOR"), 1.0),
@@ -283,7 +353,21 @@ STEPS = [
     ("replaced", restored, 1.0),
     ("tab", click_tab, 2.0),
     ("restore shot", lambda: shot("mask_restore.png"), 1.0),
+    ("paint for the live picture", live_on, 2.0),
+    ("maximise again", maximise, 2.0),
+    ("fit for the live picture", guide_shot, 2.0),
+    ("live ready", live_ready, 1.0),
+    ("brush down", brush_down, 0.3),
+    ("brush 1", lambda: move(1), 0.2),
+    ("brush 2", lambda: move(2), 0.2),
+    ("brush 3", lambda: move(3), 0.2),
+    ("brush 4", lambda: move(4), 0.5),
+    ("brush up", brush_up, 0.5),
+    ("live updated", live_updated, 1.0),
+    ("live shot", lambda: shot("mask_live.png"), 1.0),
 ]
+# A step that returns AGAIN runs again a second later.
+AGAIN = "again"
 state = {"i": 0}
 
 
@@ -295,7 +379,8 @@ def tick():
         return None
     name, fn, wait = STEPS[i]
     try:
-        fn()
+        if fn() == AGAIN:
+            return 1.0
     except Exception:
         note("failed", at=name, error=traceback.format_exc())
         bpy.ops.wm.quit_blender()

@@ -8,7 +8,8 @@
 #   2. Blender 5.2 in a real window (Xvfb): the sidebar with three cameras, a render, the
 #      viewport's Rendered shading, a mask made and painted over its guide
 #      (tools/e2e_real/gui_steps.py), then the mask tools (tools/e2e_real/mask_steps.py);
-#      screenshots -> docs/images/ (SHOTS=... to change).
+#      screenshots -> docs/images/ (SHOTS=... to change); then Esc pressed in each stage
+#      of a render, timed (tools/e2e_real/cancel_steps.py).
 #
 # Needs root and the realblender chroots (made by its setup.sh when missing: ~90 s each).
 # RB_SUITES="sid" to skip 4.3 (RB_SUITES=none: only the window run); E2E_GUI=0 to skip
@@ -91,6 +92,25 @@ import json, sys
 steps = [s["step"] for s in json.load(open(sys.argv[1]))["steps"]]
 print("mask steps:", ", ".join(steps))
 sys.exit(0 if steps and steps[-1] == "done" and "failed" not in steps else 1)
+PY
+  # Esc in the window stops a render in each stage within 2 s (the render job's
+  # test_break; tools/e2e_real/cancel_steps.py)
+  echo "== sid: Esc in each stage of a render in a window"
+  export RB_DISPLAY=$GUI_DISPLAY
+  RB_ENV="E2E_LOG=$OUT/cancel-log.json" \
+    "$RB/run.sh" "$REPO/sample_blends/demo.blend" --python "$REPO/tools/e2e_real/cancel_steps.py" \
+    > "$OUT/cancel.log" 2>&1 || true
+  "$RB/run.sh" --stop-xvfb
+  unset RB_DISPLAY
+  python3 - "$OUT/cancel-log.json" <<'PY'
+import json, sys
+steps = json.load(open(sys.argv[1]))["steps"]
+for s in steps:
+    if s["step"] in ("cancelled", "skipped", "failed"):
+        info = {k: s[k] for k in ("seconds", "after_heard", "reason") if k in s}
+        print("cancel:", s["step"], s.get("stage"), info)
+names = [s["step"] for s in steps]
+sys.exit(0 if names and names[-1] == "done" and "failed" not in names else 1)
 PY
 fi
 if [ "${E2E_CLI:-1}" = 1 ]; then

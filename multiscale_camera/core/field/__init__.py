@@ -39,6 +39,7 @@ from .nested import (
     choose_levels,
     solve_levels,
 )
+from .preserved_rays import arc_length_rays, scheduled_rays
 from .solvers import (
     ISOLATED_VALUE,
     SolveResult,
@@ -62,9 +63,7 @@ from .tracer import (
     STEP_CELLS,
     STEP_WIDTH_GAIN,
     FieldTracer,
-    arc_length_rays,
     blend_weights,
-    scheduled_rays,
     step_cells,
 )
 

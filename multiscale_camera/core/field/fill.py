@@ -137,6 +137,7 @@ def splat_camera(grid, family, mask, chunk=200_000, should_stop=None):
     pick = np.linspace(0, len(xs) - 1, min(len(xs), 64)).astype(int)
     probe_u, probe_v = xs[pick] + 0.5, ys[pick] + 0.5
     for j in range(family.i):
+        check_stop(should_stop)
         window = _stage_window(grid, family, j, w, h)
         if window is None:
             continue
@@ -167,7 +168,7 @@ def splat_camera(grid, family, mask, chunk=200_000, should_stop=None):
             ok = ((idx >= 0) & (idx < grid.shape)).all(axis=1)
             idx = idx[ok]
             claimed[idx[:, 0], idx[:, 1], idx[:, 2]] = True
-    near, around = straight_claims(grid, cam, mask)
+    near, around = straight_claims(grid, cam, mask, should_stop=should_stop)
     core = claimed | near
     return core, (_dilate(claimed) | around) & ~core
 
@@ -238,13 +239,15 @@ def _square_dilations(mask, levels):
 DILATION_LEVELS = 10
 
 
-def straight_claims(grid, cam, mask, chunk=1 << 20):
+def straight_claims(grid, cam, mask, chunk=1 << 18, should_stop=None):
     """Voxels within a voxel's reach of camera i's preserved rays beyond its near plane.
 
     Each voxel centre is projected into camera i; beyond the near plane it is a core
     claim when the mask, dilated by half a voxel seen from the camera (in pixels), holds
     its pixel, and a halo claim when the mask dilated by the voxel's half-diagonal does.
     Exact for the straight part of the family, with no sampling.
+
+    should_stop : callable () -> bool or None, asked between chunks of voxels.
 
     Returns
     -------
@@ -257,6 +260,7 @@ def straight_claims(grid, cam, mask, chunk=1 << 20):
     halo = np.zeros(grid.size, dtype=bool)
     centres = grid.centres(flat=True)
     for s in range(0, grid.size, chunk):
+        check_stop(should_stop)
         pts = centres[s : s + chunk]
         pix, depth = cam.project(pts)
         front = depth >= cam.clip_start
@@ -339,6 +343,7 @@ def fill_membership(rig, grid, families, should_stop=None, known=None):
         claims = known[i] if known is not None else None
         if claims is None:
             claims = splat_camera(grid, fam, rig.masks[i], should_stop=should_stop)
+            check_stop(should_stop)
         core, halo = claims
         around.append(halo)
         cores += core

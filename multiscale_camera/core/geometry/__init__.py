@@ -7,6 +7,7 @@ other part of the core but its errors.
 
 from .bundle import RayBundle
 from .camera import SENSOR_FITS, PinholeCamera, pixel_centres
+from .crossing import near_plane_entries
 from .family import Family
 from .guides import (
     DEFAULT_SEGMENTS,
@@ -33,6 +34,7 @@ __all__ = [
     "cross3",
     "curved_rays",
     "dot3",
+    "near_plane_entries",
     "pixel_centres",
     "resolve_conflicts",
     "solve3",

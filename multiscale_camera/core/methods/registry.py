@@ -14,7 +14,7 @@ gets its seconds per stage.
 
 from ..diagnostics import diagnostics_of
 from ..errors import RigError
-from ..quality import fold_map
+from ..quality import measure
 from .base import Settings
 from .image_blend import prepare_image_blend
 from .linear import prepare_linear
@@ -29,36 +29,94 @@ METHODS = {
 }
 
 
-def prepare_auto(rig, settings=None, diag=None, reuse=None):
-    """AUTO: the cheapest method that meets the accuracy target on this rig.
+# AUTO's target for the worst preserved ray, as a multiple of the accuracy target (which
+# the p95 must meet): 2 px at STANDARD's 0.5 px.
+MAX_OVER_TARGET = 4.0
+# AUTO's candidates, cheapest first: IMAGE_BLEND has no 3D grid; SCALAR_FIELD (the
+# paper's method, nested grids past about 10x) is the one whose transitions are
+# streamlines, which do not cross. LINEAR folds wherever a transition has more than one
+# nearest preserved pixel and VECTOR_FIELD's preserved rays drift (docs/methods.md).
+AUTO_CANDIDATES = ("IMAGE_BLEND", "SCALAR_FIELD")
 
-    IMAGE_BLEND is the cheapest (no 3D grid) and its preserved rays are exact by
-    construction, so it meets any target unless its transition rays fold; its folds
-    are counted on the rays it would render, and where there are any, SCALAR_FIELD is
-    built (on nested grids where one uniform grid cannot hold the cells the target asks
-    for). LINEAR folds wherever a transition has more than one nearest preserved pixel,
-    and VECTOR_FIELD's preserved rays drift (docs/methods.md), so neither is a candidate.
-    The choice and why are in ``stats["auto"]``.
+
+def shortfall(cameras, folds, accuracy_px):
+    """Why a field's measured rays miss AUTO's target, or "" when they meet it.
+
+    The target: every camera's preserved error along the ray (docs/report.md) at p95 no
+    more than ``accuracy_px`` and at worst ``MAX_OVER_TARGET`` times that, and no fold.
+
+    Parameters
+    ----------
+    cameras : list of dict, the report's "cameras" entries (``quality.measure``).
+    folds : int. accuracy_px : float.
+
+    Returns
+    -------
+    str, the misses joined by "; " (camera names and figures), or "".
+    """
+    worst = MAX_OVER_TARGET * accuracy_px
+    out = []
+    for cam in cameras:
+        if not cam["pixels"]:
+            continue  # nothing to keep exact (an empty or thin mask)
+        p95, top = cam["preserved_px"]["p95"], cam["preserved_px"]["max"]
+        if p95 is None or top is None:
+            out.append(f"camera '{cam['name']}' has rays that never reach its near plane")
+        elif p95 > accuracy_px or top > worst:
+            out.append(
+                f"camera '{cam['name']}' p95 {p95:.2f} px, max {top:.2f} px "
+                f"(target {accuracy_px:g} and {worst:g})"
+            )
+    if folds:
+        out.append(f"{folds} folded quads")
+    return "; ".join(out)
+
+
+def prepare_auto(rig, settings=None, diag=None, reuse=None):
+    """AUTO: the cheapest method whose rays meet the accuracy target on this rig.
+
+    Each candidate of ``AUTO_CANDIDATES`` is built, cheapest first, and measured as the
+    report measures it (``quality.measure``: preserved error along the whole ray for
+    every camera, exact folds); the first whose rays meet the target (``shortfall``) is
+    kept. IMAGE_BLEND's preserved rays are its cameras' curves by construction, so it
+    misses only where its transition rays fold (the turned rig) or a preserved ray goes
+    wrong. When no candidate meets the target, the last is kept and the report says why.
+    The choice and why are in ``stats["auto"]``; the measurement stays with the field
+    (``measured``), so the report does not measure it again.
 
     A rig in motion (``settings.steady``) gets SCALAR_FIELD at every frame: one method
-    for the whole shot (IMAGE_BLEND's folds, counted frame by frame, could switch it
-    mid-shot), built with ``reuse`` (``reuse.FrameReuse`` or None) as SCALAR_FIELD is.
+    for the whole shot (a choice measured frame by frame could switch it mid-shot),
+    built with ``reuse`` (``reuse.FrameReuse`` or None) as SCALAR_FIELD is.
     """
-    diag = diagnostics_of(diag)
     settings = settings or Settings()
+    diag = diagnostics_of(diag)
     if settings.steady:
         out = prepare_scalar_field(rig, settings, diag, reuse)
         out.stats["auto"] = "SCALAR_FIELD: the rig moves, and a shot keeps one method"
         return out
-    fld = prepare_image_blend(rig, settings, diag)
-    folds = int(fold_map(fld)[0].sum())
-    if folds == 0:
-        fld.stats["auto"] = "IMAGE_BLEND: its rays do not fold on this rig"
-        return fld
-    diag.check()
-    out = prepare_scalar_field(rig, settings, diag)
-    out.stats["auto"] = f"SCALAR_FIELD: IMAGE_BLEND would fold {folds} quads on this rig"
-    return out
+    misses = []
+    for n, name in enumerate(AUTO_CANDIDATES):
+        if n:
+            diag.check()
+        fld = METHODS[name](rig, settings, diag)
+        cameras, folds = measure(fld)
+        fld.measured = (cameras, folds)
+        why = shortfall(cameras, folds, settings.accuracy_px)
+        if not why:
+            tried = "".join(f"; {m}" for m in misses)
+            fld.stats["auto"] = (
+                f"{name}: the cheapest method whose rays meet the target (p95 <= "
+                f"{settings.accuracy_px:g} px, max <= {MAX_OVER_TARGET * settings.accuracy_px:g}"
+                f" px along every preserved ray, no fold) on this rig{tried}"
+            )
+            return fld
+        misses.append(f"{name} would miss it: {why}")
+    fld.stats["auto"] = f"{name}: no method meets the target on this rig; " + "; ".join(misses)
+    fld.warnings.append(
+        f"No method meets the accuracy target on this rig ({'; '.join(misses)}); "
+        f"{name} is used. Move the masks' edges apart or turn the cameras less."
+    )
+    return fld
 
 
 METHODS["AUTO"] = prepare_auto

@@ -1,11 +1,20 @@
 """What a build is measured and checked by: the metrics of a field's rays (preserved
 error, folded quads, where they bend), the build report of the report schema, and the
-checks of a rig that explain before a build what would go wrong and what to change.
-Built on ``geometry`` and ``field``; it measures any ray field through its ``rays``
+checks of a rig that explain before a build what would go wrong and what to change,
+among them the peak memory a build and a render would take (``memory``, shapes in,
+bytes out). Built on ``geometry`` and ``field``; it measures any ray field through its ``rays``
 alone, so it needs none of the methods.
 """
 
 from .folds import quad_folds, section_points
+from .memory import (
+    MemoryEstimate,
+    budget_message,
+    build_memory,
+    estimate_memory,
+    render_memory,
+    size_text,
+)
 from .metrics import (
     ERODE_PX,
     MAX_MEASURED,
@@ -39,17 +48,21 @@ __all__ = [
     "ERODE_PX",
     "MAX_MEASURED",
     "MAX_TURN_DEG",
+    "MemoryEstimate",
     "Preserved",
     "UNBOUNDED_NEAR_DISTANCES",
     "along_ray",
     "bending_active",
     "bending_paths",
+    "budget_message",
+    "build_memory",
     "build_report",
     "check_rig",
     "conflict_messages",
     "crossing_messages",
     "empty_mask_messages",
     "erode",
+    "estimate_memory",
     "far_depth",
     "fold_map",
     "guard_message",
@@ -63,8 +76,10 @@ __all__ = [
     "preserved_error",
     "quad_folds",
     "readable",
+    "render_memory",
     "sample_pixels",
     "section_points",
+    "size_text",
     "to_json",
     "turn_deg",
 ]

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..geometry import dot3
+from ..geometry import dot3, near_plane_entries
 
 # Erosion of the masks, pixels, before measuring preserved rays (docs/report.md).
 ERODE_PX = 2
@@ -74,20 +74,25 @@ def far_depth(cam):
     return end if np.isfinite(end) else UNBOUNDED_NEAR_DISTANCES * float(cam.clip_start)
 
 
-def along_ray(vertices, cam, px, py):
+def along_ray(vertices, cam, px, py, earlier=()):
     """Worst deviation of rendered rays from ``cam``'s pinhole rays beyond its near plane.
 
     Each polyline, with its last segment run on to the far depth (``far_depth``) as the
-    renderer runs it on, is clipped to the slab between ``cam``'s near plane and its far
-    depth (depth along the view axis). Projected into ``cam``, a straight piece in front
-    of the eye is a straight piece of the image, whose distance to a fixed point is
-    largest at one of its ends: the worst over the ends of the clipped pieces is the
-    worst over the whole stretch, exactly.
+    renderer runs it on, is taken from where it enters ``cam``'s view (crossing its near
+    plane from behind, after crossing the near planes of the ``earlier`` cameras in
+    order: ``geometry.near_plane_entries``) and clipped to the slab between ``cam``'s
+    near plane and its far depth (depth along the view axis). Projected into ``cam``, a
+    straight piece in front of the eye is a straight piece of the image, whose distance
+    to a fixed point is largest at one of its ends: the worst over the ends of the
+    clipped pieces is the worst over the whole stretch, exactly. What comes before the
+    entry is the ray's way there (the guides), even where it lies beyond the near plane
+    to one side of the camera's frustum, as it does on rigs turned 40 degrees or more.
 
     Parameters
     ----------
     vertices : (R, K, 3) float array, K >= 2, world units. cam : PinholeCamera.
     px, py : (R,) float, the pixel centres the rays serve, in ``cam``'s pixels.
+    earlier : sequence of PinholeCamera, the rig's cameras before ``cam``, in order.
 
     Returns
     -------
@@ -107,11 +112,11 @@ def along_ray(vertices, cam, px, py):
     block = max(1, ALONG_BLOCK_VERTICES // (k + 1))
     for s in range(0, r, block):
         sl = slice(s, s + block)
-        error[sl], angle[sl] = _along_block(vertices[sl], cam, px[sl], py[sl])
+        error[sl], angle[sl] = _along_block(vertices[sl], cam, px[sl], py[sl], tuple(earlier))
     return error, angle
 
 
-def _along_block(vertices, cam, px, py):
+def _along_block(vertices, cam, px, py, earlier):
     v = vertices.astype(np.float64)
     near, far = float(cam.clip_start), far_depth(cam)
     f = cam.forward
@@ -132,6 +137,11 @@ def _along_block(vertices, cam, px, py):
     up, down = ds > 0, ds < 0
     lo = np.where(up, np.maximum(tn, 0.0), np.where(down, np.maximum(tf, 0.0), lo))
     hi = np.where(up, np.minimum(tf, 1.0), np.where(down, np.minimum(tn, 1.0), hi))
+    # from where the ray enters the camera's view on (inf: never)
+    entry = near_plane_entries(v, earlier + (cam,))[-1][:, None]
+    seg_index = np.arange(v.shape[1] - 1)[None, :]
+    with np.errstate(invalid="ignore"):
+        lo = np.maximum(lo, entry - seg_index)
     valid = lo <= hi
     seg = b - a
     centre = np.stack([px, py], axis=-1)[:, None]
@@ -144,10 +154,11 @@ def _along_block(vertices, cam, px, py):
     ref = cam.directions(px, py)
     with np.errstate(divide="ignore", invalid="ignore"):
         cos = dot3(seg, ref[:, None]) / length
-    long = valid & (length * (hi - lo) >= ANGLE_MIN_FRACTION * near)
+    with np.errstate(invalid="ignore"):  # inf - inf on rays that never enter the view
+        long = valid & (length * (hi - lo) >= ANGLE_MIN_FRACTION * near)
     # the segment that straddles the near plane is a chord across the guide's last bend:
     # its point counts above, its direction belongs to the bend (unless nothing else does)
-    beyond = long & (sa >= near)
+    beyond = long & (sa >= near) & (seg_index >= entry)
     long = np.where(beyond.any(axis=1)[:, None], beyond, long)
     ang = np.degrees(np.arccos(np.clip(np.where(long, cos, 1.0), -1.0, 1.0)))
     ang = np.where(long.any(axis=1), np.where(long, ang, -np.inf).max(axis=1), np.inf)
@@ -206,15 +217,20 @@ def preserved_error(cameras, i, bundle):
     v = bundle.vertices
     if len(v) == 0:
         return Preserved(0, np.zeros(0), np.zeros(0))
-    err, angle = along_ray(v, cameras[i], bundle.pixels[:, 0] + 0.5, bundle.pixels[:, 1] + 0.5)
+    px, py = bundle.pixels[:, 0] + 0.5, bundle.pixels[:, 1] + 0.5
+    err, angle = along_ray(v, cameras[i], px, py, tuple(cameras[:i]))
     return Preserved(len(v), err, angle)
 
 
-def bending_active(vertices, last_cam, counts=None):
-    """(…, K) bool: vertices before the last camera's near plane (and, with ``counts``,
-    among the traced ones): the stretch where folds are counted."""
-    s = dot3(vertices.astype(np.float64) - last_cam.eye, last_cam.forward) - last_cam.clip_start
-    before = np.logical_and.accumulate(s < 0, axis=-1)
+def bending_active(vertices, last_cam, counts=None, earlier=()):
+    """(…, K) bool: vertices before the ray enters the last camera's view (crossing its
+    near plane from behind after the ``earlier`` cameras' planes, in order:
+    ``geometry.near_plane_entries``; every vertex of a ray that never does) and, with
+    ``counts``, among the traced ones: the stretch where folds are counted."""
+    shape = vertices.shape
+    flat = np.asarray(vertices).reshape(-1, shape[-2], 3)
+    entry = near_plane_entries(flat, tuple(earlier) + (last_cam,))[-1].reshape(shape[:-2])
+    before = np.arange(shape[-2]) < entry[..., None]
     if counts is not None:
         before &= np.arange(vertices.shape[-2]) < counts[..., None]
     return before

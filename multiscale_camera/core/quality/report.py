@@ -46,7 +46,7 @@ def fold_map(fld):
         verts = bundle.vertices.reshape(len(band), len(xs), k, 3)
         exit_index = fld.exit_index(ix.ravel(), iy.ravel())
         counts = None if exit_index is None else (exit_index + 1).reshape(len(band), len(xs))
-        active = bending_active(verts, last, counts)
+        active = bending_active(verts, last, counts, fld.rig.cameras[:-1])
         out[r0 : r0 + len(band) - 1] = quad_folds(verts, active)
     return out, stride
 
@@ -57,7 +57,12 @@ def measure(fld):
     Returns
     -------
     cameras : list of dict (schema "cameras" entries). folds : int.
+    A field measured while it was built (AUTO measures its candidates) keeps its
+    measurement as ``fld.measured``; it is returned as is.
     """
+    done = getattr(fld, "measured", None)
+    if done is not None:
+        return done
     rig = fld.rig
     cameras = []
     for i, cam in enumerate(rig.cameras):

@@ -6,6 +6,7 @@ never cast (``occupancy``). Built on ``geometry``; it reads a field only through
 rays.
 """
 
+from .clipping import clip_far, far_planes, reach_to_far_planes
 from .occupancy import Occupancy
 from .sampler import RaySampler, blackman_harris_inverse, sample_offsets
 from .simplification import (
@@ -29,10 +30,13 @@ __all__ = [
     "blackman_harris_inverse",
     "box_distance",
     "camera_footprints",
+    "clip_far",
+    "far_planes",
     "footprint",
     "greedy_keep",
     "in_chunks",
     "polyline_measures",
+    "reach_to_far_planes",
     "sample_offsets",
     "segments_from_points",
     "simplify",

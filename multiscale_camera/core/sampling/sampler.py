@@ -17,6 +17,7 @@ from functools import partial
 import numpy as np
 
 from ..geometry import dot3
+from .clipping import clip_far, reach_to_far_planes
 from .simplification import (
     DEFAULT_TOLERANCE_PX,
     _is_shared,
@@ -152,7 +153,7 @@ class RaySampler:
         self.cameras = field.rig.cameras
         self.eyes, self.angles = camera_footprints(self.cameras)
         self.size = field.rig.size
-        self.reach = float(max(c.clip_end for c in self.cameras))
+        self.reach = reach_to_far_planes(self.cameras)
         traced = getattr(field, "traced", None)
         w, h = self.size
         self.lattice = traced is not None and getattr(field, "leaves", None) is not None
@@ -236,14 +237,19 @@ class RaySampler:
             castable[q] = meets
         return castable
 
-    def segments(self, sx, sy, ix=None, iy=None):
+    def segments(self, sx, sy, ix=None, iy=None, clip=True):
         """``Segments`` of the rays through continuous positions (sx, sy) ((P,) float,
         pixel centres at +0.5). ``ix, iy`` (P,) int: the pixels they serve, when they are
-        pixel centres (then the generic path casts those pixels' own rays)."""
+        pixel centres (then the generic path casts those pixels' own rays). With
+        ``clip`` each ray ends at its far plane, the cameras' ``clip_end`` blended as
+        its rays are (``clipping.clip_far``); without, it runs ``reach`` past its last
+        vertex."""
         sx, sy = np.asarray(sx, dtype=np.float64), np.asarray(sy, dtype=np.float64)
         if self.lattice:
-            return self._lattice_segments(sx, sy)
-        return self._generic_segments(sx, sy, ix, iy)
+            seg = self._lattice_segments(sx, sy)
+        else:
+            seg = self._generic_segments(sx, sy, ix, iy)
+        return clip_far(seg, self.cameras) if clip else seg
 
     def _lattice_segments(self, sx, sy):
         fld, traced = self.field, self.field.traced

@@ -47,6 +47,8 @@ class Segments:
     membership : (R,) float32, membership where the ray leaves the bending stretch.
     castable : (S,) bool or None: False marks a segment known to meet no geometry (the
         renderer need not cast it); None: nothing is known.
+    clipped : (R,) bool or None: rays cut short at their far plane (``clipping``);
+        None: not clipped.
     """
 
     origin: np.ndarray
@@ -58,6 +60,7 @@ class Segments:
     start_depth: np.ndarray
     membership: np.ndarray
     castable: np.ndarray = None
+    clipped: np.ndarray = None
 
     def __len__(self):
         return len(self.offsets) - 1

@@ -1,0 +1,149 @@
+"""Benchmark: the memory guard's estimate against the measured peak of a field build.
+
+    .venv/bin/python bench/memory.py [--rows zoom_rig:SCALAR_FIELD:PREVIEW:480x270 ...]
+
+Each row builds one field in a fresh process (so its peak is its own) and measures the
+peak resident size of that process (``VmHWM``) plus the peak of each worker process
+of the runtime (``VmHWM``, read every 0.25 s during the build and at its end, so a
+worker given up on the way counts too; summed: each peak counted as if they came at
+once, as the guard must assume). The estimate (``core.quality.memory``) is
+made from the rig's shapes before the build; its main-process part is added to the
+process's resident size before the build (the interpreter, numpy and the rig, already
+held when a render starts). Prints a table and writes bench/memory.json.
+"""
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import replace
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+OUT = ROOT / "bench" / "memory.json"
+# rig:method:quality:WxH; SCALAR_FIELD_NESTED forces nested grids, SCALAR_FIELD one
+# uniform grid (as bench/methods.py).
+ROWS = (
+    "zoom_rig:IMAGE_BLEND:STANDARD:1920x1080",
+    "three_camera_rig:IMAGE_BLEND:STANDARD:1920x1080",
+    "zoom_rig:SCALAR_FIELD:PREVIEW:480x270",
+    "zoom_rig:SCALAR_FIELD:STANDARD:480x270",
+    "three_camera_rig:SCALAR_FIELD:STANDARD:480x270",
+    "zoom25_rig:SCALAR_FIELD:PREVIEW:480x270",
+    "contradictory_rig:SCALAR_FIELD:STANDARD:480x270",
+    "zoom_rig:SCALAR_FIELD:PREVIEW:960x540",
+    "zoom_rig:SCALAR_FIELD_NESTED:PREVIEW:480x270",
+    "zoom_rig:SCALAR_FIELD_NESTED:STANDARD:480x270",
+    "zoom25_rig:SCALAR_FIELD_NESTED:PREVIEW:480x270",
+    "zoom1000_rig:SCALAR_FIELD_NESTED:PREVIEW:480x270",
+)
+
+
+def _kb(field, pid="self"):
+    """A field of /proc/<pid>/status in kB (0 when it cannot be read)."""
+    try:
+        with open(f"/proc/{pid}/status") as status:
+            for line in status:
+                if line.startswith(field + ":"):
+                    return int(line.split()[1])
+    except OSError:
+        pass
+    return 0
+
+
+def run_one(spec):
+    """Build one field in this process; its row (a dict)."""
+    from fixtures import rigs
+    from multiscale_camera.core.geometry import Rig
+    from multiscale_camera.core.methods import prepare, settings_for
+    from multiscale_camera.core.quality import estimate_memory
+    from multiscale_camera.core.runtime import runtime, worker_count
+
+    rig_name, method, quality, size = spec.split(":")
+    width, height = (int(x) for x in size.split("x"))
+    cams, masks = getattr(rigs, rig_name)(width, height)
+    rig = Rig(cams, masks)
+    settings = settings_for(quality)
+    if method.startswith("SCALAR_FIELD"):
+        settings = replace(settings, nested=method.endswith("NESTED"))
+    method = method.replace("_NESTED", "")
+    before = _kb("VmRSS") / 1024
+    estimate = estimate_memory(rig, method, settings, worker_count(settings.processes))
+    peaks, done = {}, threading.Event()
+
+    def watch():  # every worker's peak, also of one given up (ended) before the build ends
+        while not done.wait(0.25):
+            for pid in runtime().pids():
+                peaks[pid] = max(peaks.get(pid, 0), _kb("VmHWM", pid) / 1024)
+
+    watcher = threading.Thread(target=watch, daemon=True)
+    watcher.start()
+    start = time.perf_counter()
+    fld = prepare(rig, method, settings)
+    seconds = time.perf_counter() - start
+    done.set()
+    watcher.join()
+    for pid in runtime().pids():
+        peaks[pid] = max(peaks.get(pid, 0), _kb("VmHWM", pid) / 1024)
+    # VmHWM, not ru_maxrss: Linux carries the maximum of the process that forked this
+    # one across exec (from pytest with bpy imported: 940 MB before any work)
+    main = _kb("VmHWM") / 1024
+    workers = list(peaks.values())
+    measured = main + sum(workers)
+    estimated = before + estimate.total / 2**20
+    return {
+        "row": spec,
+        "built": fld.method,
+        "traced_rays": int(fld.stats.get("traced", 0)),
+        "estimated_traced_rays": estimate.shapes.get("traced_rays", 0),
+        "vertices": int(fld.traced.vertices.shape[1]) if getattr(fld, "traced", None) else 0,
+        "estimated_vertices": estimate.shapes.get("vertices", 0),
+        "before_mb": round(before, 1),
+        "peak_main_mb": round(main, 1),
+        "peak_workers_mb": [round(w, 1) for w in workers],
+        "measured_mb": round(measured, 1),
+        "estimated_mb": round(estimated, 1),
+        "estimated_main_mb": round(before + estimate.main / 2**20, 1),
+        "estimated_worker_mb": round(estimate.worker / 2**20, 1),
+        "ratio": round(estimated / measured, 3),
+        "parts_mb": {k: round(v / 2**20, 1) for k, v in estimate.parts.items()},
+        "build_seconds": round(seconds, 2),
+        "load_1min": round(os.getloadavg()[0], 2),
+    }
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--rows", nargs="+", default=list(ROWS))
+    parser.add_argument("--out", type=Path, default=OUT)
+    parser.add_argument("--one", help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.one:
+        print(json.dumps(run_one(args.one)))
+        return
+    rows = []
+    for spec in args.rows:
+        done = subprocess.run(
+            [sys.executable, __file__, "--one", spec], capture_output=True, text=True, cwd=ROOT
+        )
+        if done.returncode:
+            print(done.stderr[-2000:], file=sys.stderr)
+            continue
+        row = json.loads(done.stdout.strip().splitlines()[-1])
+        rows.append(row)
+        print(
+            f"{spec:50s} measured {row['measured_mb']:7.1f} MB  estimated "
+            f"{row['estimated_mb']:7.1f} MB  ratio {row['ratio']:.2f}  "
+            f"(rays {row['traced_rays']} est {row['estimated_traced_rays']}, "
+            f"{row['build_seconds']} s, load {row['load_1min']})",
+            flush=True,
+        )
+    args.out.write_text(json.dumps({"rows": rows}, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()

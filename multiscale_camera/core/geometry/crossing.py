@@ -1,0 +1,60 @@
+"""Where a bent ray enters each camera's view: its crossings of the near planes, in order.
+
+A multiscale ray starts on camera 1's near plane and, in the paper's model, passes
+camera 2's near plane, then camera 3's, and so on, each from behind (paper section 4.2).
+Depth along a camera's view axis alone does not say where a ray has entered that
+camera's view: when consecutive cameras are turned far apart (40 degrees and more), the
+start of a ray, near camera 1's near plane, can already lie beyond camera 3's near
+plane, to one side of camera 3's frustum, long before the ray comes round to camera 3's
+plane from behind (docs/report.md, *Preserved error*).
+"""
+
+import numpy as np
+
+from .vectors import dot3
+
+
+def near_plane_entries(vertices, cameras):
+    """For each camera in order, where each polyline enters its view.
+
+    The entry into camera 1's view is the ray's first point on or beyond camera 1's near
+    plane (depth along the view axis at least the near distance). The entry into camera
+    j's view is the first point, not before the entry into camera j-1's, where the ray
+    crosses camera j's near plane from behind; if it never does after that point, the
+    entry is that point itself when the ray is already on or beyond camera j's plane
+    there, else there is none (infinite).
+
+    Parameters
+    ----------
+    vertices : (R, K, 3) float array, K >= 2, world units: polylines.
+    cameras : sequence of PinholeCamera (N of them), in the rig's order.
+
+    Returns
+    -------
+    (N, R) float64: the polyline parameter of each entry, vertex index plus the fraction
+    of the segment (k + t: the point v[k] + t (v[k+1] - v[k])); inf where there is none.
+    """
+    v = np.asarray(vertices, dtype=np.float64)
+    r, k = v.shape[:2]
+    out = np.empty((len(cameras), r))
+    prev = np.zeros(r)
+    index = np.arange(k - 1, dtype=np.float64)[None, :]
+    rows = np.arange(r)
+    for n, cam in enumerate(cameras):
+        d = dot3(v - cam.eye, cam.forward) - float(cam.clip_start)  # (R, K), >= 0 beyond
+        d0, d1 = d[:, :-1], d[:, 1:]
+        up = (d0 < 0) & (d1 >= 0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            at = index + np.where(up, -d0 / (d1 - d0), np.inf)
+        # ... not before the entry into the camera before (the first camera: vertex 0)
+        at = np.where(up & (at >= prev[:, None]), at, np.inf).min(axis=1)
+        finite = np.isfinite(prev)
+        seg = np.clip(np.floor(np.where(finite, prev, 0.0)), 0, k - 2).astype(np.int64)
+        t = np.where(finite, prev, 0.0) - seg
+        there = d[rows, seg] * (1 - t) + d[rows, seg + 1] * t
+        # no crossing from behind after the entry before: the ray may already be beyond
+        # this camera's plane there (a camera whose plane the ray starts on)
+        at = np.where(np.isinf(at) & finite & (there >= 0), prev, at)
+        out[n] = at
+        prev = at
+    return out

@@ -1,0 +1,413 @@
+"""Peak memory of a field build and of a render, estimated from shapes before anything
+large is allocated: the memory guard's arithmetic (docs/failures.md, "Memory").
+
+``build_memory`` and ``render_memory`` take shapes (image size, cameras, voxels, traced
+rays and their vertices, worker processes) and return bytes, part by part: the big
+arrays the code allocates, each modelled from the code that makes it, with the bytes
+per element it holds at its peak. The constants below were calibrated against peaks
+measured on the bench rigs (bench/memory.py: the peak resident size of the process
+plus each worker's); what they leave is stated there and in docs/performance.md.
+``estimate_memory`` reads those shapes off a rig and its settings (the grids the build
+would choose, the lattice, the step count) without building anything.
+"""
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..field import (
+    CELLS_ACROSS_NEAR_PER_PX,
+    MIN_CELLS_ACROSS_NEAR,
+    choose_grid,
+    choose_levels,
+    near_plane_width,
+    step_cells,
+)
+
+MB = 1 << 20
+
+# A worker process of the field's runtime at work, before its share of rays: a fresh
+# interpreter with numpy and the core (about 36 MB), the modules and buffers of a task.
+WORKER_BASE_BYTES = 44 * MB
+# The fill (eq. 4): every voxel centre (float64 xyz and its meshgrid) and the values,
+# the claims of each camera (per camera below), and the fixed-size chunks the cameras'
+# guides are splatted and the centres projected in.
+FILL_BYTES_PER_VOXEL = 22
+FILL_BYTES_PER_CAMERA_VOXEL = 17
+FILL_CHUNK_BYTES = 75 * MB
+# The solve (eq. 5), per voxel (or per pixel of the image plane for IMAGE_BLEND's
+# weights): the conjugate gradients' float64 vectors and scratch, the multigrid's
+# levels and the fill it reads.
+SOLVE_BYTES_PER_CELL = 104
+# What stays per voxel through the trace in the main process (the solved membership,
+# its sampler's rows, the fill's values and claims).
+KEPT_BYTES_PER_VOXEL = 11
+# ... in each worker: the membership the tracer samples (float32, shared memory).
+WORKER_BYTES_PER_VOXEL = 4
+# Per pixel, in the main process, of a traced field: the lattice's index and leaf of
+# every pixel (int32 each) and the preserved labels (int8), and per camera its
+# summed-area table (int64, ``traced._CellLabels``).
+LATTICE_BYTES_PER_PIXEL = 9
+CELL_TABLE_BYTES_PER_PIXEL = 8
+# Per vertex of a traced ray kept in the main process (float32 xyz and membership), held
+# twice while the lattice's parts are merged.
+RAY_BYTES_PER_VERTEX = 16
+RAY_COPIES = 2
+# The lattice's error estimate weighs ``methods.traced.DEVIATION_BLOCK_VERTICES``
+# vertices at a time (the same value, tests/unit/test_memory_guard.py), a dozen float32
+# and float64 temporaries each: per vertex of a round's rays, up to one block.
+DEVIATION_BLOCK_VERTICES = 1 << 20
+DEVIATION_BYTES_PER_VERTEX = 110
+# Per vertex (at the step limit) of a share of rays in a worker: the preserved rays'
+# float64 layout and its float32 copy, the streamlines' buffer and state, the finished
+# rays and membership and their pickled copy on the way back. The parent holds a
+# share's pickled copy and its arrays while it merges it.
+WORKER_BYTES_PER_VERTEX = 45
+RECEIVE_BYTES_PER_VERTEX = 2 * RAY_BYTES_PER_VERTEX
+# The lattice traces in rounds (the base lattice, then the midpoints of the cells it
+# splits); the largest round holds about this fraction of every traced ray, and is
+# what the workers share at once.
+LARGEST_ROUND = 0.45
+# ``field.tracer.MAX_RAYS_PER_SHARE`` and ``MIN_RAYS_PER_PROCESS`` (the same values,
+# tests/unit/test_memory_guard.py).
+MAX_RAYS_PER_SHARE = 16384
+MIN_RAYS_PER_PROCESS = 256
+# IMAGE_BLEND's weights: float64 per camera and pixel while each camera is solved.
+WEIGHT_BYTES_PER_CAMERA_PIXEL = 8
+# Traced rays over the image's pixels, beyond the base lattice: the lattice splits
+# cells down to single pixels along every preserved region's edge (a band of about
+# this many pixels for each edge pixel), and refines elsewhere as the accuracy target
+# and the transitions ask: a fraction of the pixels, TRACED_FRACTION at 0.5 px on a
+# 480-pixel-wide image of a rig whose scales differ tenfold, growing as the target
+# tightens and as (1 + log10 of the scale ratio) squared (deeper zooms bend faster),
+# falling as the image widens (the exponents below).
+EDGE_BAND_PIXELS = 3.0
+TRACED_FRACTION = 0.065 * 4
+TRACED_ACCURACY_EXPONENT = 2.0
+TRACED_RATIO_EXPONENT = 2.0
+TRACED_WIDTH_EXPONENT = 0.6
+# The longest traced ray over the trace's step limit.
+VERTICES_OF_LIMIT = 0.35
+# A render: the Render Result's passes (Combined 4, Depth 1, Normal 3, IndexOB 1,
+# Membership 1 float32 channels) and Blender's display and saved copies of Combined;
+# each tile (``pipeline.rows_per_tile``: 16384 rays) and its segments in a worker.
+RESULT_BYTES_PER_PIXEL = 10 * 4 + 2 * 4 * 4
+TILE_RAYS = 16384
+TILE_BYTES_PER_RAY = 4096
+# Per traced vertex of the field a frame renders: its rays (float32 xyz and membership)
+# and the sampler's leaf schedules and ray measures (shared memory).
+FIELD_BYTES_PER_VERTEX = 16 + 24
+
+
+@dataclass(frozen=True)
+class MemoryEstimate:
+    """Peak memory of a build or a render, before it runs.
+
+    main : int, bytes the main process adds at its peak (beyond what it holds now).
+    worker : int, bytes of one worker process at its peak, its interpreter included.
+    workers : int, worker processes that run at once (0: the work stays in the main
+        process). parts : dict str -> int, what ``main`` and ``worker`` are made of
+        (bytes, "worker: ..." for a worker's), the largest first. shapes : dict, the
+        shapes the estimate was made from (pixels, voxels, traced rays, vertices).
+    """
+
+    main: int
+    worker: int
+    workers: int
+    parts: dict = field(default_factory=dict)
+    shapes: dict = field(default_factory=dict)
+
+    @property
+    def total(self):
+        """int, bytes: the main process's peak addition plus every worker's peak."""
+        return self.main + self.workers * self.worker
+
+    def largest(self):
+        """str, the name of the part that takes the most bytes."""
+        return max(self.parts, key=self.parts.get) if self.parts else ""
+
+
+def _estimate(main_parts, worker_parts, workers, shapes):
+    main = int(sum(main_parts.values()))
+    worker = int(sum(worker_parts.values())) if workers else 0
+    parts = dict(main_parts)
+    if workers:
+        parts.update({f"workers: {k}": v * workers for k, v in worker_parts.items()})
+    parts = dict(sorted(((k, int(v)) for k, v in parts.items() if v), key=lambda kv: -kv[1]))
+    return MemoryEstimate(main, worker, workers if worker else 0, parts, dict(shapes))
+
+
+def traced_workers(rays, workers):
+    """int, worker processes that share a trace of ``rays`` rays (0: traced in the main
+    process), as ``FieldTracer._workers`` decides."""
+    n = min(int(workers), int(rays) // MIN_RAYS_PER_PROCESS)
+    return n if n >= 2 else 0
+
+
+def build_memory(
+    method,
+    width,
+    height,
+    cameras,
+    voxels=0,
+    traced_rays=0,
+    vertices=0,
+    max_vertices=0,
+    workers=1,
+    level_voxels=0,
+):
+    """Peak memory of building a field, from shapes.
+
+    The main process's peak is that of its largest stage: the fill (eq. 4), the solve
+    (eq. 5), or the trace on the lattice (the kept grid, the lattice's arrays, the traced
+    rays twice, the error estimate's block, a share received from a worker); each
+    worker's, its interpreter, the grid it samples and its share of rays. On nested
+    grids (``level_voxels``) the levels are filled in the workers and solved one at a
+    time: the fill is a worker's stage, the solve the largest level's.
+
+    Parameters
+    ----------
+    method : str, "IMAGE_BLEND", "LINEAR", "VECTOR_FIELD", "SCALAR_FIELD" or "AUTO"
+        (IMAGE_BLEND, then SCALAR_FIELD where its rays fold: the larger of the two).
+    width, height : int, pixels. cameras : int.
+    voxels : int, the grid's voxels (every nested level's). traced_rays : int, rays the
+        lattice traces. vertices : int, vertices of the longest traced ray (what every
+        kept ray holds). max_vertices : int, the trace's step limit plus one (what a
+        worker lays preserved rays out on); ``vertices`` when 0.
+    workers : int, worker processes available (1: none).
+    level_voxels : int, the largest nested level's voxels (0: one uniform grid).
+
+    Returns
+    -------
+    MemoryEstimate whose ``parts`` are those of the main process's largest stage and
+    the workers'.
+    """
+    pixels = int(width) * int(height)
+    voxels = int(voxels)
+    shapes = dict(
+        pixels=pixels,
+        cameras=cameras,
+        voxels=voxels,
+        traced_rays=int(traced_rays),
+        vertices=int(vertices),
+    )
+    image = {
+        "mask weights": pixels * cameras * WEIGHT_BYTES_PER_CAMERA_PIXEL,
+        "image solve": pixels * SOLVE_BYTES_PER_CELL,
+    }
+    if method in ("IMAGE_BLEND", "LINEAR"):
+        return _estimate(image, {}, 0, shapes)
+    grid_factor = 3 if method == "VECTOR_FIELD" else 1  # three channels of tangents
+    max_vertices = max(int(max_vertices), int(vertices))
+    rays = int(traced_rays)
+    kept = rays * int(vertices)
+    n = traced_workers(rays, workers)
+    largest = int(np.ceil(LARGEST_ROUND * rays))
+    share = min(MAX_RAYS_PER_SHARE, -(-largest // n)) if n else largest
+    level = int(level_voxels) or voxels
+    per_voxel = (FILL_BYTES_PER_VOXEL + cameras * FILL_BYTES_PER_CAMERA_VOXEL) * grid_factor
+    fill = {"grid fill": FILL_CHUNK_BYTES + level * per_voxel}
+    fills_in_workers = bool(level_voxels) and workers > 1
+    stages = [
+        image if method == "AUTO" else {},
+        {} if fills_in_workers else fill,
+        {"grid solve": level * SOLVE_BYTES_PER_CELL * grid_factor},
+        {
+            "grid": voxels * KEPT_BYTES_PER_VOXEL * grid_factor,
+            "lattice": pixels * (LATTICE_BYTES_PER_PIXEL + cameras * CELL_TABLE_BYTES_PER_PIXEL),
+            "traced rays": kept * RAY_BYTES_PER_VERTEX * RAY_COPIES,
+            "error estimate": min(largest * int(vertices), DEVIATION_BLOCK_VERTICES)
+            * DEVIATION_BYTES_PER_VERTEX,
+            "shares received" if n else "share of rays": share
+            * (
+                int(vertices) * RECEIVE_BYTES_PER_VERTEX
+                if n
+                else max_vertices * WORKER_BYTES_PER_VERTEX
+            ),
+        },
+    ]
+    main = max(stages, key=lambda parts: sum(parts.values()))
+    worker = {}
+    if n or fills_in_workers:
+        work = {"share of rays": share * max_vertices * WORKER_BYTES_PER_VERTEX} if n else {}
+        if fills_in_workers and sum(fill.values()) > sum(work.values()):
+            work = fill
+        worker = {
+            "interpreter": WORKER_BASE_BYTES,
+            "grid": voxels * WORKER_BYTES_PER_VOXEL * grid_factor,
+            **work,
+        }
+        n = n or max(2, int(workers))
+    return _estimate(main, worker, n, shapes)
+
+
+def render_memory(width, height, samples=1, traced_rays=0, vertices=0, workers=1):
+    """Peak memory of rendering a frame whose field is built, from shapes: the Render
+    Result, the field's traced rays and the sampler's schedules of them, and a tile in
+    each worker.
+
+    Parameters
+    ----------
+    width, height : int, pixels. samples : int, rays per pixel. traced_rays, vertices :
+    int, the field's traced rays and their vertices (0 for methods without a lattice).
+    workers : int, render worker processes (1: none).
+
+    Returns
+    -------
+    MemoryEstimate
+    """
+    pixels = int(width) * int(height)
+    main = {
+        "render result": pixels * RESULT_BYTES_PER_PIXEL,
+        "field rays": int(traced_rays) * int(vertices) * FIELD_BYTES_PER_VERTEX,
+    }
+    tile = min(pixels * (1 + (samples if samples > 1 else 0)), TILE_RAYS)
+    n = int(workers) if workers > 1 else 0
+    worker = {"tile": tile * TILE_BYTES_PER_RAY}
+    if not n:
+        main.update(worker)
+    shapes = dict(pixels=pixels, traced_rays=int(traced_rays), vertices=int(vertices))
+    return _estimate(main, worker, n, shapes)
+
+
+# Pixels above which ``edge_pixels`` counts on every s-th row and column (and scales
+# the count by s): an edge's length in pixels grows with the resolution.
+EDGE_COUNT_PIXELS = 1 << 22
+
+
+def edge_pixels(masks):
+    """int, pixels whose preserved label (camera or none) differs from a 4-neighbour's:
+    where the lattice splits cells down to single pixels. masks : (N, H, W) bool.
+    Counted exactly up to ``EDGE_COUNT_PIXELS`` pixels; above, on every s-th row and
+    column, times s."""
+    masks = np.asarray(masks, dtype=bool)
+    s = max(1, int(np.ceil(np.sqrt(masks[0].size / EDGE_COUNT_PIXELS))))
+    masks = masks[:, ::s, ::s]
+    label = np.zeros(masks.shape[1:], dtype=np.int8)
+    for i, mask in enumerate(masks):
+        label[mask] = i + 1
+    edge = np.zeros(label.shape, dtype=bool)
+    dy = label[1:] != label[:-1]
+    dx = label[:, 1:] != label[:, :-1]
+    edge[1:] |= dy
+    edge[:-1] |= dy
+    edge[:, 1:] |= dx
+    edge[:, :-1] |= dx
+    return int(edge.sum()) * s
+
+
+def traced_rays_of(width, height, stride, edges, accuracy_px, ratio=10.0):
+    """int, an estimate of the rays the adaptive lattice traces: the base lattice at
+    ``stride``, a band around the ``edges`` pixels of preserved regions' edges, and the
+    fraction of every pixel the accuracy target and the rig's scale ``ratio`` (the
+    first camera's near-plane width over the smallest one's) refine to
+    (``TRACED_FRACTION``); at most every pixel."""
+    lattice = (-(-width // stride) + 1) * (-(-height // stride) + 1)
+    depth = (1.0 + np.log10(max(ratio, 1.0))) / 2.0  # 1 at a tenfold ratio
+    fraction = (
+        TRACED_FRACTION
+        * (0.5 / accuracy_px) ** TRACED_ACCURACY_EXPONENT
+        * depth**TRACED_RATIO_EXPONENT
+        * (480 / max(width, 1)) ** TRACED_WIDTH_EXPONENT
+    )
+    extra = EDGE_BAND_PIXELS * edges + min(fraction, 1.0) * width * height
+    return int(min(width * height, lattice + extra))
+
+
+def estimate_memory(rig, method, settings, workers=1):
+    """Peak memory of building ``rig``'s field with ``method`` and ``settings`` (the
+    core's ``methods.Settings``: accuracy_px, max_voxels, nested), from
+    the shapes the build would have: the grids it would choose (``choose_grid``, or
+    ``choose_levels`` on nested grids), the lattice's stride and an estimate of its
+    traced rays (``traced_rays_of``), the trace's step count. Nothing large is
+    allocated: the masks are read once, the grids chosen from a 17x17 pixel lattice.
+
+    Returns
+    -------
+    MemoryEstimate (``build_memory``).
+    """
+    w, h = rig.size
+    n = len(rig.cameras)
+    if method in ("IMAGE_BLEND", "LINEAR") or n < 2:
+        return build_memory(method, w, h, n, workers=workers)
+    choice = choose_grid(rig, settings.accuracy_px, settings.max_voxels)
+    grids = [choice.grid]
+    nested = settings.nested if settings.nested is not None else choice.capped
+    if method in ("SCALAR_FIELD", "AUTO") and nested:
+        outer = choose_grid(rig, settings.accuracy_px, 1 << 62).grid
+        across = max(MIN_CELLS_ACROSS_NEAR, CELLS_ACROSS_NEAR_PER_PX / settings.accuracy_px)
+        grids = list(
+            choose_levels(
+                rig, settings.accuracy_px, settings.max_voxels, across, outer.bounds
+            ).grids
+        )
+    voxels = sum(g.size for g in grids)
+    level = max(g.size for g in grids) if len(grids) > 1 else 0
+    # the lattice's stride (``traced.lattice_stride``) and the step limit (``trace_field``)
+    px = min(near_plane_width(c) / w for c in rig.cameras)
+    stride = int(np.clip(grids[-1].cell / px / 2, 1, 16))
+    cells = step_cells(settings.accuracy_px, w)
+    steps = int(sum(np.ceil(np.linalg.norm(np.array(g.shape)) / cells * 2) for g in grids)) + 8
+    widths = [near_plane_width(c) for c in rig.cameras]
+    ratio = widths[0] / max(min(widths), 1e-30)
+    rays = traced_rays_of(w, h, stride, edge_pixels(rig.masks), settings.accuracy_px, ratio)
+    return build_memory(
+        method,
+        w,
+        h,
+        n,
+        voxels=voxels,
+        traced_rays=rays,
+        vertices=int(np.ceil(VERTICES_OF_LIMIT * (steps + 1))),
+        max_vertices=steps + 1,
+        workers=workers,
+        level_voxels=level,
+    )
+
+
+# What to lower for each part of an estimate (a worker's part: fewer workers).
+LOWER_RESOLUTION = "the resolution (Output Properties > Format > Resolution, or its %)"
+LOWER_QUALITY = "the Quality (its voxel budget)"
+FEWER_WORKERS = "the worker processes (Render > Performance > Threads: Fixed, fewer)"
+RAISE_BUDGET = "or raise the Memory Budget (Multiscale > Preview and Cache; 0: the free memory)"
+
+
+def size_text(count):
+    """'1.2 GB' or '340 MB' for ``count`` bytes (GB and MB of 2**30 and 2**20 bytes)."""
+    return f"{count / 2**30:.1f} GB" if count >= 2**30 else f"{count / 2**20:.0f} MB"
+
+
+def _lower(part):
+    if part.startswith("workers: "):
+        return FEWER_WORKERS
+    return LOWER_QUALITY if part.startswith("grid") else LOWER_RESOLUTION
+
+
+def budget_message(estimate, budget, budget_text, action="The field build"):
+    """The memory guard's refusal, or None when ``estimate`` fits ``budget``.
+
+    Parameters
+    ----------
+    estimate : MemoryEstimate. budget : int, bytes. budget_text : str, where the budget
+    comes from ("the Memory Budget setting", "free memory 3.2 GB less a margin of
+    0.5 GB"). action : str, a capitalised noun phrase for the work refused.
+
+    Returns
+    -------
+    str or None: the estimate and its three largest parts, the budget and where it comes
+    from, and what to lower for those of them that weigh at least a quarter of the
+    largest (the largest first), or None.
+    """
+    if estimate.total <= budget:
+        return None
+    parts = list(estimate.parts.items())[:3]
+    said = ", ".join(f"{name} {size_text(count)}" for name, count in parts)
+    advice = []
+    for name, count in parts:  # what to lower for the parts that weigh (a quarter or more)
+        if count >= parts[0][1] / 4 and _lower(name) not in advice:
+            advice.append(_lower(name))
+    return (
+        f"{action} would need about {size_text(estimate.total)} of memory ({said}), more "
+        f"than the budget of {size_text(budget)} ({budget_text}); nothing was started: lower "
+        f"{' or '.join(advice)}, {RAISE_BUDGET}"
+    )

@@ -1,0 +1,353 @@
+"""The live picture: while a mask is painted or a camera moves, a PREVIEW field and a
+small render of the multiscale image are remade in the background
+(``render.live.LiveJob``) and shown as the image "Multiscale Live" and in the corner of
+the Image Editor that shows a listed mask.
+
+A timer (registered in ``register()``) asks about ten times a second what the picture
+depends on (``LivePicture.key_of``: the render size, the rig's settings, every listed
+camera's placement, lens and clipping, and a checksum of each mask's pixels: those
+shown in an Image Editor every ``SHOWN_SECONDS`` or more, so that reading them takes at
+most a twentieth of the time, the others every ``OTHERS_SECONDS``). A change
+cancels the job under way; once nothing has changed for ``SETTLE_SECONDS`` and the
+shown masks have been read again since (the stroke has ended) and the cancelled job has
+ended, a new one starts, so no two run at once.
+The brush never waits: reading the key takes a few milliseconds, the work runs on the
+job's thread and the field service's worker processes. Nothing runs while the toggle
+(``scene.multiscale.live_picture``) is off, while a render or another field build is
+under way, or while nothing shows the picture (no Image Editor shows a listed mask or
+the live image; in background Blender, always).
+
+The state lives on one ``LivePicture``, made by ``register()`` and kept by the field
+service (``fields.SERVICE.live``).
+"""
+
+from __future__ import annotations
+
+import time
+
+import blf
+import bpy
+import gpu
+import numpy as np
+from bpy.app.handlers import persistent
+
+from ..render.failures import failure_message
+from ..render.fields import SERVICE
+from ..render.live import LiveJob
+from .mask_ops import guide_key
+from .preview import draw_texture
+
+# The image that holds the live picture.
+IMAGE_NAME = "Multiscale Live"
+# How often the timer looks for changes while the picture is wanted, and otherwise.
+TICK_SECONDS = 0.1
+IDLE_SECONDS = 0.5
+# A change must have settled this long before a job starts (a stroke has ended).
+SETTLE_SECONDS = 0.15
+# Masks an Image Editor shows are read again at most this often, and no more often than
+# takes 1/READ_SHARE of the time (a 1920x1080 mask takes tens of milliseconds); the
+# others at most every OTHERS_SECONDS.
+SHOWN_SECONDS = 0.2
+READ_SHARE = 20
+OTHERS_SECONDS = 2.0
+# The corner picture's width as a fraction of the Image Editor's region.
+CORNER_FRACTION = 0.3
+
+
+def pixel_checksum(image):
+    """A checksum of ``image``'s pixels: the sum of their float32 bit patterns as
+    integers (a painted pixel changes it unless another change makes up for it to the
+    last bit), or 0 for an image without pixels. A quarter of a CRC-32's cost."""
+    w, h = image.size
+    if w == 0 or h == 0:
+        return 0
+    buf = np.empty(w * h * image.channels, dtype=np.float32)
+    image.pixels.foreach_get(buf)
+    return int(np.add.reduce(buf.view(np.uint32), dtype=np.uint64))
+
+
+def shown_images(wm):
+    """Images shown in the Image Editors of every window of ``wm`` (a set of names)."""
+    names = set()
+    for window in getattr(wm, "windows", ()):
+        for area in window.screen.areas:
+            if area.type == "IMAGE_EDITOR":
+                image = area.spaces.active.image
+                if image is not None:
+                    names.add(image.name)
+    return names
+
+
+def to_display(rgba):
+    """(h, w, 4) linear RGBA -> sRGB-encoded RGBA in [0, 1] (the standard transfer
+    curve), for the corner picture, which is drawn without Blender's view transform."""
+    c = np.clip(rgba[..., :3], 0.0, 1.0)
+    srgb = np.where(c <= 0.0031308, 12.92 * c, 1.055 * np.power(c, 1 / 2.4) - 0.055)
+    return np.concatenate([srgb, np.clip(rgba[..., 3:4], 0.0, 1.0)], axis=-1).astype(np.float32)
+
+
+class LivePicture:
+    """The live picture's state: the job under way, what was last shown and why.
+
+    key : the change key last seen; changed : ``time.perf_counter`` of its change.
+    job : render.live.LiveJob or None. shown_key : the key of the picture shown.
+    updates : int, pictures shown so far. seconds : float, from the change to the
+    picture of the last one shown. message : str, what the panel says (an error).
+    cancelled : int, jobs cancelled by a later change.
+    """
+
+    def __init__(self):
+        self.key = None
+        self.changed = 0.0
+        self.job = None
+        self.shown_key = None
+        self.updates = 0
+        self.cancelled = 0
+        self.seconds = 0.0
+        self.stages = {}  # the last job's seconds per stage
+        self.message = ""
+        self.mask_sums = {}  # image name -> (checksum, time read, seconds to read)
+        self.read_at = 0.0  # when the shown masks were last all read
+        self.display = None  # (h, w, 4) sRGB of the picture, for the corner
+        self.texture = None
+        self.handler = None
+        self.timer = None  # the registered bound ``tick``
+
+    # --- the timer -----------------------------------------------------------------
+
+    def tick(self):
+        """Timer callback: see the module's docstring. Returns the next interval."""
+        try:
+            return self._tick(bpy.context)
+        except Exception as err:  # never let the timer die: say it in the panel
+            self.message = f"Live picture: {failure_message(err, 'The live picture')}"
+            return IDLE_SECONDS
+
+    def _tick(self, context):
+        scene = context.scene
+        if scene is None or not hasattr(scene, "multiscale"):
+            return IDLE_SECONDS
+        job = self.job
+        if job is not None and not job.alive():
+            self.finish(job)
+        if not scene.multiscale.live_picture or bpy.app.is_job_running("RENDER"):
+            self.cancel()
+            return IDLE_SECONDS
+        shown = shown_images(context.window_manager)
+        if not bpy.app.background and not self.wanted(scene, shown):
+            return IDLE_SECONDS
+        now = time.perf_counter()
+        key = self.key_of(scene, shown, now)
+        if key != self.key:
+            self.key, self.changed = key, now
+            if self.job is not None and self.job.key != key:
+                self.job.cancel()
+            return TICK_SECONDS
+        if key == self.shown_key or now - self.changed < SETTLE_SECONDS:
+            return TICK_SECONDS
+        if self.read_at <= self.changed:  # no mask read since: a stroke may go on
+            return TICK_SECONDS
+        if self.job is not None or SERVICE.running() is not None:
+            return TICK_SECONDS  # ours winds down, or another build runs
+        self.start(context, key)
+        return TICK_SECONDS
+
+    def wanted(self, scene, shown):
+        """Whether anything shows the picture: an Image Editor with a listed mask or the
+        live image itself."""
+        if IMAGE_NAME in shown:
+            return True
+        return any(i.mask is not None and i.mask.name in shown for i in scene.multiscale.cameras)
+
+    def key_of(self, scene, shown, now):
+        """What the picture depends on (a tuple). Masks in ``shown`` (names) are read
+        again every ``SHOWN_SECONDS`` or more (``mask_key``), others every
+        ``OTHERS_SECONDS``; in background Blender every mask each time."""
+        s, r = scene.multiscale, scene.render
+        self.read_at = now  # the oldest read of a shown mask, below
+        cameras = []
+        for item in s.cameras:
+            obj = item.camera
+            cam = guide_key(obj, scene) if obj is not None and obj.type == "CAMERA" else None
+            cameras.append((cam, self.mask_key(item.mask, shown, now)))
+        settings = (s.method, s.beta, s.simplify_px, r.resolution_x, r.resolution_y)
+        return (settings, r.resolution_percentage, r.film_transparent, tuple(cameras))
+
+    def mask_key(self, image, shown, now):
+        if image is None:
+            return None
+        kept = self.mask_sums.get(image.name)
+        if bpy.app.background:  # scripts and tests: every look reads
+            every = 0.0
+        elif image.name in shown:
+            every = max(SHOWN_SECONDS, READ_SHARE * kept[2]) if kept else 0.0
+        else:
+            every = OTHERS_SECONDS
+        if kept is None or now - kept[1] >= every:
+            t0 = time.perf_counter()
+            checksum = pixel_checksum(image)
+            kept = self.mask_sums[image.name] = (checksum, now, time.perf_counter() - t0)
+        if image.name in shown:
+            self.read_at = min(self.read_at, kept[1])
+        return (image.name, tuple(image.size), image.source, kept[0])
+
+    def start(self, context, key):
+        """Start the job of ``key`` (main thread)."""
+        try:
+            windows = getattr(context.window_manager, "windows", ())
+            if context.window is None and len(windows):  # a timer: a window's view layer
+                with context.temp_override(window=windows[0]):
+                    depsgraph = bpy.context.evaluated_depsgraph_get()
+            else:
+                depsgraph = context.evaluated_depsgraph_get()
+            self.job = LiveJob.of(depsgraph.scene, depsgraph, key, self.changed).launch()
+            self.message = ""
+        except Exception as err:  # a rig that cannot render: said until it changes
+            self.shown_key = key
+            self.message = f"Live picture: {failure_message(err, 'The live picture')}"
+
+    def finish(self, job):
+        """A job that ended: show its picture if it is still the one wanted."""
+        self.job = None
+        if job.error is not None:
+            self.shown_key = job.key
+            self.message = f"Live picture: {failure_message(job.error, 'The live picture')}"
+        elif job.cancelled or job.rgba is None or job.stopped():
+            self.cancelled += 1
+        else:
+            self.publish(job.rgba)
+            self.shown_key = job.key
+            self.updates += 1
+            self.seconds = time.perf_counter() - job.started
+            self.stages = dict(job.seconds, field_built=job.built)
+            self.message = ""
+
+    def cancel(self):
+        if self.job is not None:
+            self.job.cancel()
+        self.key = None  # the next look starts afresh
+
+    def forget(self):
+        """Before another file loads: stop the job, forget what was shown."""
+        self.cancel()
+        self.shown_key, self.mask_sums, self.message = None, {}, ""
+        self.display = self.texture = None
+
+    # --- showing it --------------------------------------------------------------------
+
+    def publish(self, rgba):
+        """Write (h, w, 4) linear RGBA (row 0 at the top) into the image ``IMAGE_NAME``
+        (made, or remade at a new size) and redraw what shows it."""
+        h, w = rgba.shape[:2]
+        image = bpy.data.images.get(IMAGE_NAME)
+        if image is not None and tuple(image.size) != (w, h):
+            bpy.data.images.remove(image)
+            image = None
+        if image is None:
+            image = bpy.data.images.new(IMAGE_NAME, w, h, alpha=True, float_buffer=True)
+        image.pixels.foreach_set(np.ascontiguousarray(rgba[::-1], dtype=np.float32).ravel())
+        image.update()
+        self.display, self.texture = to_display(rgba), None
+        wm = getattr(bpy.context, "window_manager", None)
+        for window in getattr(wm, "windows", ()):
+            for area in window.screen.areas:
+                if area.type in {"IMAGE_EDITOR", "VIEW_3D"}:
+                    area.tag_redraw()
+
+    def status(self):
+        """A line for the panel."""
+        if self.message:
+            return self.message
+        if self.job is not None:
+            return "Live picture: updating..."
+        if self.updates:
+            return f"Live picture: {self.seconds:.1f} s after the last change"
+        return ""
+
+    def start_drawing(self):
+        if not bpy.app.background and self.handler is None:
+            self.handler = bpy.types.SpaceImageEditor.draw_handler_add(
+                self.draw, (), "WINDOW", "POST_PIXEL"
+            )
+
+    def stop(self):
+        if self.job is not None:
+            self.job.cancel()
+        if self.handler is not None:
+            bpy.types.SpaceImageEditor.draw_handler_remove(self.handler, "WINDOW")
+            self.handler = None
+        self.texture = self.display = None
+
+    def draw(self):
+        """The picture in the bottom right corner of an Image Editor showing a listed
+        mask."""
+        context = bpy.context
+        scene, region = context.scene, context.region
+        image = getattr(context.space_data, "image", None)
+        if scene is None or image is None or self.display is None:
+            return
+        settings = scene.multiscale
+        if not settings.live_picture or not any(i.mask == image for i in settings.cameras):
+            return
+        try:
+            if self.texture is None:
+                h, w = self.display.shape[:2]
+                flat = np.ascontiguousarray(self.display[::-1]).ravel()
+                buf = gpu.types.Buffer("FLOAT", flat.size, flat.tolist())
+                self.texture = gpu.types.GPUTexture((w, h), format="RGBA16F", data=buf)
+            h, w = self.display.shape[:2]
+            cw = region.width * CORNER_FRACTION
+            ch = cw * h / w
+            right, bottom = _regions_over(context)
+            x1, y0 = region.width - 12 - right, 12 + bottom
+            draw_texture(self.texture, (x1 - cw, y0, x1, y0 + ch))
+            blf.size(0, 12)
+            blf.color(0, 1.0, 1.0, 1.0, 0.9)
+            blf.position(0, x1 - cw, y0 + ch + 6, 0)
+            blf.draw(0, "Live" if self.job is None else "Live (updating)")
+        except Exception as err:  # never break the editor's drawing
+            print(f"Multiscale: no live picture drawn ({err})")
+
+
+def _regions_over(context):
+    """(right, bottom): widths of the sidebar and heights of the asset shelf (the
+    brushes in Paint mode) drawn over the editor's picture (region overlap), pixels."""
+    if not context.preferences.system.use_region_overlap:
+        return 0, 0
+    right = bottom = 0
+    for region in context.area.regions:
+        if region.type == "UI" and region.width > 1:
+            right = max(right, region.width)
+        elif region.type.startswith("ASSET_SHELF") and region.height > 1:
+            bottom += region.height
+    return right, bottom
+
+
+@persistent
+def _on_load(_file):
+    if SERVICE.live is not None:
+        SERVICE.live.forget()
+
+
+def register():
+    picture = SERVICE.live = LivePicture()
+    if _on_load not in bpy.app.handlers.load_pre:
+        bpy.app.handlers.load_pre.append(_on_load)
+    picture.start_drawing()
+    if not bpy.app.background:
+        # the bound method is kept: the timers know a callable by its identity
+        picture.timer = picture.tick
+        bpy.app.timers.register(picture.timer, first_interval=IDLE_SECONDS, persistent=True)
+
+
+def unregister():
+    if _on_load in bpy.app.handlers.load_pre:
+        bpy.app.handlers.load_pre.remove(_on_load)
+    picture = SERVICE.live
+    if picture is None:
+        return
+    timer = picture.timer
+    if timer is not None and bpy.app.timers.is_registered(timer):
+        bpy.app.timers.unregister(timer)
+    picture.stop()
+    SERVICE.live = None

@@ -1,0 +1,146 @@
+"""A mask that is an image sequence is read at the frame Blender's image user would
+show (frames, start, offset, cyclic on the camera's list item), and the field's cache
+key follows the frame's pixels."""
+
+import bpy
+import numpy as np
+import pytest
+
+from fixtures.blender.scenes import two_camera_scene
+from multiscale_camera.adapters.masks import (
+    ANIMATED_MASK,
+    MISSING_FRAME,
+    frame_path,
+    sequence_frame,
+)
+from multiscale_camera.adapters.scene import rig_from_scene
+from multiscale_camera.render.fields import SERVICE
+
+W, H = 16, 12
+
+
+def reference_frame(frame, frames, start, offset, cyclic):
+    """Independent reference: play the sequence frame by frame from its start."""
+    if frames == 0:
+        return 0
+    if cyclic:
+        shown = list(range(1, frames + 1))
+        k = frame - start  # steps from the start, either way
+        return shown[k % frames] + offset
+    if frame < start:
+        return offset  # before the start: frame 0, as Blender numbers it
+    return min(frame - start + 1, frames) + offset
+
+
+@pytest.mark.parametrize("cyclic", [False, True])
+@pytest.mark.parametrize("start", [1, 5, -3])
+@pytest.mark.parametrize("offset", [0, 2])
+@pytest.mark.parametrize("frames", [0, 1, 2, 7])
+def test_sequence_frame_plays_as_blenders_image_user(cyclic, start, offset, frames):
+    for frame in range(-20, 30):
+        got = sequence_frame(frame, frames, start, offset, cyclic)
+        assert got == reference_frame(frame, frames, start, offset, cyclic), frame
+
+
+def test_sequence_frame_pinned_cases():
+    # two frames from frame 1: held on the last, frame 0 before the start
+    assert [sequence_frame(f, 2) for f in (0, 1, 2, 3, 9)] == [0, 1, 2, 2, 2]
+    # cyclic: 1, 2, 1, 2 ... and frame 0 is the last one
+    assert [sequence_frame(f, 2, cyclic=True) for f in (0, 1, 2, 3, 4)] == [2, 1, 2, 1, 2]
+    assert sequence_frame(10, 5, start=10, offset=100) == 101
+
+
+def test_frame_path_renumbers_the_last_digits_of_the_file_name():
+    assert frame_path("//masks/m_0001.png", 12) == "//masks/m_0012.png"
+    assert frame_path("/a/shot2_v03_0001.exr", 7) == "/a/shot2_v03_0007.exr"
+    assert frame_path("/a/m7.png", 123) == "/a/m123.png"
+    assert frame_path("/take1/mask.png", 3) == "/take1/mask.png"
+
+
+def write_sequence(folder, halves):
+    """Files mask_0001.png ... : frame k white on its left half when halves[k-1] is
+    "left", else on its right half."""
+    for k, half in enumerate(halves, start=1):
+        still = bpy.data.images.new(f"frame {k}", W, H)
+        rgba = np.zeros((H, W, 4), np.float32)
+        rgba[..., 3] = 1.0
+        cols = slice(0, W // 2) if half == "left" else slice(W // 2, W)
+        rgba[:, cols, :3] = 1.0
+        still.pixels.foreach_set(rgba.ravel())
+        still.filepath_raw = str(folder / f"mask_{k:04d}.png")
+        still.file_format = "PNG"
+        still.save()
+        bpy.data.images.remove(still)
+    sequence = bpy.data.images.load(str(folder / "mask_0001.png"))
+    sequence.source = "SEQUENCE"
+    return sequence
+
+
+def read_at(scene, frame):
+    scene.frame_set(frame)
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    rig = rig_from_scene(depsgraph.scene, depsgraph)
+    return rig, SERVICE.request(depsgraph.scene, rig=rig).key
+
+
+@pytest.fixture
+def scene(empty_scene, tmp_path):
+    two_camera_scene(empty_scene, W, H)
+    item = empty_scene.multiscale.cameras[0]
+    item.mask = write_sequence(tmp_path, ["left", "right"])
+    item.mask_frames = 2
+    return empty_scene
+
+
+def halves():
+    """Camera 1's expected masks: left and right halves (before camera 2 takes its
+    pixels)."""
+    left = np.zeros((H, W), bool)
+    left[:, : W // 2] = True
+    return left, ~left
+
+
+def test_a_two_frame_sequence_is_read_at_each_frame(scene):
+    left, right = halves()
+    c2 = rig_from_scene(scene).masks[1]  # camera 2 keeps its own pixels
+    rig1, key1 = read_at(scene, 1)
+    rig2, key2 = read_at(scene, 2)
+    rig3, key3 = read_at(scene, 3)  # held on the last frame
+    np.testing.assert_array_equal(rig1.masks[0], left & ~c2)
+    np.testing.assert_array_equal(rig2.masks[0], right & ~c2)
+    np.testing.assert_array_equal(rig3.masks[0], right & ~c2)
+    assert key1 != key2 and key2 == key3  # the cache key follows the frame's pixels
+    assert not any("animated" in n for n in rig1.notices)
+
+
+def test_start_offset_and_cyclic_choose_the_frame_read(scene):
+    left, right = halves()
+    c2 = rig_from_scene(scene).masks[1]
+    item = scene.multiscale.cameras[0]
+    item.mask_cyclic = True
+    assert np.array_equal(read_at(scene, 3)[0].masks[0], left & ~c2)  # 1, 2, 1
+    item.mask_cyclic = False
+    item.mask_frame_start = 2
+    assert np.array_equal(read_at(scene, 2)[0].masks[0], left & ~c2)  # starts at 2
+    assert np.array_equal(read_at(scene, 3)[0].masks[0], right & ~c2)
+    item.mask_frame_start = 1
+    item.mask_frame_offset = 1
+    assert np.array_equal(read_at(scene, 1)[0].masks[0], right & ~c2)  # file 2 first
+
+
+def test_a_missing_frame_is_said_and_reads_empty(scene):
+    item = scene.multiscale.cameras[0]
+    item.mask_frames = 3  # there is no mask_0003.png
+    rig, _key = read_at(scene, 3)
+    assert not rig.masks[0].any()
+    path = bpy.path.abspath(frame_path(item.mask.filepath, 3))
+    said = MISSING_FRAME.format(name=item.mask.name, number=3, path=path)
+    assert said in rig.notices
+
+
+def test_a_movie_mask_is_still_said_not_read(scene, tmp_path):
+    item = scene.multiscale.cameras[0]
+    item.mask.source = "MOVIE"
+    rig, _key = read_at(scene, 1)
+    assert ANIMATED_MASK.format(name=item.mask.name, kind="a movie") in rig.notices
+    assert not rig.masks[0].any()

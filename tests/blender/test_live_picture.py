@@ -1,0 +1,170 @@
+"""The live picture headless: a stroke on a mask leads to a new picture, the picture is
+what the render shows at PREVIEW, and a second stroke cancels the first one's job (no
+two jobs at once). The timer is called here as Blender calls it (``LivePicture.tick``,
+sleeping the interval it returns): background Blender runs no timers."""
+
+import threading
+import time
+
+import bpy
+import numpy as np
+import pytest
+
+from fixtures.blender.scenes import two_camera_scene
+from multiscale_camera.render import pipeline
+from multiscale_camera.render.fields import SERVICE
+from multiscale_camera.render.live import LiveJob, live_size, small_rig
+from multiscale_camera.ui.live_picture import IMAGE_NAME, LivePicture
+
+
+def pixels(image):
+    """(h, w, 4) float32 of ``image``, row 0 at the top."""
+    w, h = image.size
+    buf = np.empty(w * h * 4, np.float32)
+    image.pixels.foreach_get(buf)
+    return buf.reshape(h, w, 4)[::-1]
+
+
+def stroke(image, cx, cy, radius, value=1.0):
+    """A disc of grey ``value`` (1: white) at pixel (cx, cy) (row 0 at the top) painted
+    into ``image``."""
+    w, h = image.size
+    rgba = pixels(image).copy()
+    yy, xx = np.mgrid[0:h, 0:w]
+    rgba[(xx + 0.5 - cx) ** 2 + (yy + 0.5 - cy) ** 2 <= radius**2, :3] = value
+    image.pixels.foreach_set(np.ascontiguousarray(rgba[::-1]).ravel())
+    image.update()
+
+
+def live_threads():
+    return sum(t.name == "multiscale-live" and t.is_alive() for t in threading.enumerate())
+
+
+def tick_until(live, done, timeout=120.0, seen=None):
+    """Call the timer until ``done()``; ``seen`` collects the live threads alive at
+    each call."""
+    t0 = time.monotonic()
+    while not done():
+        assert not live.message, live.message
+        assert time.monotonic() - t0 < timeout, "the live picture did not come"
+        delay = live.tick()
+        if seen is not None:
+            seen.append(live_threads())
+        time.sleep(delay)
+
+
+def reference_picture(scene):
+    """The Combined pass the render pipeline makes at PREVIEW, one ray per pixel (the
+    live picture's settings at this small size: picture and field at the render's)."""
+    scene.multiscale.quality = "PREVIEW"
+    scene.multiscale.samples = 1
+    frame = pipeline.prepare_frame(bpy.context.evaluated_depsgraph_get())
+    w, h = frame.size
+    return pipeline.render_rows(frame, 0, h)["Combined"]
+
+
+@pytest.fixture
+def scene(empty_scene):
+    two_camera_scene(empty_scene, 96, 72)
+    return empty_scene
+
+
+@pytest.fixture(autouse=True)
+def fresh_live():
+    """Each test starts with a live picture that has shown nothing and no cached field
+    (the cache is the test session's own)."""
+    SERVICE.clear()
+    kept = SERVICE.live
+    SERVICE.live = LivePicture()
+    yield SERVICE.live
+    SERVICE.live.stop()
+    SERVICE.live = kept
+
+
+def test_a_stroke_updates_the_live_picture(scene):
+    live = SERVICE.live
+    mask = scene.multiscale.cameras[1].mask
+    tick_until(live, lambda: live.updates >= 1)
+    before = pixels(bpy.data.images[IMAGE_NAME]).copy()
+    assert before.shape == (72, 96, 4)
+    np.testing.assert_allclose(before, reference_picture(scene), atol=1e-6)
+
+    stroke(mask, 48, 36, 26)  # camera 2 keeps most of the gap
+    tick_until(live, lambda: live.updates >= 2)
+    after = pixels(bpy.data.images[IMAGE_NAME])
+    assert (np.abs(after - before).max(axis=-1) > 0.05).sum() > 300
+    np.testing.assert_allclose(after, reference_picture(scene), atol=1e-6)
+
+
+def test_a_second_stroke_cancels_the_first_ones_job(scene):
+    live = SERVICE.live
+    mask = scene.multiscale.cameras[1].mask
+    tick_until(live, lambda: live.updates >= 1)
+    stroke(mask, 48, 36, 26)
+    tick_until(live, lambda: live.job is not None)
+    first = live.job
+    stroke(mask, 48, 36, 20, 0.0)
+    live.tick()  # sees the change at once: the first job is told to stop
+    first.join(30)
+    assert first.cancelled and first.rgba is None
+    seen = []
+    tick_until(live, lambda: live.updates >= 2, seen=seen)
+    assert live.cancelled == 1
+    assert max(seen) <= 1  # never two jobs at once
+    np.testing.assert_allclose(
+        pixels(bpy.data.images[IMAGE_NAME]), reference_picture(scene), atol=1e-6
+    )
+
+
+def test_the_picture_of_a_large_render_comes_from_a_smaller_field(scene):
+    scene.render.resolution_x, scene.render.resolution_y = 1920, 1080
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    job = LiveJob.of(depsgraph.scene, depsgraph)
+    assert job.size == (480, 270)
+    assert job.field_size == (240, 135)
+    assert job.request.quality == "PREVIEW"
+    assert live_size(640, 360) == (480, 270)
+    assert live_size(96, 72) == (96, 72)
+
+
+def test_a_small_rig_keeps_each_cameras_pixels(scene):
+    from multiscale_camera.adapters.scene import rig_from_scene
+
+    rig = rig_from_scene(scene)
+    small = small_rig(rig, (48, 36))
+    assert small.size == (48, 36)
+    # nearest pixel: the small mask is the full one at the small pixels' centres
+    ys = ((np.arange(36) + 0.5) * 2).astype(int)
+    xs = ((np.arange(48) + 0.5) * 2).astype(int)
+    np.testing.assert_array_equal(small.masks, rig.masks[:, ys][:, :, xs])
+    # the frustum is kept: the corner rays point the same way
+    for big, little in zip(rig.cameras, small.cameras):
+        np.testing.assert_allclose(
+            little.directions(np.array([0.0, 48.0]), np.array([0.0, 36.0])),
+            big.directions(np.array([0.0, 96.0]), np.array([0.0, 72.0])),
+            atol=1e-12,
+        )
+
+
+def test_the_toggle_stops_the_live_picture(scene):
+    live = SERVICE.live
+    scene.multiscale.live_picture = False
+    for _ in range(5):
+        live.tick()
+        assert live.job is None
+    assert IMAGE_NAME not in bpy.data.images
+
+
+def test_a_new_file_forgets_the_picture_and_stops_the_job(scene):
+    live = SERVICE.live
+    tick_until(live, lambda: live.updates >= 1)
+    mask = scene.multiscale.cameras[1].mask
+    stroke(mask, 48, 36, 26)
+    tick_until(live, lambda: live.job is not None)
+    job = live.job
+    bpy.ops.wm.read_homefile(use_empty=True)
+    assert job.stopped()
+    assert live.shown_key is None and live.display is None
+    job.join(60)
+    live.tick()  # the stopped job ends without a picture
+    assert live.job is None and live.updates == 1

@@ -1,0 +1,146 @@
+"""Ctrl-C (SIGINT) in `blender -b` stops every stage of a build and a render within 2 s
+(docs/failures.md; the bound is 1 s on an idle machine, 2 s for a loaded one): the
+signal is sent a quarter of a second into the stage named (``Diagnostics.stage``, or the
+Cycles hand-off's march and tables), and the time from the signal to the end of the call
+is measured in Blender's own process. Nothing is written and no worker's shared memory
+is left."""
+
+import os
+import subprocess
+
+import pytest
+
+from multiscale_camera.core.runtime.shared import PREFIX
+from tests.conftest import REPO, blender_command
+
+pytestmark = pytest.mark.e2e
+
+SCRIPT = """
+import os, signal, sys, threading, time
+sys.path.insert(0, {repo!r})
+import bpy
+import multiscale_camera
+multiscale_camera.register()
+from contextlib import contextmanager
+from fixtures.blender.scenes import two_camera_scene
+from multiscale_camera.core import diagnostics
+from multiscale_camera.render import cycles
+bpy.ops.wm.read_homefile(use_empty=True)
+scene = bpy.context.scene
+two_camera_scene(scene, {width}, {height})
+scene.multiscale.quality = "STANDARD"
+scene.multiscale.method = {method!r}
+scene.multiscale.shading = {shading!r}
+scene.render.filepath = {out!r}
+sent = []
+
+def interrupt():
+    sent.append(time.perf_counter())
+    os.kill(os.getpid(), signal.SIGINT)
+
+def arm(name):
+    if not sent and name == {stage!r}:
+        print("STAGE", name, flush=True)
+        threading.Timer({delay}, interrupt).start()
+
+stage = diagnostics.Diagnostics.stage
+
+@contextmanager
+def armed(self, name):
+    arm(name)
+    with stage(self, name):
+        yield self
+
+diagnostics.Diagnostics.stage = armed
+for name in ("ray_tables", "write_tables"):
+    def wrapped(*args, _name=name, _f=getattr(cycles, name), **kwargs):
+        arm(_name)
+        return _f(*args, **kwargs)
+    setattr(cycles, name, wrapped)
+try:
+    result = {call}
+except RuntimeError as err:
+    result = str(err).strip()
+end = time.perf_counter()
+print("SECONDS", end - sent[0] if sent else None, flush=True)
+print("RESULT", result, flush=True)
+"""
+
+COMPUTE = "bpy.ops.multiscale.compute_field()"
+RENDER = "bpy.ops.render.render(write_still=True)"
+CANCELLED = "{'CANCELLED'}"
+RENDER_CANCELLED = "Error: Multiscale: Render cancelled (Ctrl-C); nothing was written"
+
+
+def interrupted_at(
+    stage, call, tmp_path, method="SCALAR_FIELD", shading="SOLID", size=(320, 240), delay=0.25
+):
+    """Run ``call`` in `blender -b` and SIGINT it ``delay`` s into ``stage``; (seconds
+    from the signal to the call's end, what the call gave, the output)."""
+    out = tmp_path / "existing.png"
+    out.write_bytes(b"the user's own image")
+    code = SCRIPT.format(
+        repo=str(REPO),
+        out=str(out),
+        call=call,
+        stage=stage,
+        method=method,
+        shading=shading,
+        width=size[0],
+        height=size[1],
+        delay=delay,
+    )
+    temp = tmp_path / "tmp"  # the hand-off's temporary folders go here
+    temp.mkdir()
+    env = {**os.environ, "MULTISCALE_CACHE_DIR": str(tmp_path / "cache"), "TMPDIR": str(temp)}
+    proc = subprocess.Popen(
+        [blender_command(), "-b", "--factory-startup", "--python-expr", code],
+        cwd=REPO,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    output = proc.communicate(timeout=600)[0]
+    assert f"STAGE {stage}" in output, output
+    seconds = result = None
+    for line in output.splitlines():
+        if line.startswith("SECONDS "):
+            seconds = float(line.split()[1])
+        if line.startswith("RESULT "):
+            result = line[len("RESULT ") :].strip()
+    assert out.read_bytes() == b"the user's own image"
+    assert not [n for n in os.listdir("/dev/shm") if n.startswith(f"{PREFIX}{proc.pid}_")]
+    assert not [n for n in os.listdir(temp) if n.startswith("multiscale-cycles-")]
+    print(f"{stage}: {seconds:.2f} s from SIGINT to the end")
+    return seconds, result, output
+
+
+@pytest.mark.parametrize("stage", ["fill", "solve", "trace"])
+def test_ctrl_c_stops_compute_field_in_each_stage_within_2_s(tmp_path, stage):
+    seconds, result, output = interrupted_at(stage, COMPUTE, tmp_path)
+    assert result == CANCELLED, output
+    assert seconds < 2.0, output
+
+
+def test_ctrl_c_stops_compute_field_in_the_tangents_within_2_s(tmp_path):
+    seconds, result, output = interrupted_at("tangents", COMPUTE, tmp_path, "VECTOR_FIELD")
+    assert result == CANCELLED, output
+    assert seconds < 2.0, output
+
+
+@pytest.mark.parametrize("stage", ["trace", "simplify", "render"])
+def test_ctrl_c_stops_a_render_in_each_stage_within_2_s(tmp_path, stage):
+    seconds, result, output = interrupted_at(stage, RENDER, tmp_path)
+    assert result == RENDER_CANCELLED, output
+    assert seconds < 2.0, output
+
+
+@pytest.mark.parametrize("stage", ["ray_tables", "write_tables"])
+def test_ctrl_c_stops_the_cycles_tables_within_2_s(tmp_path, stage):
+    """The tables are written in a fraction of a second: the signal comes 0.05 s into
+    them, before Cycles' own stage, which hears Esc only (docs/failures.md)."""
+    delay = 0.25 if stage == "ray_tables" else 0.05
+    seconds, result, output = interrupted_at(stage, RENDER, tmp_path, shading="CYCLES", delay=delay)
+    assert result == RENDER_CANCELLED, output
+    assert seconds < 2.0, output

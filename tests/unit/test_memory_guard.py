@@ -1,0 +1,193 @@
+"""The memory guard's estimate (core.quality.memory): bytes from shapes, each part
+against the arrays it models, the whole against a measured peak on a small rig, and the
+refusal of an 8000x8000 build before it starts (docs/failures.md, "Memory")."""
+
+import json
+import subprocess
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fixtures.rigs import zoom_rig
+from multiscale_camera.core.field import tracer
+from multiscale_camera.core.geometry import Rig
+from multiscale_camera.core.methods import settings_for, traced
+from multiscale_camera.core.quality import (
+    budget_message,
+    build_memory,
+    estimate_memory,
+    render_memory,
+    size_text,
+)
+from multiscale_camera.core.quality import memory as mem
+
+ROOT = Path(__file__).resolve().parents[2]
+MB = 1 << 20
+GB = 1 << 30
+
+
+def test_constants_are_the_ones_the_code_uses():
+    assert mem.MAX_RAYS_PER_SHARE == tracer.MAX_RAYS_PER_SHARE
+    assert mem.MIN_RAYS_PER_PROCESS == tracer.MIN_RAYS_PER_PROCESS
+    assert mem.DEVIATION_BLOCK_VERTICES == traced.DEVIATION_BLOCK_VERTICES
+
+
+def test_image_blend_grows_with_pixels_and_cameras_only():
+    one = build_memory("IMAGE_BLEND", 100, 50, 2)
+    assert one.main == 100 * 50 * (2 * mem.WEIGHT_BYTES_PER_CAMERA_PIXEL + mem.SOLVE_BYTES_PER_CELL)
+    assert one.workers == 0 and one.worker == 0
+    assert build_memory("IMAGE_BLEND", 200, 100, 2).main == 4 * one.main
+    assert build_memory("IMAGE_BLEND", 100, 50, 2, voxels=10**9).main == one.main
+
+
+def trace_stage(pixels, cameras, voxels, rays, vertices, share, workers=True):
+    """The trace stage's bytes in the main process, written out from the arrays."""
+    largest = int(np.ceil(mem.LARGEST_ROUND * rays))
+    return (
+        voxels * mem.KEPT_BYTES_PER_VOXEL
+        + pixels * (mem.LATTICE_BYTES_PER_PIXEL + cameras * mem.CELL_TABLE_BYTES_PER_PIXEL)
+        + rays * vertices * mem.RAY_BYTES_PER_VERTEX * mem.RAY_COPIES
+        + min(largest * vertices, mem.DEVIATION_BLOCK_VERTICES) * mem.DEVIATION_BYTES_PER_VERTEX
+        + share * vertices * mem.RECEIVE_BYTES_PER_VERTEX
+    )
+
+
+def test_scalar_field_peak_is_its_largest_stage_and_the_workers_shares():
+    kw = dict(traced_rays=40000, vertices=100, max_vertices=200, workers=2)
+    # a large grid: the solve is the peak
+    est = build_memory("SCALAR_FIELD", 480, 270, 3, voxels=10**7, **kw)
+    assert est.main == 10**7 * mem.SOLVE_BYTES_PER_CELL
+    # rays' share: the largest round (0.45 of the rays) over two workers
+    share = -(-int(np.ceil(0.45 * 40000)) // 2)
+    assert est.workers == 2
+    assert est.worker == (
+        mem.WORKER_BASE_BYTES
+        + 10**7 * mem.WORKER_BYTES_PER_VOXEL
+        + share * 200 * mem.WORKER_BYTES_PER_VERTEX
+    )
+    assert est.total == est.main + 2 * est.worker == sum(est.parts.values())
+    assert list(est.parts.values()) == sorted(est.parts.values(), reverse=True)
+    # a small grid and a large image: the trace is
+    est = build_memory("SCALAR_FIELD", 1920, 1080, 3, voxels=10**5, **kw)
+    assert est.main == trace_stage(1920 * 1080, 3, 10**5, 40000, 100, share)
+    assert {"lattice", "traced rays", "error estimate"} <= set(est.parts)
+    # a small one of both, and few rays: the fill's chunks
+    est = build_memory(
+        "SCALAR_FIELD", 64, 48, 2, voxels=10**5, traced_rays=600, vertices=20, workers=2
+    )
+    assert est.main == mem.FILL_CHUNK_BYTES + 10**5 * (
+        mem.FILL_BYTES_PER_VOXEL + 2 * mem.FILL_BYTES_PER_CAMERA_VOXEL
+    )
+
+
+def test_nested_levels_are_filled_in_the_workers_and_solved_one_at_a_time():
+    kw = dict(traced_rays=600, vertices=20, workers=2)
+    uniform = build_memory("SCALAR_FIELD", 64, 48, 2, voxels=3 * 10**6, **kw)
+    nested = build_memory("SCALAR_FIELD", 64, 48, 2, voxels=3 * 10**6, level_voxels=10**6, **kw)
+    assert uniform.main == 3 * 10**6 * mem.SOLVE_BYTES_PER_CELL
+    assert nested.main == 10**6 * mem.SOLVE_BYTES_PER_CELL  # the largest level's solve
+    fill = mem.FILL_CHUNK_BYTES + 10**6 * (
+        mem.FILL_BYTES_PER_VOXEL + 2 * mem.FILL_BYTES_PER_CAMERA_VOXEL
+    )
+    assert nested.workers == 2
+    assert nested.parts["workers: grid fill"] == 2 * fill
+
+
+def test_a_small_trace_stays_in_the_main_process():
+    est = build_memory(
+        "SCALAR_FIELD", 64, 48, 2, voxels=1000, traced_rays=300, vertices=20, workers=2
+    )
+    assert est.workers == 0 and est.worker == 0
+    assert est.total == est.main
+
+
+def test_render_memory_counts_the_result_and_a_tile_per_worker():
+    est = render_memory(1000, 1000, samples=4, traced_rays=0, workers=2)
+    assert est.main == 10**6 * mem.RESULT_BYTES_PER_PIXEL
+    assert est.worker == mem.TILE_RAYS * mem.TILE_BYTES_PER_RAY and est.workers == 2
+
+
+def test_edge_pixels_counts_both_sides_of_every_label_change():
+    masks = np.zeros((2, 6, 8), bool)
+    masks[1, 2:4, 3:5] = True  # a 2x2 square: itself and its 8 outer neighbours across edges
+    assert mem.edge_pixels(masks) == 4 + 8
+
+
+def test_edge_pixels_of_a_large_image_are_counted_on_a_sparser_lattice():
+    masks = np.zeros((2, 4096, 4096), bool)  # 16 M pixels: every 2nd row and column
+    masks[1, 1000:3000, 1000:3000] = True
+    exact = 2 * 4 * 2000  # both sides of a 2000-pixel square's four edges
+    assert abs(mem.edge_pixels(masks) - exact) <= 0.01 * exact
+
+
+def test_budget_message_names_the_estimate_the_budget_and_what_to_lower():
+    est = build_memory(
+        "SCALAR_FIELD", 8000, 8000, 2, voxels=4 * 10**6, traced_rays=10**6, vertices=100
+    )
+    assert budget_message(est, est.total, "the scene's Memory Budget") is None
+    text = budget_message(est, 4 * GB, "the scene's Memory Budget")
+    parts = list(est.parts.items())[:3]
+    assert text == (
+        f"The field build would need about {size_text(est.total)} of memory ("
+        + ", ".join(f"{k} {size_text(v)}" for k, v in parts)
+        + "), more than the budget of 4.0 GB (the scene's Memory Budget); nothing was "
+        "started: lower the resolution (Output Properties > Format > Resolution, or its %), "
+        "or raise the Memory Budget (Multiscale > Preview and Cache; 0: the free memory)"
+    )
+
+
+def test_budget_message_says_quality_for_the_grid_and_threads_for_workers():
+    grid = build_memory("SCALAR_FIELD", 64, 48, 2, voxels=10**9, traced_rays=300, vertices=20)
+    assert "lower the Quality (its voxel budget)" in budget_message(grid, MB, "x")
+    workers = build_memory(
+        "SCALAR_FIELD", 64, 48, 2, voxels=10**8, traced_rays=10**6, vertices=10, workers=64
+    )
+    assert list(workers.parts)[0].startswith("workers: ")
+    assert "Render > Performance > Threads: Fixed, fewer" in budget_message(workers, MB, "x")
+
+
+def test_8000x8000_is_refused_before_the_build_starts_with_the_estimate():
+    """The estimate of an 8000x8000 build takes no more than a glance at its masks: it
+    is refused (here against an 8 GB budget) before anything large is allocated."""
+    cams, _masks = zoom_rig(80, 80)
+    cams = tuple(replace(c, width=8000, height=8000) for c in cams)
+    masks = np.zeros((2, 8000, 8000), bool)
+    masks[0, :1000] = True  # camera 1 keeps a band at the top, camera 2 a square
+    masks[1, 3000:5000, 3000:5000] = True
+    rig = Rig(cams, masks)
+    start = time.perf_counter()
+    est = estimate_memory(rig, "SCALAR_FIELD", settings_for("STANDARD"), workers=2)
+    seconds = time.perf_counter() - start
+    text = budget_message(est, 8 * GB, "the scene's Memory Budget")
+    assert est.total > 8 * GB
+    assert text.startswith(f"The field build would need about {size_text(est.total)} of memory")
+    assert "more than the budget of 8.0 GB (the scene's Memory Budget)" in text
+    assert "lower the resolution" in text
+    assert list(est.parts)[0] == "traced rays"
+    assert seconds < 20  # a glance at the masks, no build (2.7 s measured on a busy machine)
+
+
+@pytest.mark.slow
+def test_estimate_is_within_30_percent_of_the_measured_peak_on_a_small_rig():
+    """The zoom rig at 480x270, PREVIEW, SCALAR_FIELD: the peak resident size of a fresh
+    process plus its workers' (bench/memory.py) against the estimate made before."""
+    done = subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "bench" / "memory.py"),
+            "--one",
+            "zoom_rig:SCALAR_FIELD:PREVIEW:480x270",
+        ],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=600,
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    row = json.loads(done.stdout.strip().splitlines()[-1])
+    assert row["peak_workers_mb"], "the trace ran in workers"
+    assert 0.7 <= row["estimated_mb"] / row["measured_mb"] <= 1.3, row

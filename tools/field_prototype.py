@@ -1,0 +1,71 @@
+"""Build one field of a fixture rig in plain Python and print what docs/architecture.md's
+*Field prototypes* table holds: build time (wall and CPU of this process), peak memory,
+along-ray p95 and max per camera, folds, Newton failures.
+
+    .venv/bin/python tools/field_prototype.py RIG WIDTH HEIGHT METHOD QUALITY [key=value ...]
+
+RIG names a ``fixtures.rigs.<RIG>_rig`` (zoom1000, turned, three_camera, ...). Keys:
+``nested=0|1`` forces one uniform grid or nested grids (SCALAR_FIELD); ``proc=N`` worker
+processes (default 1, so that CPU and memory are this process's); ``cells_per_px=X``
+cells across the smallest camera's near plane per pixel of the accuracy target (the
+build's constant is 8: 16 cells at 0.5 px), the prototype of a grid that follows the
+image size; ``step_cells=X`` the RK4 step in cells at 0.5 px on a 1920-wide image (the
+build's ``field.STEP_CELLS``, 1.5).
+"""
+
+import dataclasses
+import resource
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import fixtures.rigs as rigs  # noqa: E402
+import multiscale_camera.core.field.fill as fill  # noqa: E402
+import multiscale_camera.core.field.tracer as tracer  # noqa: E402
+import multiscale_camera.core.methods.scalar_field as scalar_field  # noqa: E402
+from multiscale_camera.core.geometry import Rig  # noqa: E402
+from multiscale_camera.core.methods import prepare, settings_for  # noqa: E402
+from multiscale_camera.core.quality import build_report  # noqa: E402
+
+
+def main(argv):
+    rig, width, height, method, quality = argv[:5]
+    opts = dict(a.split("=", 1) for a in argv[5:])
+    cams, masks = getattr(rigs, f"{rig}_rig")(int(width), int(height))
+    settings = settings_for(quality)
+    if "nested" in opts:
+        settings = dataclasses.replace(settings, nested=bool(int(opts["nested"])))
+    settings = dataclasses.replace(settings, processes=int(opts.get("proc", 1)))
+    if "cells_per_px" in opts:
+        per_px = float(opts["cells_per_px"])
+        fill.CELLS_ACROSS_NEAR_PER_PX = scalar_field.CELLS_ACROSS_NEAR_PER_PX = per_px
+        fill.MIN_CELLS_ACROSS_NEAR = scalar_field.MIN_CELLS_ACROSS_NEAR = 4
+    if "step_cells" in opts:
+        tracer.STEP_CELLS = float(opts["step_cells"])
+    wall, cpu = time.perf_counter(), time.process_time()
+    fld = prepare(Rig(cams, masks), method, settings)
+    wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
+    rep = build_report(fld, quality)
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+    def fig(v):
+        return "null" if v is None else f"{v:.2f}"
+
+    cams_out = ", ".join(
+        f"{c['name']} {fig(c['preserved_px']['p95'])}/{fig(c['preserved_px']['max'])}"
+        for c in rep["cameras"]
+    )
+    print(
+        f"{rig} {width}x{height} {method}->{fld.method} {quality} {opts}: build {wall:.1f} s wall, "
+        f"{cpu:.1f} s CPU, peak {peak:.0f} MB; p95/max px {cams_out}; folds {rep['folds']}; "
+        f"levels {rep['levels']}, grid {rep['grids'][:1]}, traced {fld.stats.get('traced')}; "
+        f"newton_lost {rep['newton_lost']}, stalled {rep['stalled']}"
+    )
+    if "auto" in rep:
+        print("auto:", rep["auto"])
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
