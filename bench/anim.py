@@ -4,13 +4,14 @@
         [--quality PREVIEW]
 
 Builds sample_blends/dolly.blend's scene (``fixtures.blender.samples.build_dolly``) with
-the bpy module, reads its rig at each frame as a render does (the evaluated depsgraph),
-then builds the fields of ``--frames`` in order, each taking what the one before left
-valid (``core.methods.FrameReuse``, as the field service does for an animated rig), and
-then each of those frames again cold (nothing kept). Writes, per frame, both times and
-what the sequential build took and rebuilt, the mean seconds of the frames after the
-first, the ratio to cold (the target: 1/3 or less), the machine's load and the commit,
-to bench/anim.json.
+the bpy module, reads its rig and settings (with the shot's layout) at each frame as a
+render does (the field service's request on the evaluated depsgraph), then builds the
+fields of ``--frames`` in order, each taking what the one before left valid
+(``core.methods.FrameReuse``, as the field service does for an animated rig), and then
+each of those frames again cold (nothing kept). Writes, per frame, both times and what
+the sequential build took and rebuilt, the mean seconds of the frames after the first,
+the ratio to cold (the target: 1/3 or less), the machine's load and the commit, to
+bench/anim.json.
 """
 
 import argparse
@@ -25,19 +26,24 @@ ROOT = Path(__file__).resolve().parents[1]
 # bench/ itself off the path: its cycles.py would stand in for Blender's Cycles add-on
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != ROOT / "bench"]
 sys.path.insert(0, str(ROOT))
+
+import bpy  # noqa: E402  (bench/ off the path and the repository on it first)
+
+import multiscale_camera  # noqa: E402
+from bench.methods import _commit  # noqa: E402
+from fixtures.blender import samples  # noqa: E402
+from multiscale_camera.core.diagnostics import Diagnostics  # noqa: E402
+from multiscale_camera.core.methods import FrameReuse, prepare  # noqa: E402
+from multiscale_camera.render.fields import SERVICE  # noqa: E402
+
 OUT = ROOT / "bench" / "anim.json"
 # The frames after the first must build in at most this share of a cold build.
 TARGET_RATIO = 1 / 3
 
 
 def dolly_rigs(width, height, frames, quality):
-    """{frame: Rig} of the dolly at ``width`` x ``height``, and its Settings."""
-    import bpy
-
-    import multiscale_camera
-    from fixtures.blender import samples
-    from multiscale_camera.adapters.scene import field_settings, rig_from_scene
-
+    """{frame: Rig} of the dolly at ``width`` x ``height``, its Settings (the shot's,
+    the same at every frame), method and quality."""
     multiscale_camera.register()
     bpy.ops.wm.read_factory_settings(use_empty=True)
     scene = bpy.context.scene
@@ -46,19 +52,19 @@ def dolly_rigs(width, height, frames, quality):
     scene.render.resolution_percentage = 100
     if quality:
         scene.multiscale.quality = quality
-    rigs = {}
+    rigs, settings = {}, set()
     for frame in frames:
         scene.frame_set(frame)
         depsgraph = bpy.context.evaluated_depsgraph_get()
-        rigs[frame] = rig_from_scene(depsgraph.scene, depsgraph)
-    return rigs, field_settings(scene), scene.multiscale.method, scene.multiscale.quality
+        request = SERVICE.request(depsgraph.scene, depsgraph=depsgraph)
+        rigs[frame] = request.rig
+        settings.add(request.settings)
+    assert len(settings) == 1, "a shot's frames share their settings and layout"
+    return rigs, settings.pop(), scene.multiscale.method, scene.multiscale.quality
 
 
 def build(rig, method, settings, reuse=None):
     """(seconds, field) of one build."""
-    from multiscale_camera.core.diagnostics import Diagnostics
-    from multiscale_camera.core.methods import prepare
-
     start = time.perf_counter()
     fld = prepare(rig, method, settings, Diagnostics(), reuse=reuse)
     return time.perf_counter() - start, fld
@@ -72,9 +78,6 @@ def main():
     parser.add_argument("--quality", default="PREVIEW", help="the dolly's own is HIGH")
     parser.add_argument("--out", default=str(OUT))
     args = parser.parse_args()
-    from bench.methods import _commit
-    from multiscale_camera.core.methods import FrameReuse
-
     rigs, settings, method, quality = dolly_rigs(args.width, args.height, args.frames, args.quality)
     assert settings.steady, "the dolly's rig is animated: its settings ask for a steady layout"
     load_before = os.getloadavg()

@@ -64,22 +64,22 @@ class MultiscaleRenderEngine(bpy.types.RenderEngine):
             self.add_pass(name, channels, chan_id)
         processes = workers.worker_count(frame.processes)
         shown = ShownRows(height, width)
-        index = np.zeros((height, width), dtype=np.float32)
-        hits = np.zeros((height, width, 3), dtype=np.float32)
+        hits = np.zeros((height, width, pipeline.HIT_PASS[1]), dtype=np.float32)
         with diag.stage("render"):
             for (row0, row1), passes in workers.render_tiles(
                 frame, pipeline.tiles(frame), processes, self.should_stop
             ):
-                index[row0:row1] = passes["IndexOB"][..., 0]
                 hits[row0:row1] = passes[pipeline.HIT_PASS[0]]
                 if shown.add(row0, row1, passes):
                     self.show(shown, frame, diag)
                 # what the tile loop had to say (workers given up) is said at once
                 reported = self.say(diag, reported)
             self.show(shown, frame, diag)
-        jump = SERVICE.sequence.add(
-            scene.name, scene.frame_current, max(1, scene.frame_step), index, hits
-        )
+        sequence = SERVICE.sequence
+        index = sequence.object_index(frame.geometry.object_names, hits[..., 3])
+        render_key = (bpy.data.filepath, scene.name, depsgraph.view_layer.name)
+        step = max(1, scene.frame_step)
+        jump = sequence.add(render_key, scene.frame_current, step, index, hits[..., :3])
         publish_report(scene, with_frame(frame.report, jump.as_dict()))
         if jump.px is not None:
             print(
@@ -220,13 +220,23 @@ def _compatible_panels():
             yield panel
 
 
+@bpy.app.handlers.persistent  # kept across file loads: it is what runs after them
+def forget_sequence_on_load(*_args):
+    """A loaded file's first frame starts a sequence of its own (``render.sequence``)."""
+    SERVICE.forget_sequence()
+
+
 def register():
     bpy.utils.register_class(MultiscaleRenderEngine)
+    if forget_sequence_on_load not in bpy.app.handlers.load_post:
+        bpy.app.handlers.load_post.append(forget_sequence_on_load)
     for panel in _compatible_panels():
         panel.COMPAT_ENGINES.add(MultiscaleRenderEngine.bl_idname)
 
 
 def unregister():
+    if forget_sequence_on_load in bpy.app.handlers.load_post:
+        bpy.app.handlers.load_post.remove(forget_sequence_on_load)
     for panel in _compatible_panels():
         panel.COMPAT_ENGINES.discard(MultiscaleRenderEngine.bl_idname)
     bpy.utils.unregister_class(MultiscaleRenderEngine)

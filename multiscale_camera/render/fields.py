@@ -18,25 +18,30 @@ what a build of an animated rig may take from the frame before it (``reuse``,
 
 from __future__ import annotations
 
+import hashlib
 import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import bpy
+import numpy as np
 
 from ..adapters.scene import cache_folder_of, field_settings, rig_from_scene
+from ..adapters.shot import animation_digest, shot_rigs
 from ..adapters.volumes import VolumeGridCache
 from ..core.diagnostics import Diagnostics, Level
 from ..core.errors import Cancelled
 from ..core.geometry import Rig
-from ..core.methods import FrameReuse, Settings, field_key, prepare, settings_for
+from ..core.methods import FrameReuse, Settings, field_key, plan_shot, prepare, settings_for
 from ..core.quality import build_report, crossing_messages, empty_mask_messages, to_json
 from ..core.runtime import gave_up, runtime
 from ..io.cache import DEFAULT_LIMIT_MB, FieldCache
 from ..io.locks import POLL_SECONDS as LOCK_POLL_SECONDS
 from .sequence import Sequence
 
+# Methods whose grids a rig in motion keeps for a whole shot (``FieldService.shot_layout``).
+SHOT_METHODS = ("SCALAR_FIELD", "AUTO")
 # Worker processes of a build, the simplification or the ray tables gave way.
 WORKERS_GIVEN_UP = (
     "Worker processes died, stopped making progress or could not be used; their work "
@@ -151,6 +156,7 @@ class FieldService:
         self.volume_grids = VolumeGridCache()  # decoded volume sources, every frame
         self.reuse = FrameReuse()  # claims and solutions of the last animated build
         self.sequence = Sequence()  # the last frame's first hits: frame-to-frame jumps
+        self.shots = {}  # the layout of the last shot (``shot_layout``)
         self._listeners: list[Callable] = []
         self._build: FieldBuild | None = None
         self.live = None  # the live picture (ui/live_picture.py), made by its register()
@@ -158,14 +164,21 @@ class FieldService:
     # --- requests ------------------------------------------------------------------
 
     def request(
-        self, scene, rig: Rig | None = None, depsgraph=None, quality: str | None = None
+        self,
+        scene,
+        rig: Rig | None = None,
+        depsgraph=None,
+        quality: str | None = None,
+        step_frames: bool = True,
     ) -> FieldRequest:
         """The field request of ``scene`` (main thread; an evaluated scene, so that
         object matrices are current), for ``rig`` when the caller has read it already.
         With ``depsgraph`` (a render's) the cameras are read as it evaluated them, at
         its frame (``adapters.scene.rig_from_scene``). ``quality`` (an enum name of
         ``scene.multiscale.quality``) replaces the scene's (the live picture asks for
-        PREVIEW). Raises RigError when the rig cannot render."""
+        PREVIEW). ``step_frames`` False (a request made while drawing) takes a rig in
+        motion's shot layout only when it is known already (``shot_layout``). Raises
+        RigError when the rig cannot render."""
         group = scene.multiscale
         rig = rig if rig is not None else rig_from_scene(scene, depsgraph)
         settings = field_settings(scene)
@@ -178,6 +191,9 @@ class FieldService:
                 cubic=preset.cubic,
                 nested=preset.nested,
             )
+        if settings.steady and group.method in SHOT_METHODS:
+            layout = self.shot_layout(scene, rig, settings, depsgraph, step_frames)
+            settings = replace(settings, layout=layout)
         notices = tuple(rig.notices) + tuple(empty_mask_messages(rig))
         notices += tuple(crossing_messages(rig))
         folder, said = cache_folder_of(scene)
@@ -193,6 +209,29 @@ class FieldService:
             limit_mb=float(getattr(group, "cache_limit_mb", DEFAULT_LIMIT_MB)),
             folder=folder,
         )
+
+    def shot_layout(self, scene, rig, settings, depsgraph=None, step_frames=True):
+        """The layout of the shot ``scene``'s frame range makes for a rig in motion
+        (``core.methods.plan_shot``), the same at every frame of it: worked out once
+        per shot (its cameras' animation, masks, size and settings) and kept. None where
+        the frames cannot be stepped (a render on a thread of its own, or not
+        ``step_frames``) and the shot's layout is not known: each frame then gets a
+        layout of its own."""
+        mask_bytes = np.packbits(np.ascontiguousarray(rig.masks)).tobytes()
+        key = (
+            animation_digest(scene),
+            hashlib.sha1(mask_bytes).hexdigest(),
+            rig.size,
+            rig.beta,
+            tuple(c.name for c in rig.cameras),
+            repr(settings),
+        )
+        if key not in self.shots:
+            rigs = shot_rigs(scene, rig, depsgraph) if step_frames else None
+            if rigs is None:
+                return None
+            self.shots = {key: plan_shot(rigs, settings)}  # one shot at a time
+        return self.shots[key]
 
     def cached(self, request: FieldRequest, memory_only: bool = False):
         """The cached field of ``request`` (memory, then disk unless ``memory_only``),
@@ -376,11 +415,20 @@ class FieldService:
         self._use(request)
         return self.cache.put(request.key, fld)
 
+    def forget_sequence(self):
+        """Drop what a sequence of frames kept (first hits, reuse store, shot layout):
+        a file load starts afresh, whatever the new file's scenes are called."""
+        self.sequence = Sequence()
+        self.reuse = FrameReuse()
+        self.shots = {}
+
     def clear(self) -> int:
         """Forget every field (memory and disk), cancel a background build. Returns the
         files removed."""
         if self._build is not None:
             self._build.cancel()
+        self.reuse = FrameReuse()  # claims and solutions kept from the last builds
+        self.shots = {}
         return self.cache.clear()
 
 

@@ -120,7 +120,8 @@ class LiveJob:
         rig = rig_from_scene(scene, depsgraph)
         size = live_size(*rig.size, max_width)
         rig = small_rig(rig, live_size(*rig.size, min(field_width, max_width)))
-        request = SERVICE.request(scene, rig=rig, quality=LIVE_QUALITY)
+        # asked as the scene changes: no stepping through the frames for a shot's layout
+        request = SERVICE.request(scene, rig=rig, quality=LIVE_QUALITY, step_frames=False)
         geometry = scene_geometry(depsgraph)
         tree, bounds, occupancy, scale = None, None, None, 1.0
         if len(geometry):

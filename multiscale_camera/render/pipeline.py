@@ -31,9 +31,10 @@ PASSES = (
     ("IndexOB", 1, "X", "VALUE"),
     ("Membership", 1, "X", "VALUE"),
 )
-# Not a Blender pass: each pixel centre's first hit, world units (0 where it misses), for
+# Not a Blender pass: each pixel centre's first hit, world units, and the index of its
+# object in the frame's ``geometry.object_names`` plus one (all 0 where it misses), for
 # the frame-to-frame jump of an animation (``render.sequence``); never written to a file.
-HIT_PASS = ("First Hit", 3)
+HIT_PASS = ("First Hit", 4)
 # Depth written where a ray hits nothing, as Blender's own engines do.
 MISS_DEPTH = 1e10
 NO_MESH = "The scene has no visible mesh: only the world is rendered"
@@ -122,12 +123,14 @@ def clear_fields():
     SERVICE.clear()
 
 
-def prepare_frame(depsgraph, diag=None, report=False):
+def prepare_frame(depsgraph, diag=None, report=False, step_frames=True):
     """Build (or reuse) the ray field and the scene's BVH.
 
     ``diag`` (core.diagnostics.Diagnostics or None) steers the work (Esc) and becomes
     the frame's: what the frame has to say and its seconds per stage. With ``report``
     the field is measured (once per field) and the frame carries its build report.
+    ``step_frames`` False (the viewport's picture, drawn) takes a rig in motion's shot
+    layout only when it is known (``FieldService.request``).
 
     Raises
     ------
@@ -141,7 +144,7 @@ def prepare_frame(depsgraph, diag=None, report=False):
     # volumes first: a missing or unusable volume file stops the render before the build
     volumes, volume_notices = prepare_volumes(depsgraph)
     with diag.stage("field"), runtime().journal() as runs:  # what the field's workers did
-        request = SERVICE.request(scene, depsgraph=depsgraph)
+        request = SERVICE.request(scene, depsgraph=depsgraph, step_frames=step_frames)
         guard_memory(scene, request, render=True)  # before anything large is allocated
         result = SERVICE.get(request, diag, measure=report)
     if not result.built:  # said as "field (cached)" in the timings
@@ -227,8 +230,7 @@ def frame_rebuilt(number, result, tree_built, seconds):
                 reused.append(f"claims of {names}")
             rest = ", ".join(f"'{n}'" for n in took["claims_built"])
             built.append(f"claims of {rest}" if rest else "no claims")
-            solve = took["solve"]
-            built.append("membership solve" + (f" ({solve} start)" if solve != "cold" else ""))
+            built.append(took["solve_said"])
             built.append("trace")
     (built if tree_built else reused).append("BVH")
     return {
@@ -385,10 +387,17 @@ def render_rows(frame, row0, row1, should_stop=None):
         "Normal": shaded.normal.reshape(*shape, 3),
         "IndexOB": index.reshape(*shape, 1),
         "Membership": centre.membership.astype(np.float32).reshape(*shape, 1),
-        HIT_PASS[0]: np.where(hits.hit[:, None], hits.location, 0.0)
-        .astype(np.float32)
-        .reshape(*shape, 3),
+        HIT_PASS[0]: first_hits(frame, hits).reshape(*shape, 4),
     }
+
+
+def first_hits(frame, hits):
+    """(N, 4) float32: each hit's world point and its object's index in
+    ``frame.geometry.object_names`` plus one; zeros where a ray missed (``HIT_PASS``)."""
+    out = np.zeros((len(hits.hit), 4), dtype=np.float32)
+    out[hits.hit, :3] = hits.location[hits.hit]
+    out[hits.hit, 3] = frame.geometry.object_of[hits.triangle[hits.hit]] + 1
+    return out
 
 
 def tiles(frame):

@@ -2,13 +2,16 @@
 
 Each rendered frame leaves its first hits (the object and the world point each pixel's
 centre ray hits first); the next frame of the same sequence (the frame ``frame_step``
-after it, same scene and size) measures how far they moved: over the pixels whose first
-hit is on the same object in both frames, the p95 of the move in pixels of the
-multiscale image. A pixel's size at its hit is the distance to its right or lower
-neighbour's hit on the same object (the nearer of the two), so a move reads in the
-pixels the picture shows there, whatever camera's scale holds it. A rig that moves
+after it, same file, scene, view layer and size) measures how far they moved: over the
+pixels whose first hit is on the same object in both frames, the p95 of the move in
+pixels of the multiscale image. A pixel's size at its hit is the distance to its right
+or lower neighbour's hit on the same object (the nearer of the two), so a move reads in
+the pixels the picture shows there, whatever camera's scale holds it. A rig that moves
 smoothly moves its hits by a fraction of a pixel or a few pixels a frame; a field that
 re-snapped its layout between two frames shows as a jump well above its neighbours'.
+
+Objects are told apart by an ordinal the sequence gives each object name, not by the
+objects' pass index (0 on every object unless the user set it).
 """
 
 from dataclasses import dataclass
@@ -68,28 +71,48 @@ class Jump:
         }
 
 
+# Renders (file, scene, view layer) whose last frame a Sequence keeps at once.
+MAX_RENDERS = 8
+
+
 class Sequence:
-    """The last rendered frame's first hits and the worst jump of its sequence."""
+    """Per render (``key``: file, scene and view layer), the last frame's first hits and
+    the worst jump of its sequence: view layers rendered in turn at each frame each
+    follow their own sequence."""
 
     def __init__(self):
-        self.last = None  # (scene name, frame, index, hits)
-        self.worst = (None, None)  # (px, frame)
+        self.last = {}  # key -> (frame, index, hits)
+        self.worst = {}  # key -> (px, frame)
+        self.ordinals = {}  # object name -> its ordinal (1, 2, ...) in this sequence
 
-    def add(self, scene_name, frame, step, index, hits):
-        """Measure frame ``frame`` (of scene ``scene_name``, ``step`` frames after the
-        one before it in its sequence) against the last frame added, keep it, and return
-        its Jump. index : (H, W) object index. hits : (H, W, 3) world points."""
-        last, self.last = self.last, (scene_name, frame, index, hits)
-        follows = (
-            last is not None
-            and last[0] == scene_name
-            and last[1] + step == frame
-            and last[2].shape == index.shape
-        )
+    def object_index(self, names, hit_object):
+        """(H, W) float64: each pixel's object as the sequence's ordinal of its name
+        (0: no hit). names : the frame's object names. hit_object : (H, W) the index of
+        the hit object in ``names`` plus one (0: no hit)."""
+        for name in names:
+            self.ordinals.setdefault(name, len(self.ordinals) + 1)
+        lookup = np.array([0] + [self.ordinals[n] for n in names], dtype=np.float64)
+        return lookup[np.asarray(hit_object).astype(np.int64)]
+
+    def add(self, key, frame, step, index, hits):
+        """Measure frame ``frame`` of the render ``key`` (hashable: file, scene and view
+        layer), ``step`` frames after the one before it in its sequence, against the
+        last frame added under ``key``, keep it, and return its Jump.
+
+        index : (H, W) object index (0: no hit; ``object_index``).
+        hits : (H, W, 3) world points.
+        """
+        last = self.last.pop(key, None)
+        self.last[key] = (frame, index, hits)
+        while len(self.last) > MAX_RENDERS:  # the render added longest ago goes
+            self.worst.pop(next(iter(self.last)), None)
+            del self.last[next(iter(self.last))]
+        follows = last is not None and last[0] + step == frame and last[1].shape == index.shape
         if not follows:
-            self.worst = (None, None)
+            self.worst[key] = (None, None)
             return Jump(None, None, None)
-        px = jump_px(last[2], last[3], index, hits)
-        if px is not None and (self.worst[0] is None or px > self.worst[0]):
-            self.worst = (px, frame)
-        return Jump(px, *self.worst)
+        px = jump_px(last[1], last[2], index, hits)
+        worst = self.worst.get(key, (None, None))
+        if px is not None and (worst[0] is None or px > worst[0]):
+            worst = self.worst[key] = (px, frame)
+        return Jump(px, *worst)

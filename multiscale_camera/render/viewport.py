@@ -64,12 +64,13 @@ def frame_for_view(depsgraph, view):
     ``view`` : ViewDraw, the picture that asked (it keeps the build it waits for).
     """
     try:
-        request = SERVICE.request(depsgraph.scene, depsgraph=depsgraph)
+        # drawing: no stepping through the frames for a shot's layout
+        request = SERVICE.request(depsgraph.scene, depsgraph=depsgraph, step_frames=False)
         if SERVICE.cached(request) is None:
             view.build = SERVICE.start(request)
             view.message = "Multiscale: building the ray field..."
             return None
-        return pipeline.prepare_frame(depsgraph)
+        return pipeline.prepare_frame(depsgraph, step_frames=False)
     except Exception as err:  # said on the picture, as the render says it
         view.message = f"Multiscale: {failure_message(err, 'The viewport picture')}"
         return None

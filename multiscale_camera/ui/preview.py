@@ -56,7 +56,8 @@ class RayPreview:
         note = ""
         try:
             if fld is None:
-                fld = SERVICE.cached(SERVICE.request(scene), memory_only=True)
+                request = SERVICE.request(scene, step_frames=False)  # drawn: no stepping
+                fld = SERVICE.cached(request, memory_only=True)
             if fld is not None:
                 self.lines = preview_lines(fld, settings.preview_rays)
             else:

@@ -11,6 +11,7 @@ eroded by 2 px (the hidden-surface agreement of docs/report.md's metrics)."""
 
 import json
 import math
+from dataclasses import replace
 
 import bpy
 import numpy as np
@@ -20,7 +21,8 @@ from mathutils import Vector
 from fixtures.blender import samples
 from fixtures.blender.scenes import two_camera_scene
 from multiscale_camera.adapters.scene import rig_from_scene
-from multiscale_camera.core.methods import FrameReuse
+from multiscale_camera.core.field import choose_grid, steady_grid, steady_levels
+from multiscale_camera.core.methods import FrameReuse, frame_levels, plan_shot
 from multiscale_camera.core.quality import erode
 from multiscale_camera.render import fields, pipeline
 from multiscale_camera.render.raycast import march
@@ -344,3 +346,130 @@ def test_dolly_sample_moves_uniformly(empty_scene):
     assert distance[1] - distance[2] == pytest.approx(0.6 / 47, abs=1e-5)
     assert yaw[48] - yaw[1] == pytest.approx(6.0, abs=1e-3)
     assert len(keys) == 3
+
+
+def own_grids(rig, settings, nested):
+    """The grids frame ``rig`` alone asks for (``choose_levels`` or ``choose_grid``)."""
+    if nested:
+        return frame_levels(rig, settings).grids
+    return (choose_grid(rig, settings.accuracy_px, settings.max_voxels).grid,)
+
+
+@pytest.mark.slow
+def test_dolly_keeps_one_layout_over_its_frames(empty_scene):
+    """The steady layout re-snapped inside the shot: on the dolly at 160x90 HIGH, each
+    frame's own layout changed 11 times over frames 1-48 (every level at frames 16, 38
+    and 41). The shot's layout is chosen once from all its frames: every frame's
+    request carries the same one, it holds every frame's own grids, and AUTO builds
+    SCALAR_FIELD on it at both ends of the shot."""
+    scene = empty_scene
+    samples.build_dolly(scene)
+    scene.render.resolution_percentage = 25
+    scene.multiscale.method = "AUTO"  # the sample's SCALAR_FIELD, chosen by AUTO
+    layouts, own, keys = set(), [], set()
+    for frame in range(scene.frame_start, scene.frame_end + 1):
+        scene.frame_set(frame)
+        depsgraph = bpy.context.evaluated_depsgraph_get()
+        request = fields.SERVICE.request(depsgraph.scene, depsgraph=depsgraph)
+        assert scene.frame_current == frame  # the shot's frames were stepped and back
+        layout = request.settings.layout
+        layouts.add(layout)
+        grids = own_grids(request.rig, request.settings, layout.nested)
+        assert layout.covers(grids), frame
+        budget = request.settings.max_voxels
+        own.append(steady_levels(grids, budget) if layout.nested else steady_grid(grids[0], budget))
+        keys.add(request.key)
+    assert len(layouts) == 1
+    assert sum(g.size for g in layout.grids) <= request.settings.max_voxels
+    changes = sum(a != b for a, b in zip(own, own[1:]))
+    print(f"frame by frame the layout would change {changes} times; the shot's: 0")
+    assert changes > 0  # the dolly leaves a frame's own layout
+    assert len(keys) == scene.frame_end - scene.frame_start + 1
+    for frame in (scene.frame_start, scene.frame_end):
+        scene.frame_set(frame)
+        ready = pipeline.prepare_frame(bpy.context.evaluated_depsgraph_get())
+        assert ready.field.method == "SCALAR_FIELD", frame
+        assert ready.field.stats["layout"] == "shot", frame
+        used = ready.field.domain.grids if ready.field.domain else (ready.field.grid,)
+        assert tuple(used) == layout.grids, frame
+
+
+@pytest.mark.slow
+def test_jump_is_reported_where_pass_indices_are_0(empty_scene, tmp_path):
+    """The jump was measured on IndexOB (the objects' pass index, 0 = no hit), so in a
+    scene whose pass indices were all 0, as in ordinary scenes, it was always null."""
+    scene = empty_scene
+    _c1, c2 = two_camera_scene(scene, WIDTH, HEIGHT)
+    scene.multiscale.method = "IMAGE_BLEND"
+    for obj in scene.objects:
+        obj.pass_index = 0
+    scene.frame_start, scene.frame_end = 1, 2
+    for frame in (1, 2):
+        c2.location.x = 0.5 + 0.01 * (frame - 1)
+        c2.keyframe_insert("location", frame=frame)
+    scene.render.image_settings.media_type = "MULTI_LAYER_IMAGE"
+    scene.render.filepath = str(tmp_path / "frame_####")
+    bpy.ops.render.render(animation=True)
+    frame = json.loads(scene.multiscale.report)["frame"]
+    assert frame["number"] == 2
+    assert frame["jump_p95_px"] is not None and frame["jump_p95_px"] > 0, frame
+    assert frame["worst_jump_frame"] == 2
+
+
+def test_clear_and_a_file_load_forget_the_sequence(empty_scene):
+    """``FieldService.clear`` left the reuse store as it was; a loaded file's first
+    frame continued the sequence of a same-named scene of the file before."""
+    service = fields.SERVICE
+    index, hits = np.ones((2, 2)), np.zeros((2, 2, 3))
+    service.reuse.claims[("grid", "digest")] = (None, None)
+    service.clear()
+    assert service.reuse.claims == {} and service.shots == {}
+    service.sequence.add(("", "Scene", "ViewLayer"), 1, 1, index, hits)
+    service.reuse.solved[("grid", "tag")] = None
+    bpy.ops.wm.read_homefile(use_empty=True)
+    assert service.sequence.last == {}
+    assert service.reuse.solved == {}
+
+
+def test_a_workers_frame_range_keeps_the_shots_layout(empty_scene):
+    """``blender -s A -e B`` sets the scene's frame range: a shot layout taken from it
+    differed between farm workers given different ranges. It spans the cameras' keys."""
+    scene = empty_scene
+    animated_rig(scene)  # keys on frames 1 and 3: both cameras move, camera 2 zooms
+    scene.multiscale.method = "SCALAR_FIELD"
+    layouts = []
+    for start, end in ((1, 3), (2, 3), (3, 3), (1, 10)):
+        scene.frame_start, scene.frame_end = start, end
+        scene.frame_set(3)
+        depsgraph = bpy.context.evaluated_depsgraph_get()
+        layouts.append(fields.SERVICE.request(depsgraph.scene, depsgraph=depsgraph).settings.layout)
+    assert layouts[0] is not None
+    assert all(layout == layouts[0] for layout in layouts), layouts
+    # frame 3 alone would ask for other grids: the range matters
+    rig = rig_from_scene(scene, bpy.context.evaluated_depsgraph_get())
+    settings = fields.SERVICE.request(scene).settings
+    assert plan_shot([rig], replace(settings, layout=None)) != layouts[0]
+
+
+def test_a_drawn_request_does_not_step_frames(empty_scene):
+    """The viewport's picture and the ray preview ask while drawing: they take the
+    shot's layout when a render or a build has worked it out, and never step the scene
+    through its frames for it."""
+    scene = empty_scene
+    animated_rig(scene)
+    scene.multiscale.method = "SCALAR_FIELD"
+    scene.frame_set(2)
+    fields.SERVICE.forget_sequence()
+    stepped = []
+    bpy.app.handlers.frame_change_pre.append(lambda *_a: stepped.append(1))
+    try:
+        depsgraph = bpy.context.evaluated_depsgraph_get()
+        drawn = fields.SERVICE.request(depsgraph.scene, depsgraph=depsgraph, step_frames=False)
+        assert drawn.settings.layout is None and stepped == []
+        rendered = fields.SERVICE.request(depsgraph.scene, depsgraph=depsgraph)
+        assert rendered.settings.layout is not None and len(stepped) > 0
+        again = fields.SERVICE.request(depsgraph.scene, depsgraph=depsgraph, step_frames=False)
+        assert again.key == rendered.key
+    finally:
+        bpy.app.handlers.frame_change_pre.pop()
+    assert scene.frame_current == 2

@@ -20,7 +20,15 @@ from .fill import (
 )
 from .grid import FieldSampler, Grid, sample
 from .harmonic import mask_weights
-from .layout import SNAP_CELLS, ladder_cell, steady_grid, steady_levels
+from .layout import (
+    SNAP_CELLS,
+    ShotLayout,
+    ladder_cell,
+    shot_layout,
+    steady_boxes,
+    steady_grid,
+    steady_levels,
+)
 from .nested import (
     BAND_CELLS,
     Levels,
@@ -69,6 +77,7 @@ __all__ = [
     "SNAP_CELLS",
     "STEP_CELLS",
     "STEP_WIDTH_GAIN",
+    "ShotLayout",
     "FieldSampler",
     "FieldTracer",
     "Fill",
@@ -102,6 +111,8 @@ __all__ = [
     "scheduled_rays",
     "solve_levels",
     "solve_membership",
+    "shot_layout",
+    "steady_boxes",
     "steady_grid",
     "steady_levels",
     "splat_camera",

@@ -12,8 +12,8 @@ from .fingerprint import field_key
 from .image_blend import CurveBlendField, prepare_image_blend
 from .linear import LinearField, nearest_mask_pixels, prepare_linear
 from .registry import METHODS, prepare, prepare_auto
-from .reuse import FrameReuse, family_digest
-from .scalar_field import prepare_scalar_field
+from .reuse import FrameReuse, family_digest, solve_phrase
+from .scalar_field import frame_levels, plan_shot, prepare_scalar_field
 from .traced import (
     MAX_STRIDE,
     TracedField,
@@ -31,7 +31,10 @@ from .vector_field import (
 
 __all__ = [
     "FrameReuse",
+    "frame_levels",
+    "plan_shot",
     "family_digest",
+    "solve_phrase",
     "MAX_STRIDE",
     "METHODS",
     "QUALITY",

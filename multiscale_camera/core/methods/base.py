@@ -29,6 +29,9 @@ class Settings:
         identity: every count traces the same rays (to about float32 rounding).
     steady : bool, grids on a world-fixed lattice (``field.layout``) so that a rig in
         motion keeps its layout from frame to frame (an animated rig's fields).
+    layout : field.ShotLayout or None, the grids chosen once for a whole shot
+        (``scalar_field.plan_shot``): SCALAR_FIELD builds on them wherever they hold
+        the frame's rig (its own steady layout elsewhere). Part of the field's identity.
     """
 
     accuracy_px: float = 0.5
@@ -37,6 +40,7 @@ class Settings:
     nested: bool = None
     processes: int = field(default=0, repr=False, compare=False)
     steady: bool = False
+    layout: object = None
 
 
 # Quality presets: accuracy target in pixels and voxel budget (about 0.1, 0.4 and

@@ -72,7 +72,7 @@ def shortfall(cameras, folds, accuracy_px):
     return "; ".join(out)
 
 
-def prepare_auto(rig, settings=None, diag=None):
+def prepare_auto(rig, settings=None, diag=None, reuse=None):
     """AUTO: the cheapest method whose rays meet the accuracy target on this rig.
 
     Each candidate of ``AUTO_CANDIDATES`` is built, cheapest first, and measured as the
@@ -83,9 +83,17 @@ def prepare_auto(rig, settings=None, diag=None):
     wrong. When no candidate meets the target, the last is kept and the report says why.
     The choice and why are in ``stats["auto"]``; the measurement stays with the field
     (``measured``), so the report does not measure it again.
+
+    A rig in motion (``settings.steady``) gets SCALAR_FIELD at every frame: one method
+    for the whole shot (a choice measured frame by frame could switch it mid-shot),
+    built with ``reuse`` (``reuse.FrameReuse`` or None) as SCALAR_FIELD is.
     """
     settings = settings or Settings()
     diag = diagnostics_of(diag)
+    if settings.steady:
+        out = prepare_scalar_field(rig, settings, diag, reuse)
+        out.stats["auto"] = "SCALAR_FIELD: the rig moves, and a shot keeps one method"
+        return out
     misses = []
     for n, name in enumerate(AUTO_CANDIDATES):
         if n:
@@ -118,13 +126,14 @@ def prepare(rig, method, settings=None, diag=None, reuse=None):
     """Prepare the ray field of ``method`` (the enum name of ``scene.multiscale.method``)
     for ``rig``, steered by ``diag`` (core.diagnostics.Diagnostics or None). ``reuse``
     (``reuse.FrameReuse`` or None): what SCALAR_FIELD may take from earlier builds of a
-    sequence, and keeps for the next (other methods build from scratch)."""
+    sequence, and keeps for the next (AUTO on a rig in motion too; other methods build
+    from scratch)."""
     try:
         builder = METHODS[method]
     except KeyError:
         raise RigError(
             f"Method '{method}' is not available in this version; use one of: " + ", ".join(METHODS)
         ) from None
-    if builder is prepare_scalar_field:
+    if builder in (prepare_scalar_field, prepare_auto):
         return builder(rig, settings or Settings(), diag, reuse)
     return builder(rig, settings or Settings(), diag)

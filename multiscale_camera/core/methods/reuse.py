@@ -51,6 +51,17 @@ def family_digest(rig, i):
     return h.hexdigest()
 
 
+def solve_phrase(solve):
+    """How a frame's report names its membership solve, from ``record``'s ``solve``:
+    "membership solve", "membership solve (warm start)" or "membership solve (warm
+    start on k of n grids)"."""
+    if solve == "cold":
+        return "membership solve"
+    if solve == "warm":
+        return "membership solve (warm start)"
+    return f"membership solve (warm start {solve.removeprefix('warm ')})"
+
+
 class FrameReuse:
     """Claims and solutions of the last builds, by grid; thread safe (one build at a
     time reads or writes it, under its lock).
@@ -81,17 +92,16 @@ class FrameReuse:
 
     def keep(self, rig, grids, fills, fields, tag):
         """Keep the claims of every camera and the solved membership of each grid of
-        this build; forget other grids' (a steady layout that moved leaves them behind)."""
+        this build, and nothing else: a camera that moved leaves its earlier claims
+        behind, a layout that moved its grids, and the store holds one build's worth."""
         digests = [family_digest(rig, i) for i in range(len(rig.cameras))]
+        claims, solved = {}, {}
+        for grid, fill, membership in zip(grids, fills, fields, strict=True):
+            for d, core, halo in zip(digests, fill.cores, fill.halos, strict=True):
+                claims[(grid, d)] = (core, halo)
+            solved[(grid, tag)] = membership
         with self._lock:
-            for grid, fill, membership in zip(grids, fills, fields, strict=True):
-                for d, core, halo in zip(digests, fill.cores, fill.halos, strict=True):
-                    self.claims[(grid, d)] = (core, halo)
-                self.solved[(grid, tag)] = membership
-            used = set(grids)
-            for table in (self.claims, self.solved):
-                for k in [k for k in table if k[0] not in used]:
-                    del table[k]
+            self.claims, self.solved = claims, solved
 
     def record(self, names, known, warm, seconds):
         """What a build took and built, for its report (``stats["reuse"]``).
@@ -100,7 +110,8 @@ class FrameReuse:
         seconds : dict stage -> float. Returns a dict: ``claims_reused`` and
         ``claims_built`` (camera names: whose claims were taken on every grid, and
         whose were splatted on some), ``solve`` ("warm" on every grid, "cold", or
-        "warm on k of n grids"), ``rebuilt`` (the stages run), ``seconds``."""
+        "warm on k of n grids"), ``solve_said`` (``solve_phrase``), ``rebuilt`` (the
+        stages run), ``seconds``."""
         reused = [n for i, n in enumerate(names) if all(k[i] is not None for k in known)]
         built = [n for n in names if n not in reused]
         warm_count = sum(w is not None for w in warm)
@@ -116,6 +127,7 @@ class FrameReuse:
             "claims_reused": reused,
             "claims_built": built,
             "solve": solve,
+            "solve_said": solve_phrase(solve),
             "rebuilt": rebuilt,
             "seconds": {k: round(float(v), 3) for k, v in seconds.items()},
         }

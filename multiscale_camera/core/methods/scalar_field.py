@@ -3,6 +3,7 @@ grids that refine toward the smaller cameras, blends exact per-camera tangent fi
 rays are its RK4 streamlines, traced on the adaptive lattice of ``traced``.
 """
 
+from dataclasses import replace
 from types import SimpleNamespace
 
 import numpy as np
@@ -18,6 +19,7 @@ from ..field import (
     choose_grid,
     choose_levels,
     fill_membership,
+    shot_layout,
     solve_levels,
     solve_membership,
     steady_levels,
@@ -37,10 +39,7 @@ def prepare_scalar_field(rig, settings=None, diag=None, reuse=None):
     the same grids to take (a sequence's frames), and where this build's are kept."""
     settings = settings or Settings()
     diag = diagnostics_of(diag)
-    nested = settings.nested
-    if nested is None:
-        nested = choose_grid(rig, settings.accuracy_px, settings.max_voxels).capped
-    if nested and len(rig.cameras) > 1:
+    if _nested(rig, settings):
         return _prepare_nested(rig, settings, diag, reuse)
     run = diag.child()
     fld = TracedField(rig=rig, method="SCALAR_FIELD")
@@ -78,6 +77,52 @@ def prepare_scalar_field(rig, settings=None, diag=None, reuse=None):
     return fld
 
 
+def _nested(rig, settings):
+    """Whether SCALAR_FIELD builds ``rig`` on nested grids: as the shot's layout is
+    (``settings.layout``), else as ``settings.nested`` says, or (None) where one
+    uniform grid within the budget cannot have the cells the target asks for."""
+    if settings.layout is not None:
+        return settings.layout.nested
+    nested = settings.nested
+    if nested is None:
+        nested = choose_grid(rig, settings.accuracy_px, settings.max_voxels).capped
+    return bool(nested and len(rig.cameras) > 1)
+
+
+def _cells_across(settings):
+    return max(MIN_CELLS_ACROSS_NEAR, CELLS_ACROSS_NEAR_PER_PX / settings.accuracy_px)
+
+
+def frame_levels(rig, settings):
+    """``nested.choose_levels`` for ``rig`` alone, its outer box from ``choose_grid``."""
+    outer = choose_grid(rig, settings.accuracy_px, 1 << 62).grid
+    return choose_levels(
+        rig, settings.accuracy_px, settings.max_voxels, _cells_across(settings), outer.bounds
+    )
+
+
+def plan_shot(rigs, settings):
+    """The layout of a shot whose frames have the rigs ``rigs`` (same cameras and size,
+    one rig per frame): SCALAR_FIELD's grids for every frame at once (``field.layout``).
+    Nested when any frame needs nested grids (``settings.nested`` None) or as
+    ``settings.nested`` says; the boxes are the union of the frames', the cell the
+    finest any frame asks for, within ``settings.max_voxels``.
+
+    Returns
+    -------
+    field.ShotLayout
+    """
+    plain = replace(settings, layout=None)
+    nested = any(_nested(rig, plain) for rig in rigs)
+    if nested:
+        frames = [frame_levels(rig, settings).grids for rig in rigs]
+    else:
+        frames = [
+            (choose_grid(rig, settings.accuracy_px, settings.max_voxels).grid,) for rig in rigs
+        ]
+    return shot_layout(frames, nested, settings.max_voxels)
+
+
 def _reusable(reuse, rig, grids, settings):
     """(known claims, warm starts) per grid from ``reuse`` (Nones without it)."""
     if reuse is None:
@@ -112,12 +157,11 @@ def _prepare_nested(rig, settings, diag, reuse=None):
     fld = TracedField(rig=rig, method="SCALAR_FIELD")
     fld.warnings += check_rig(rig)
     with run.stage("fill"):
-        outer = choose_grid(rig, settings.accuracy_px, 1 << 62).grid
-        across = max(MIN_CELLS_ACROSS_NEAR, CELLS_ACROSS_NEAR_PER_PX / settings.accuracy_px)
-        levels = choose_levels(rig, settings.accuracy_px, settings.max_voxels, across, outer.bounds)
+        across = _cells_across(settings)
+        levels = frame_levels(rig, settings)
         if levels.capped:
             fld.warnings.append(capped_message(settings, levels.wanted_cell, levels.grids[-1].cell))
-        grids = steady_levels(levels.grids) if settings.steady else levels.grids
+        grids = _level_grids(fld, levels.grids, settings)
         known, warm = _reusable(reuse, rig, grids, settings)
         families = [Family(rig.cameras, i, rig.beta) for i in range(len(rig.cameras))]
         workers = worker_count(settings.processes)
@@ -150,6 +194,20 @@ def _prepare_nested(rig, settings, diag, reuse=None):
     _record(reuse, fld, rig, known, warm)
     diag.merge(run)
     return fld
+
+
+def _level_grids(fld, own, settings):
+    """The levels a nested build uses: the shot's (``settings.layout``) where they hold
+    the frame's own levels ``own``, else ``own`` laid on the world lattice within the
+    budget when ``settings.steady``, else ``own``; ``fld.stats["layout"]`` says which."""
+    layout = settings.layout
+    if layout is not None and layout.nested and layout.covers(own):
+        fld.stats["layout"] = "shot"
+        return layout.grids
+    if settings.steady:
+        fld.stats["layout"] = "frame"
+        return steady_levels(own, settings.max_voxels)
+    return own
 
 
 def _composite_fill(grids, fills):

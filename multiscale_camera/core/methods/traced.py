@@ -346,13 +346,21 @@ def lattice_stride(rig, grid):
 
 
 def field_grid(fld, settings):
-    """The grid of a field method (``choose_grid``; laid on the world lattice when
-    ``settings.steady``), with a warning on ``fld`` when the voxel budget caps the cell
-    the accuracy target asks for."""
+    """The grid of a field method (``choose_grid``): the shot's (``settings.layout``,
+    uniform) where it holds the frame's, else laid on the world lattice within the
+    budget when ``settings.steady``; with a warning on ``fld`` when the voxel budget
+    caps the cell the accuracy target asks for."""
     choice = choose_grid(fld.rig, settings.accuracy_px, settings.max_voxels)
     if choice.capped:
         fld.warnings.append(capped_message(settings, choice.wanted_cell, choice.grid.cell))
-    return steady_grid(choice.grid) if settings.steady else choice.grid
+    layout = settings.layout
+    if layout is not None and not layout.nested and layout.covers((choice.grid,)):
+        fld.stats["layout"] = "shot"
+        return layout.grids[0]
+    if settings.steady:
+        fld.stats["layout"] = "frame"
+        return steady_grid(choice.grid, settings.max_voxels)
+    return choice.grid
 
 
 def capped_message(settings, wanted, cell):
