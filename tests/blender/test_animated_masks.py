@@ -2,6 +2,8 @@
 show (frames, start, offset, cyclic on the camera's list item), and the field's cache
 key follows the frame's pixels."""
 
+import threading
+
 import bpy
 import numpy as np
 import pytest
@@ -9,6 +11,8 @@ import pytest
 from fixtures.blender.scenes import two_camera_scene
 from multiscale_camera.adapters.masks import (
     ANIMATED_MASK,
+    FRAME_CACHE,
+    FRAME_NOT_LOADED,
     MISSING_FRAME,
     frame_path,
     sequence_frame,
@@ -144,3 +148,46 @@ def test_a_movie_mask_is_still_said_not_read(scene, tmp_path):
     rig, _key = read_at(scene, 1)
     assert ANIMATED_MASK.format(name=item.mask.name, kind="a movie") in rig.notices
     assert not rig.masks[0].any()
+
+
+def test_reading_a_sequence_mask_again_changes_no_blender_data(scene):
+    """Reading the rig (as the Rendered viewport does while it draws) must not load
+    and remove images each time: that is a change to Blender's data, which redraws
+    every view (an endless redraw loop) and is unsafe on a render thread."""
+    FRAME_CACHE.clear()
+    rig_from_scene(scene)  # the first read loads frame 1 once
+    bpy.context.evaluated_depsgraph_get()
+    names = sorted(i.name for i in bpy.data.images)
+    updates = []
+
+    def seen(_scene, depsgraph):
+        updates.extend(u.id.name for u in depsgraph.updates)
+
+    bpy.app.handlers.depsgraph_update_post.append(seen)
+    try:
+        for _ in range(2):
+            rig_from_scene(scene)
+            bpy.context.evaluated_depsgraph_get()
+    finally:
+        bpy.app.handlers.depsgraph_update_post.remove(seen)
+    assert updates == []
+    assert sorted(i.name for i in bpy.data.images) == names
+
+
+def test_a_frame_first_needed_off_the_main_thread_is_said_not_loaded(scene):
+    FRAME_CACHE.clear()
+    item = scene.multiscale.cameras[0]
+    got = {}
+    worker = threading.Thread(target=lambda: got.update(rig=rig_from_scene(scene)))
+    worker.start()
+    worker.join()
+    path = bpy.path.abspath(frame_path(item.mask.filepath, 1))
+    said = FRAME_NOT_LOADED.format(name=item.mask.name, number=1, path=path)
+    assert said in got["rig"].notices
+    assert not got["rig"].masks[0].any()
+    rig_from_scene(scene)  # the main thread loads it; then a thread reads it
+    worker = threading.Thread(target=lambda: got.update(rig=rig_from_scene(scene)))
+    worker.start()
+    worker.join()
+    assert got["rig"].masks[0].any()
+    assert not any("not loaded" in n for n in got["rig"].notices)
