@@ -47,6 +47,11 @@ WORKERS_GIVEN_UP = (
 POLL_SECONDS = 0.25
 
 
+# The live picture's job thread (render/live.py), and how long a build waits for it.
+LIVE_THREAD = "multiscale-live"
+LIVE_WAIT_SECONDS = 10.0
+
+
 @dataclass(frozen=True)
 class FieldRequest:
     """What a field depends on, read from the scene on the main thread.
@@ -158,14 +163,21 @@ class FieldService:
     # --- requests ------------------------------------------------------------------
 
     def request(
-        self, scene, rig: Rig | None = None, depsgraph=None, quality: str | None = None
+        self,
+        scene,
+        rig: Rig | None = None,
+        depsgraph=None,
+        quality: str | None = None,
+        steady: bool | None = None,
     ) -> FieldRequest:
         """The field request of ``scene`` (main thread; an evaluated scene, so that
         object matrices are current), for ``rig`` when the caller has read it already.
         With ``depsgraph`` (a render's) the cameras are read as it evaluated them, at
         its frame (``adapters.scene.rig_from_scene``). ``quality`` (an enum name of
         ``scene.multiscale.quality``) replaces the scene's (the live picture asks for
-        PREVIEW). Raises RigError when the rig cannot render."""
+        PREVIEW). ``steady=False`` builds without the frame reuse (``SERVICE.reuse``),
+        which the live picture must leave to the render's frames. Raises RigError when
+        the rig cannot render."""
         group = scene.multiscale
         rig = rig if rig is not None else rig_from_scene(scene, depsgraph)
         settings = field_settings(scene)
@@ -178,6 +190,8 @@ class FieldService:
                 cubic=preset.cubic,
                 nested=preset.nested,
             )
+        if steady is not None:
+            settings = replace(settings, steady=steady)
         notices = tuple(rig.notices) + tuple(empty_mask_messages(rig))
         notices += tuple(crossing_messages(rig))
         folder, said = cache_folder_of(scene)
@@ -227,6 +241,7 @@ class FieldService:
         RigError, SolverDidNotConverge: the rig cannot be built. Cancelled.
         """
         diag = diag if diag is not None else Diagnostics()
+        self.stop_live()
         start = time.perf_counter()
         fld = self.cached(request)
         built = gave_up = False
@@ -248,6 +263,7 @@ class FieldService:
         field already running; a running build of another field is cancelled (its
         result is no longer wanted). When it ends, the main thread stores it and tells
         the listeners (``finish``)."""
+        self.stop_live()
         running = self._build
         if running is not None and running.alive():
             if running.request.key == request.key and (running.measure or not measure):
@@ -257,6 +273,17 @@ class FieldService:
         build.launch()
         bpy.app.timers.register(self._poll, first_interval=POLL_SECONDS)
         return build
+
+    def stop_live(self, wait=LIVE_WAIT_SECONDS):
+        """Cancel the live picture's job and wait for it (at most ``wait`` seconds) before
+        another build starts, so that no two builds run at once; called from the live
+        job's own thread, nothing."""
+        live = self.live
+        job = getattr(live, "job", None)
+        if job is None or threading.current_thread().name == LIVE_THREAD:
+            return
+        job.cancel()
+        job.join(wait)
 
     def running(self) -> FieldBuild | None:
         """The background build under way, or None."""
