@@ -134,16 +134,20 @@ def frame_not_loaded(path):
     return path in _NOT_LOADED
 
 
-def image_pixels(image):
+def image_pixels(image, buf=None):
     """(H, W, 4) float32 RGBA of a Blender image, row 0 at the top.
+
+    ``buf`` : flat float32 array of the image's pixels as ``Image.pixels`` gives them,
+    already read (used as it is, not read again, when its size fits).
 
     Returns None when the image has no pixels (missing file, empty buffer).
     """
     w, h = image.size
     if w == 0 or h == 0:
         return None
-    buf = np.empty(w * h * image.channels, dtype=np.float32)
-    image.pixels.foreach_get(buf)
+    if buf is None or buf.size != w * h * image.channels:
+        buf = np.empty(w * h * image.channels, dtype=np.float32)
+        image.pixels.foreach_get(buf)
     rgba = buf.reshape(h, w, image.channels)[::-1]
     if image.channels < 3:
         rgba = np.repeat(rgba[..., :1], 3, axis=-1)
@@ -158,12 +162,12 @@ def resample_nearest(mask, width, height):
     return mask[ys][:, xs]
 
 
-def mask_from_image(image, width, height, frame=None):
+def mask_from_image(image, width, height, frame=None, buf=None):
     """A bool (height, width) mask from a Blender image, and notices about it.
 
     ``frame`` : int, the frame number to read when ``image`` is an image sequence
     (``sequence_frame``); without it a sequence reads as not yet readable, as a movie
-    does.
+    does. ``buf`` : a still image's pixels already read (``image_pixels``).
 
     Returns
     -------
@@ -183,7 +187,7 @@ def mask_from_image(image, width, height, frame=None):
             notice = message.format(name=image.name, number=frame, path=path)
             return np.zeros((height, width), dtype=bool), [notice]
     else:
-        rgba = image_pixels(image)
+        rgba = image_pixels(image, buf)
     if rgba is None:
         return np.zeros((height, width), dtype=bool), [
             f"Mask '{image.name}' has no pixels (is its file missing?); treated as empty"
