@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from fixtures.blender.scenes import two_camera_scene
+from multiscale_camera.adapters.scene import rig_from_scene
 from multiscale_camera.render import pipeline
 from multiscale_camera.render.fields import SERVICE
 from multiscale_camera.render.live import LiveJob, live_size, small_rig
@@ -129,8 +130,6 @@ def test_the_picture_of_a_large_render_comes_from_a_smaller_field(scene):
 
 
 def test_a_small_rig_keeps_each_cameras_pixels(scene):
-    from multiscale_camera.adapters.scene import rig_from_scene
-
     rig = rig_from_scene(scene)
     small = small_rig(rig, (48, 36))
     assert small.size == (48, 36)
