@@ -241,11 +241,11 @@ class FieldService:
         RigError, SolverDidNotConverge: the rig cannot be built. Cancelled.
         """
         diag = diag if diag is not None else Diagnostics()
-        self.stop_live()
         start = time.perf_counter()
         fld = self.cached(request)
         built = gave_up = False
-        if fld is None:
+        if fld is None:  # a build: the live picture's job stops first
+            self.stop_live()
             fld, gave_up, stored = self._build_once(request, diag, start if measure else None)
             built = stored is not None
         diag.extend(self.cache.take_notices())  # a damaged entry deleted, memory only
