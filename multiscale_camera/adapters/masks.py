@@ -3,10 +3,17 @@
 A mask that is an image sequence is read at a frame: the number Blender's own image
 user gives for the scene's frame (``sequence_frame``: frames, start, offset, cyclic,
 kept on the camera's list item), whose file (``frame_path``) is loaded for its pixels.
+Each frame file is loaded once, on the main thread, into a temporary Blender image
+removed at once (loading changes Blender's data, which redraws every view and may not
+happen on a render thread); its pixels are kept (``FRAME_CACHE``, keyed by the file's
+absolute path, modification time and colour space), so reading the rig again, as the
+Rendered viewport does while it draws, changes nothing in Blender's data.
 """
 
 import os
 import re
+import threading
+from collections import OrderedDict
 
 import bpy
 import numpy as np
@@ -29,6 +36,15 @@ MISSING_FRAME = (
     "empty at this frame: check the sequence's files, or the camera's mask Frames, "
     "Start and Offset"
 )
+# A frame of a mask sequence first needed off the main thread (a render's thread).
+FRAME_NOT_LOADED = (
+    "Mask '{name}' frame {number} ('{path}') was not loaded before the render started "
+    "and cannot be loaded during it; treated as empty at this frame: show that frame "
+    "in the viewport once, or render again"
+)
+# Decoded frames kept: (absolute path, mtime, colour space) -> (H, W, 4) float32 RGBA.
+FRAME_CACHE: OrderedDict = OrderedDict()
+FRAME_CACHE_SIZE = 8
 
 
 def animated_kind(image):
@@ -40,8 +56,9 @@ def animated_kind(image):
 def sequence_frame(frame, frames, start=1, offset=0, cyclic=False):
     """The frame number of an image sequence shown at scene frame ``frame``, as
     Blender's image user maps it: the sequence plays ``frames`` frames from scene frame
-    ``start`` (held on its first and last frame before and after, or repeated when
-    ``cyclic``), numbered from 1 plus ``offset``. 0 frames: 0 (Blender's answer).
+    ``start`` (held on its last frame after it, or repeated when ``cyclic``), numbered
+    from 1 plus ``offset``; before ``start`` (not cyclic) Blender gives frame 0 plus
+    ``offset``. 0 frames: 0 (Blender's answer).
 
     All ints; returns int."""
     if frames <= 0:
@@ -70,10 +87,23 @@ def frame_path(filepath, number):
 
 
 def sequence_pixels(image, number):
-    """(H, W, 4) float32 RGBA (row 0 at the top) of frame ``number`` of the image
-    sequence ``image``, loaded from its file; (None, path) when it cannot be read."""
+    """(H, W, 4) float32 RGBA (row 0 at the top, read-only) of frame ``number`` of the
+    image sequence ``image``, and the frame's absolute path; (None, path) when it cannot
+    be read. A file is loaded once (main thread only) and then read from
+    ``FRAME_CACHE``; first needed off the main thread, it is not loaded: (None, path)
+    with ``frame_not_loaded(path)`` true."""
     path = bpy.path.abspath(frame_path(image.filepath, number), library=image.library)
-    if not os.path.isfile(path):
+    try:
+        mtime = os.stat(path).st_mtime_ns
+    except OSError:
+        return None, path
+    key = (os.path.normpath(path), mtime, image.colorspace_settings.name)
+    rgba = FRAME_CACHE.get(key)
+    if rgba is not None:
+        FRAME_CACHE.move_to_end(key)
+        return rgba, path
+    if threading.current_thread() is not threading.main_thread():
+        _NOT_LOADED.add(path)
         return None, path
     try:
         still = bpy.data.images.load(path, check_existing=False)
@@ -81,21 +111,43 @@ def sequence_pixels(image, number):
         return None, path
     try:
         still.colorspace_settings.name = image.colorspace_settings.name
-        return image_pixels(still), path
+        rgba = image_pixels(still)
     finally:
         bpy.data.images.remove(still)
+    if rgba is None:
+        return None, path
+    rgba = np.ascontiguousarray(rgba)
+    rgba.flags.writeable = False
+    FRAME_CACHE[key] = rgba
+    _NOT_LOADED.discard(path)
+    while len(FRAME_CACHE) > FRAME_CACHE_SIZE:
+        FRAME_CACHE.popitem(last=False)
+    return rgba, path
 
 
-def image_pixels(image):
+# Frame files first needed off the main thread (so not loaded).
+_NOT_LOADED: set = set()
+
+
+def frame_not_loaded(path):
+    """Whether the frame file ``path`` was wanted off the main thread and not loaded."""
+    return path in _NOT_LOADED
+
+
+def image_pixels(image, buf=None):
     """(H, W, 4) float32 RGBA of a Blender image, row 0 at the top.
+
+    ``buf`` : flat float32 array of the image's pixels as ``Image.pixels`` gives them,
+    already read (used as it is, not read again, when its size fits).
 
     Returns None when the image has no pixels (missing file, empty buffer).
     """
     w, h = image.size
     if w == 0 or h == 0:
         return None
-    buf = np.empty(w * h * image.channels, dtype=np.float32)
-    image.pixels.foreach_get(buf)
+    if buf is None or buf.size != w * h * image.channels:
+        buf = np.empty(w * h * image.channels, dtype=np.float32)
+        image.pixels.foreach_get(buf)
     rgba = buf.reshape(h, w, image.channels)[::-1]
     if image.channels < 3:
         rgba = np.repeat(rgba[..., :1], 3, axis=-1)
@@ -110,12 +162,12 @@ def resample_nearest(mask, width, height):
     return mask[ys][:, xs]
 
 
-def mask_from_image(image, width, height, frame=None):
+def mask_from_image(image, width, height, frame=None, buf=None):
     """A bool (height, width) mask from a Blender image, and notices about it.
 
     ``frame`` : int, the frame number to read when ``image`` is an image sequence
     (``sequence_frame``); without it a sequence reads as not yet readable, as a movie
-    does.
+    does. ``buf`` : a still image's pixels already read (``image_pixels``).
 
     Returns
     -------
@@ -131,10 +183,11 @@ def mask_from_image(image, width, height, frame=None):
     if kind is not None:
         rgba, path = sequence_pixels(image, frame)
         if rgba is None:
-            notice = MISSING_FRAME.format(name=image.name, number=frame, path=path)
+            message = FRAME_NOT_LOADED if frame_not_loaded(path) else MISSING_FRAME
+            notice = message.format(name=image.name, number=frame, path=path)
             return np.zeros((height, width), dtype=bool), [notice]
     else:
-        rgba = image_pixels(image)
+        rgba = image_pixels(image, buf)
     if rgba is None:
         return np.zeros((height, width), dtype=bool), [
             f"Mask '{image.name}' has no pixels (is its file missing?); treated as empty"

@@ -79,8 +79,11 @@ def rig_is_animated(scene):
     return False
 
 
-def rig_from_scene(scene, depsgraph=None):
+def rig_from_scene(scene, depsgraph=None, pixels=None):
     """Build the rig from ``scene.multiscale``.
+
+    ``pixels`` : dict, image name -> flat float32 buffer of that still mask's pixels
+    just read (``Image.pixels.foreach_get``), used instead of reading them again.
 
     With ``depsgraph`` (a render's, or any evaluated depsgraph) every camera is read as
     that depsgraph evaluated it: its transform, lens, sensor, shift and clipping at the
@@ -113,7 +116,9 @@ def rig_from_scene(scene, depsgraph=None):
                 f"{obj.type.lower()}; pick a camera object"
             )
         cameras.append(pinhole_from_object(evaluated(obj, depsgraph), scene))
-        mask, said = mask_from_image(item.mask, width, height, mask_frame(item, scene))
+        buf = None if pixels is None or item.mask is None else pixels.get(item.mask.name)
+        frame = mask_frame(item, scene)
+        mask, said = mask_from_image(item.mask, width, height, frame, buf)
         masks.append(mask)
         notices += said
     names = [c.name for c in cameras]

@@ -22,6 +22,7 @@ import hashlib
 import json
 import os
 import tempfile
+import threading
 import time
 import zipfile
 
@@ -94,6 +95,8 @@ class FieldCache:
         self._chosen = None  # use_folder's, e.g. a scene's folder beside its .blend
         self.limit_mb = float(limit_mb)
         self.memory = {}
+        # the memory entries are read by the live picture's thread too (get, trim)
+        self._memory_lock = threading.RLock()
         self.hits = self.misses = self.disk_hits = 0
         self._notices = []
 
@@ -124,8 +127,9 @@ class FieldCache:
     def peek(self, key, rig):
         """The field under ``key`` on disk, or None, without counting a hit or a miss
         (a process waiting for another one's build looks again and again)."""
-        if key in self.memory:
-            return self.memory[key]
+        fld = self.memory.get(key)
+        if fld is not None:
+            return fld
         fld = self._read(key, rig) if self.folder else None
         if fld is not None:
             self._remember(key, fld)
@@ -176,10 +180,11 @@ class FieldCache:
     def get(self, key, rig):
         """The field stored under ``key`` (for ``rig``, the rig it was built from), or
         None. A disk entry that cannot be read is removed and counts as a miss."""
-        if key in self.memory:
-            self.memory[key] = self.memory.pop(key)
-            self.hits += 1
-            return self.memory[key]
+        with self._memory_lock:
+            if key in self.memory:
+                fld = self.memory[key] = self.memory.pop(key)
+                self.hits += 1
+                return fld
         fld = self._read(key, rig) if self.folder else None
         if fld is None:
             self.misses += 1
@@ -204,10 +209,11 @@ class FieldCache:
         return None
 
     def _remember(self, key, fld):
-        self.memory.pop(key, None)
-        self.memory[key] = fld
-        while len(self.memory) > KEEP_IN_MEMORY:
-            self.memory.pop(next(iter(self.memory)))
+        with self._memory_lock:
+            self.memory.pop(key, None)
+            self.memory[key] = fld
+            while len(self.memory) > KEEP_IN_MEMORY:
+                self.memory.pop(next(iter(self.memory)))
 
     def _write(self, key, fld):
         """Write the entry atomically: into a temporary file of a unique name in the
@@ -295,7 +301,8 @@ class FieldCache:
 
     def clear(self, disk=True):
         """Forget every field in memory and (``disk``) on disk. Returns files removed."""
-        self.memory.clear()
+        with self._memory_lock:
+            self.memory.clear()
         removed = 0
         if disk:
             for p, _size, _t in self.entries():

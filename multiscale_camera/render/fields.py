@@ -52,6 +52,11 @@ WORKERS_GIVEN_UP = (
 POLL_SECONDS = 0.25
 
 
+# The live picture's job thread (render/live.py), and how long a build waits for it.
+LIVE_THREAD = "multiscale-live"
+LIVE_WAIT_SECONDS = 10.0
+
+
 @dataclass(frozen=True)
 class FieldRequest:
     """What a field depends on, read from the scene on the main thread.
@@ -170,6 +175,7 @@ class FieldService:
         depsgraph=None,
         quality: str | None = None,
         step_frames: bool = True,
+        steady: bool | None = None,
     ) -> FieldRequest:
         """The field request of ``scene`` (main thread; an evaluated scene, so that
         object matrices are current), for ``rig`` when the caller has read it already.
@@ -177,7 +183,9 @@ class FieldService:
         its frame (``adapters.scene.rig_from_scene``). ``quality`` (an enum name of
         ``scene.multiscale.quality``) replaces the scene's (the live picture asks for
         PREVIEW). ``step_frames`` False (a request made while drawing) takes a rig in
-        motion's shot layout only when it is known already (``shot_layout``). Raises
+        motion's shot layout only when it is known already (``shot_layout``).
+        ``steady=False`` builds without the frame reuse (``SERVICE.reuse``) or a shot
+        layout, which the live picture must leave to the render's frames. Raises
         RigError when the rig cannot render."""
         group = scene.multiscale
         rig = rig if rig is not None else rig_from_scene(scene, depsgraph)
@@ -191,6 +199,8 @@ class FieldService:
                 cubic=preset.cubic,
                 nested=preset.nested,
             )
+        if steady is not None:
+            settings = replace(settings, steady=steady)
         if settings.steady and group.method in SHOT_METHODS:
             layout = self.shot_layout(scene, rig, settings, depsgraph, step_frames)
             settings = replace(settings, layout=layout)
@@ -269,7 +279,8 @@ class FieldService:
         start = time.perf_counter()
         fld = self.cached(request)
         built = gave_up = False
-        if fld is None:
+        if fld is None:  # a build: the live picture's job stops first
+            self.stop_live()
             fld, gave_up, stored = self._build_once(request, diag, start if measure else None)
             built = stored is not None
         diag.extend(self.cache.take_notices())  # a damaged entry deleted, memory only
@@ -287,6 +298,7 @@ class FieldService:
         field already running; a running build of another field is cancelled (its
         result is no longer wanted). When it ends, the main thread stores it and tells
         the listeners (``finish``)."""
+        self.stop_live()
         running = self._build
         if running is not None and running.alive():
             if running.request.key == request.key and (running.measure or not measure):
@@ -296,6 +308,17 @@ class FieldService:
         build.launch()
         bpy.app.timers.register(self._poll, first_interval=POLL_SECONDS)
         return build
+
+    def stop_live(self, wait=LIVE_WAIT_SECONDS):
+        """Cancel the live picture's job and wait for it (at most ``wait`` seconds) before
+        another build starts, so that no two builds run at once; called from the live
+        job's own thread, nothing."""
+        live = self.live
+        job = getattr(live, "job", None)
+        if job is None or threading.current_thread().name == LIVE_THREAD:
+            return
+        job.cancel()
+        job.join(wait)
 
     def running(self) -> FieldBuild | None:
         """The background build under way, or None."""

@@ -31,7 +31,7 @@ from ..core.errors import Cancelled
 from ..core.geometry import Rig
 from ..core.sampling import DEFAULT_TOLERANCE_PX
 from . import pipeline
-from .fields import SERVICE
+from .fields import LIVE_THREAD, SERVICE
 
 # The live picture is at most this many pixels wide (the render's aspect kept).
 LIVE_MAX_WIDTH = 480
@@ -101,7 +101,7 @@ class LiveJob:
         self.seconds = {}
         self._stop = threading.Event()
         self.diag = Diagnostics(should_stop=self._stop.is_set)
-        self._thread = threading.Thread(target=self._run, name="multiscale-live", daemon=True)
+        self._thread = threading.Thread(target=self._run, name=LIVE_THREAD, daemon=True)
 
     @classmethod
     def of(
@@ -112,16 +112,21 @@ class LiveJob:
         started=None,
         max_width=LIVE_MAX_WIDTH,
         field_width=LIVE_FIELD_WIDTH,
+        pixels=None,
     ):
         """The job of ``scene`` as ``depsgraph`` evaluates it (main thread), not yet
         started: a picture at most ``max_width`` wide from a field at most
         ``field_width`` wide. Raises RigError (and what reading the scene raises) when
-        the rig cannot render."""
-        rig = rig_from_scene(scene, depsgraph)
+        the rig cannot render. ``pixels``: the masks' pixels just read
+        (``adapters.scene.rig_from_scene``), not read again."""
+        rig = rig_from_scene(scene, depsgraph, pixels)
         size = live_size(*rig.size, max_width)
         rig = small_rig(rig, live_size(*rig.size, min(field_width, max_width)))
-        # asked as the scene changes: no stepping through the frames for a shot's layout
-        request = SERVICE.request(scene, rig=rig, quality=LIVE_QUALITY, step_frames=False)
+        # asked as the scene changes, and its own build: no stepping through the frames
+        # for a shot's layout, and the render's frame reuse (SERVICE.reuse) is left alone
+        request = SERVICE.request(
+            scene, rig=rig, quality=LIVE_QUALITY, step_frames=False, steady=False
+        )
         geometry = scene_geometry(depsgraph)
         tree, bounds, occupancy, scale = None, None, None, 1.0
         if len(geometry):

@@ -16,6 +16,7 @@ import gpu
 import numpy as np
 
 from ..adapters.masks import mask_from_image
+from ..adapters.scene import mask_frame
 from ..render.fields import SERVICE
 from ..render.guide import guide_size
 from .mask_ops import guide_key, guide_state, make_guide
@@ -95,7 +96,10 @@ def rig_masks(scene, size):
     """Bool (h, w) masks of the listed cameras at ``size`` = (w, h), first to last (an
     item without a mask gives an empty one)."""
     w, h = size
-    return [mask_from_image(item.mask, w, h)[0] for item in scene.multiscale.cameras]
+    return [
+        mask_from_image(item.mask, w, h, mask_frame(item, scene))[0]
+        for item in scene.multiscale.cameras
+    ]
 
 
 class MaskOverlay:
@@ -148,12 +152,13 @@ class MaskOverlay:
         others kept for ``OTHERS_SECONDS`` (reading a 1080p mask takes about 18 ms)."""
         out, cache = [], {}
         for j, item in enumerate(scene.multiscale.cameras):
-            key = (item.mask.name, *item.mask.size, *size) if item.mask else size
+            frame = mask_frame(item, scene)
+            key = (item.mask.name, *item.mask.size, *size, frame) if item.mask else size
             kept = self.cache.get(j)
             if j != shown and kept and kept[0] == key and now - kept[1] < OTHERS_SECONDS:
                 cache[j] = kept
             else:
-                cache[j] = (key, now, mask_from_image(item.mask, *size)[0])
+                cache[j] = (key, now, mask_from_image(item.mask, *size, frame)[0])
             out.append(cache[j][2])
         self.cache = cache
         return out

@@ -2,6 +2,8 @@
 show (frames, start, offset, cyclic on the camera's list item), and the field's cache
 key follows the frame's pixels."""
 
+import threading
+
 import bpy
 import numpy as np
 import pytest
@@ -9,37 +11,64 @@ import pytest
 from fixtures.blender.scenes import two_camera_scene
 from multiscale_camera.adapters.masks import (
     ANIMATED_MASK,
+    FRAME_CACHE,
+    FRAME_NOT_LOADED,
     MISSING_FRAME,
     frame_path,
     sequence_frame,
 )
 from multiscale_camera.adapters.scene import rig_from_scene
 from multiscale_camera.render.fields import SERVICE
+from multiscale_camera.ui.mask_overlay import rig_masks
 
 W, H = 16, 12
 
 
-def reference_frame(frame, frames, start, offset, cyclic):
-    """Independent reference: play the sequence frame by frame from its start."""
-    if frames == 0:
-        return 0
-    if cyclic:
-        shown = list(range(1, frames + 1))
-        k = frame - start  # steps from the start, either way
-        return shown[k % frames] + offset
-    if frame < start:
-        return offset  # before the start: frame 0, as Blender numbers it
-    return min(frame - start + 1, frames) + offset
+@pytest.fixture
+def image_user(tmp_path):
+    """Blender's own image user of a 3-file sequence: an image texture node's (auto
+    refresh on) in a material on an object, read from the evaluated material."""
+    for k in range(1, 4):
+        still = bpy.data.images.new(f"f{k}", 4, 4)
+        still.filepath_raw = str(tmp_path / f"m_{k:04d}.png")
+        still.file_format = "PNG"
+        still.save()
+        bpy.data.images.remove(still)
+    sequence = bpy.data.images.load(str(tmp_path / "m_0001.png"))
+    sequence.source = "SEQUENCE"
+    material = bpy.data.materials.new("M")
+    material.use_nodes = True
+    node = material.node_tree.nodes.new("ShaderNodeTexImage")
+    node.image = sequence
+    node.image_user.use_auto_refresh = True
+    mesh = bpy.data.meshes.new("me")
+    mesh.materials.append(material)
+    bpy.context.scene.collection.objects.link(bpy.data.objects.new("ob", mesh))
+    return material, node
+
+
+def blenders_frame(image_user, frame):
+    """The frame number Blender's image user shows at scene frame ``frame``."""
+    material, node = image_user
+    scene = bpy.context.scene
+    scene.frame_set(frame)
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    evaluated = material.evaluated_get(depsgraph)
+    return evaluated.node_tree.nodes[node.name].image_user.frame_current
 
 
 @pytest.mark.parametrize("cyclic", [False, True])
 @pytest.mark.parametrize("start", [1, 5, -3])
-@pytest.mark.parametrize("offset", [0, 2])
-@pytest.mark.parametrize("frames", [0, 1, 2, 7])
-def test_sequence_frame_plays_as_blenders_image_user(cyclic, start, offset, frames):
-    for frame in range(-20, 30):
-        got = sequence_frame(frame, frames, start, offset, cyclic)
-        assert got == reference_frame(frame, frames, start, offset, cyclic), frame
+@pytest.mark.parametrize("offset", [0, 2, -1])
+def test_sequence_frame_plays_as_blenders_image_user(image_user, cyclic, start, offset):
+    user = image_user[1].image_user
+    for frames in (0, 1, 2, 7):
+        user.frame_duration, user.frame_start = frames, start
+        user.frame_offset, user.use_cyclic = offset, cyclic
+        for frame in range(-12, 20):
+            want = blenders_frame(image_user, frame)
+            got = sequence_frame(frame, frames, start, offset, cyclic)
+            assert got == want, (frames, frame)
 
 
 def test_sequence_frame_pinned_cases():
@@ -144,3 +173,55 @@ def test_a_movie_mask_is_still_said_not_read(scene, tmp_path):
     rig, _key = read_at(scene, 1)
     assert ANIMATED_MASK.format(name=item.mask.name, kind="a movie") in rig.notices
     assert not rig.masks[0].any()
+
+
+def test_reading_a_sequence_mask_again_changes_no_blender_data(scene):
+    """Reading the rig (as the Rendered viewport does while it draws) must not load
+    and remove images each time: that is a change to Blender's data, which redraws
+    every view (an endless redraw loop) and is unsafe on a render thread."""
+    FRAME_CACHE.clear()
+    rig_from_scene(scene)  # the first read loads frame 1 once
+    bpy.context.evaluated_depsgraph_get()
+    names = sorted(i.name for i in bpy.data.images)
+    updates = []
+
+    def seen(_scene, depsgraph):
+        updates.extend(u.id.name for u in depsgraph.updates)
+
+    bpy.app.handlers.depsgraph_update_post.append(seen)
+    try:
+        for _ in range(2):
+            rig_from_scene(scene)
+            bpy.context.evaluated_depsgraph_get()
+    finally:
+        bpy.app.handlers.depsgraph_update_post.remove(seen)
+    assert updates == []
+    assert sorted(i.name for i in bpy.data.images) == names
+
+
+def test_a_frame_first_needed_off_the_main_thread_is_said_not_loaded(scene):
+    FRAME_CACHE.clear()
+    item = scene.multiscale.cameras[0]
+    got = {}
+    worker = threading.Thread(target=lambda: got.update(rig=rig_from_scene(scene)))
+    worker.start()
+    worker.join()
+    path = bpy.path.abspath(frame_path(item.mask.filepath, 1))
+    said = FRAME_NOT_LOADED.format(name=item.mask.name, number=1, path=path)
+    assert said in got["rig"].notices
+    assert not got["rig"].masks[0].any()
+    rig_from_scene(scene)  # the main thread loads it; then a thread reads it
+    worker = threading.Thread(target=lambda: got.update(rig=rig_from_scene(scene)))
+    worker.start()
+    worker.join()
+    assert got["rig"].masks[0].any()
+    assert not any("not loaded" in n for n in got["rig"].notices)
+
+
+def test_the_overlay_shows_a_sequence_mask_at_the_scene_frame(scene):
+    """The overlay read sequence masks without a frame: they showed empty."""
+    left, right = halves()
+    scene.frame_set(1)
+    np.testing.assert_array_equal(rig_masks(scene, (W, H))[0], left)
+    scene.frame_set(2)
+    np.testing.assert_array_equal(rig_masks(scene, (W, H))[0], right)

@@ -11,9 +11,11 @@ import numpy as np
 import pytest
 
 from fixtures.blender.scenes import two_camera_scene
+from multiscale_camera.adapters.scene import rig_from_scene
 from multiscale_camera.render import pipeline
 from multiscale_camera.render.fields import SERVICE
 from multiscale_camera.render.live import LiveJob, live_size, small_rig
+from multiscale_camera.ui import live_picture
 from multiscale_camera.ui.live_picture import IMAGE_NAME, LivePicture
 
 
@@ -128,8 +130,6 @@ def test_the_picture_of_a_large_render_comes_from_a_smaller_field(scene):
 
 
 def test_a_small_rig_keeps_each_cameras_pixels(scene):
-    from multiscale_camera.adapters.scene import rig_from_scene
-
     rig = rig_from_scene(scene)
     small = small_rig(rig, (48, 36))
     assert small.size == (48, 36)
@@ -168,3 +168,97 @@ def test_a_new_file_forgets_the_picture_and_stops_the_job(scene):
     job.join(60)
     live.tick()  # the stopped job ends without a picture
     assert live.job is None and live.updates == 1
+
+
+@pytest.mark.parametrize("turn", ["flip", "rotate 180"])
+def test_a_flipped_or_turned_mask_changes_the_key(scene, turn):
+    """A sum of the pixels ignores where they are: flipping or turning a mask left the
+    key (and the picture) unchanged."""
+    live = SERVICE.live
+    mask = scene.multiscale.cameras[1].mask
+    rgba = pixels(mask).copy()
+    rgba[:, :30, :3] = 1.0  # a white band on the left: not symmetric
+    mask.pixels.foreach_set(np.ascontiguousarray(rgba[::-1]).ravel())
+    before = live.key_of(scene, set(), time.perf_counter())
+    moved = rgba[:, ::-1] if turn == "flip" else rgba[::-1, ::-1]
+    mask.pixels.foreach_set(np.ascontiguousarray(moved[::-1]).ravel())
+    assert live.key_of(scene, set(), time.perf_counter()) != before
+
+
+def test_stop_waits_for_the_job_thread(scene):
+    """unregister stopped the job without waiting: a running job could start the worker
+    processes again after the add-on had shut them down."""
+    live = SERVICE.live
+    stroke(scene.multiscale.cameras[1].mask, 48, 36, 26)
+    tick_until(live, lambda: live.job is not None)
+    job = live.job
+    live.stop()
+    assert job.stopped() and not job.alive()
+
+
+def test_another_build_cancels_the_live_job_first(scene):
+    """The live job builds through the field service from its own thread; a build of
+    the render (or Compute Field, the viewport) started beside it ran two at once."""
+    live = SERVICE.live
+    tick_until(live, lambda: live.job is not None)
+    job = live.job
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    SERVICE.get(SERVICE.request(depsgraph.scene, depsgraph=depsgraph))
+    assert job.stopped()
+    assert not job.alive()
+
+
+def test_the_live_build_leaves_the_renders_frame_reuse_alone(scene):
+    """A live build of a moving rig wrote SERVICE.reuse, throwing away what the
+    render's frames had left for the next one."""
+    cam = scene.multiscale.cameras[0].camera
+    cam.keyframe_insert("location", frame=1)  # the rig is in motion: steady layout
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    assert SERVICE.request(depsgraph.scene, depsgraph=depsgraph).settings.steady
+    job = LiveJob.of(depsgraph.scene, depsgraph)
+    assert job.request.settings.steady is False
+    kept = SERVICE.reuse
+    job.launch().join(120)
+    assert job.error is None and job.rgba is not None
+    assert SERVICE.reuse is kept and not kept.claims
+
+
+class AWindow:
+    """The live picture's timer run as in a window that shows the images ``shown``."""
+
+    def __init__(self, monkeypatch, shown):
+        app = type("App", (), {})()
+        app.background = False
+        app.is_job_running = bpy.app.is_job_running
+        fake = type("Bpy", (), {})()
+        fake.app, fake.context, fake.data, fake.types = app, bpy.context, bpy.data, bpy.types
+        monkeypatch.setattr(live_picture, "bpy", fake)
+        monkeypatch.setattr(live_picture, "shown_images", lambda _wm: set(shown))
+
+
+def test_masks_not_shown_are_read_one_per_look(scene, monkeypatch):
+    """Every mask not shown was read in the same look every 2 s (tens of milliseconds
+    each at 1920x1080), whatever READ_SHARE said."""
+    live = SERVICE.live
+    shown = scene.multiscale.cameras[1].mask.name
+    first = scene.multiscale.cameras[0]
+    first.mask = bpy.data.images.new("C1 mask", 96, 72)
+    third = bpy.data.images.new("spare", 96, 72)
+    scene.multiscale.cameras.add().camera = scene.multiscale.cameras[1].camera.copy()
+    scene.collection.objects.link(scene.multiscale.cameras[2].camera)
+    scene.multiscale.cameras[2].mask = third
+    AWindow(monkeypatch, {shown})
+    reads = []
+    real = live_picture.pixel_checksum
+    monkeypatch.setattr(
+        live_picture,
+        "pixel_checksum",
+        lambda image, *rest: reads.append(image.name) or real(image, *rest),
+    )
+    now = 100.0
+    live.key_of(scene, {shown}, now)  # the first look reads them all
+    assert sorted(reads) == sorted([first.mask.name, shown, "spare"])
+    for step in range(1, 30):
+        reads.clear()
+        live.key_of(scene, {shown}, now + 0.1 * step)
+        assert len([r for r in reads if r != shown]) <= 1, (step, reads)

@@ -1,6 +1,8 @@
 """Ray fields survive a trip to disk, and the disk cache keeps, finds and trims them."""
 
 import os
+import sys
+import threading
 import time
 
 import numpy as np
@@ -231,3 +233,35 @@ def test_two_processes_writing_one_entry_leave_a_whole_one(rig, tmp_path):
     assert reader.get("shared" * 7, rig) is not None
     assert reader.take_notices() == []  # no reader ever saw part of an entry
     assert sorted(os.listdir(tmp_path)) == ["shared" * 7 + ".npz"]  # no temporary left
+
+
+def test_memory_reads_during_a_concurrent_trim_raise_no_key_error():
+    """The live picture's thread reads the cache while the main thread stores: a read
+    that moved an entry to the end (``pop`` then set) raced the trim to KeyError."""
+    cache = FieldCache(folder=None)
+    errors = []
+    stop = threading.Event()
+
+    def reader():
+        try:
+            while not stop.is_set():
+                for key in ("a", "b", "c"):
+                    cache.get(key, None)
+        except Exception as err:  # the race this test is about
+            errors.append(err)
+
+    switch = sys.getswitchinterval()
+    sys.setswitchinterval(1e-6)
+    try:
+        threads = [threading.Thread(target=reader) for _ in range(3)]
+        for t in threads:
+            t.start()
+        for i in range(20000):
+            cache._remember("abc"[i % 3], i)
+        stop.set()
+        for t in threads:
+            t.join()
+    finally:
+        sys.setswitchinterval(switch)
+    assert errors == []
+    assert len(cache.memory) <= 2
