@@ -5,9 +5,10 @@ user gives for the scene's frame (``sequence_frame``: frames, start, offset, cyc
 kept on the camera's list item), whose file (``frame_path``) is loaded for its pixels.
 Each frame file is loaded once, on the main thread, into a temporary Blender image
 removed at once (loading changes Blender's data, which redraws every view and may not
-happen on a render thread); its pixels are kept (``FRAME_CACHE``, keyed by the file's
-absolute path, modification time and colour space), so reading the rig again, as the
-Rendered viewport does while it draws, changes nothing in Blender's data.
+happen on a render thread); its pixels are kept (``MaskFrames``, one owned by the field
+service, keyed by the file's absolute path, modification time and colour space), so
+reading the rig again, as the Rendered viewport does while it draws, changes nothing in
+Blender's data.
 """
 
 import os
@@ -42,9 +43,8 @@ FRAME_NOT_LOADED = (
     "and cannot be loaded during it; treated as empty at this frame: show that frame "
     "in the viewport once, or render again"
 )
-# Decoded frames kept: (absolute path, mtime, colour space) -> (H, W, 4) float32 RGBA.
-FRAME_CACHE: OrderedDict = OrderedDict()
-FRAME_CACHE_SIZE = 8
+# Decoded frames of mask sequences kept by a ``MaskFrames``.
+FRAMES_KEPT = 8
 
 
 def animated_kind(image):
@@ -86,52 +86,66 @@ def frame_path(filepath, number):
     return os.path.join(folder, stem[: run.start()] + digits + stem[run.end() :] + ext)
 
 
-def sequence_pixels(image, number):
-    """(H, W, 4) float32 RGBA (row 0 at the top, read-only) of frame ``number`` of the
-    image sequence ``image``, and the frame's absolute path; (None, path) when it cannot
-    be read. A file is loaded once (main thread only) and then read from
-    ``FRAME_CACHE``; first needed off the main thread, it is not loaded: (None, path)
-    with ``frame_not_loaded(path)`` true."""
-    path = bpy.path.abspath(frame_path(image.filepath, number), library=image.library)
-    try:
-        mtime = os.stat(path).st_mtime_ns
-    except OSError:
-        return None, path
-    key = (os.path.normpath(path), mtime, image.colorspace_settings.name)
-    rgba = FRAME_CACHE.get(key)
-    if rgba is not None:
-        FRAME_CACHE.move_to_end(key)
+class MaskFrames:
+    """Decoded frames of mask image sequences: (absolute path, mtime, colour space) ->
+    (H, W, 4) float32 RGBA, the ``kept`` most recent; one is owned by the field service
+    (``render.fields.SERVICE.mask_frames``) and passed to ``rig_from_scene``. A file is
+    loaded on the main thread only; the files first wanted off it are remembered."""
+
+    def __init__(self, kept=FRAMES_KEPT):
+        self.kept = kept
+        self.decoded = OrderedDict()
+        self.not_loaded = set()
+        self.lock = threading.Lock()
+
+    def clear(self):
+        with self.lock:
+            self.decoded.clear()
+            self.not_loaded.clear()
+
+    def wanted_off_main_thread(self, path):
+        """Whether the frame file ``path`` was wanted off the main thread, not loaded."""
+        return path in self.not_loaded
+
+    def pixels(self, image, number):
+        """(H, W, 4) float32 RGBA (row 0 at the top, read-only) of frame ``number`` of
+        the image sequence ``image``, and the frame's absolute path; (None, path) when
+        it cannot be read. A file is loaded once (main thread only) and then read from
+        here; first wanted off the main thread, it is not loaded: (None, path), with
+        ``wanted_off_main_thread(path)`` true."""
+        path = bpy.path.abspath(frame_path(image.filepath, number), library=image.library)
+        try:
+            mtime = os.stat(path).st_mtime_ns
+        except OSError:
+            return None, path
+        key = (os.path.normpath(path), mtime, image.colorspace_settings.name)
+        with self.lock:
+            rgba = self.decoded.get(key)
+            if rgba is not None:
+                self.decoded.move_to_end(key)
+                return rgba, path
+            if threading.current_thread() is not threading.main_thread():
+                self.not_loaded.add(path)
+                return None, path
+        try:
+            still = bpy.data.images.load(path, check_existing=False)
+        except RuntimeError:
+            return None, path
+        try:
+            still.colorspace_settings.name = image.colorspace_settings.name
+            rgba = image_pixels(still)
+        finally:
+            bpy.data.images.remove(still)
+        if rgba is None:
+            return None, path
+        rgba = np.ascontiguousarray(rgba)
+        rgba.flags.writeable = False
+        with self.lock:
+            self.decoded[key] = rgba
+            self.not_loaded.discard(path)
+            while len(self.decoded) > self.kept:
+                self.decoded.popitem(last=False)
         return rgba, path
-    if threading.current_thread() is not threading.main_thread():
-        _NOT_LOADED.add(path)
-        return None, path
-    try:
-        still = bpy.data.images.load(path, check_existing=False)
-    except RuntimeError:
-        return None, path
-    try:
-        still.colorspace_settings.name = image.colorspace_settings.name
-        rgba = image_pixels(still)
-    finally:
-        bpy.data.images.remove(still)
-    if rgba is None:
-        return None, path
-    rgba = np.ascontiguousarray(rgba)
-    rgba.flags.writeable = False
-    FRAME_CACHE[key] = rgba
-    _NOT_LOADED.discard(path)
-    while len(FRAME_CACHE) > FRAME_CACHE_SIZE:
-        FRAME_CACHE.popitem(last=False)
-    return rgba, path
-
-
-# Frame files first needed off the main thread (so not loaded).
-_NOT_LOADED: set = set()
-
-
-def frame_not_loaded(path):
-    """Whether the frame file ``path`` was wanted off the main thread and not loaded."""
-    return path in _NOT_LOADED
 
 
 def image_pixels(image, buf=None):
@@ -162,12 +176,14 @@ def resample_nearest(mask, width, height):
     return mask[ys][:, xs]
 
 
-def mask_from_image(image, width, height, frame=None, buf=None):
+def mask_from_image(image, width, height, frame=None, buf=None, frames=None):
     """A bool (height, width) mask from a Blender image, and notices about it.
 
     ``frame`` : int, the frame number to read when ``image`` is an image sequence
     (``sequence_frame``); without it a sequence reads as not yet readable, as a movie
     does. ``buf`` : a still image's pixels already read (``image_pixels``).
+    ``frames`` : the ``MaskFrames`` that keeps decoded sequence frames (without it, a
+    sequence's frame file is loaded for this call alone).
 
     Returns
     -------
@@ -181,9 +197,11 @@ def mask_from_image(image, width, height, frame=None, buf=None):
         notice = ANIMATED_MASK.format(name=image.name, kind=kind)
         return np.zeros((height, width), dtype=bool), [notice]
     if kind is not None:
-        rgba, path = sequence_pixels(image, frame)
+        frames = frames if frames is not None else MaskFrames()
+        rgba, path = frames.pixels(image, frame)
         if rgba is None:
-            message = FRAME_NOT_LOADED if frame_not_loaded(path) else MISSING_FRAME
+            wanted = frames.wanted_off_main_thread(path)
+            message = FRAME_NOT_LOADED if wanted else MISSING_FRAME
             notice = message.format(name=image.name, number=frame, path=path)
             return np.zeros((height, width), dtype=bool), [notice]
     else:

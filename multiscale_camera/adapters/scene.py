@@ -79,11 +79,13 @@ def rig_is_animated(scene):
     return False
 
 
-def rig_from_scene(scene, depsgraph=None, pixels=None):
+def rig_from_scene(scene, depsgraph=None, pixels=None, frames=None):
     """Build the rig from ``scene.multiscale``.
 
     ``pixels`` : dict, image name -> flat float32 buffer of that still mask's pixels
     just read (``Image.pixels.foreach_get``), used instead of reading them again.
+    ``frames`` : ``adapters.masks.MaskFrames``, the decoded frames of mask sequences
+    (the field service's), so that a sequence's frame file is loaded once.
 
     With ``depsgraph`` (a render's, or any evaluated depsgraph) every camera is read as
     that depsgraph evaluated it: its transform, lens, sensor, shift and clipping at the
@@ -118,7 +120,7 @@ def rig_from_scene(scene, depsgraph=None, pixels=None):
         cameras.append(pinhole_from_object(evaluated(obj, depsgraph), scene))
         buf = None if pixels is None or item.mask is None else pixels.get(item.mask.name)
         frame = mask_frame(item, scene)
-        mask, said = mask_from_image(item.mask, width, height, frame, buf)
+        mask, said = mask_from_image(item.mask, width, height, frame, buf, frames)
         masks.append(mask)
         notices += said
     names = [c.name for c in cameras]

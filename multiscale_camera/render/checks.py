@@ -10,6 +10,7 @@ from ..adapters.meshes import scene_geometry
 from ..adapters.scene import rig_from_scene
 from ..core.geometry import RayBundle
 from ..core.quality import obstruction_messages, preflight
+from .fields import SERVICE
 from .raycast import march
 
 
@@ -59,7 +60,7 @@ def validate_scene(depsgraph):
     RigError for a rig that cannot render (the message says what to change).
     """
     scene = depsgraph.scene
-    rig = rig_from_scene(scene, depsgraph)
+    rig = rig_from_scene(scene, depsgraph, frames=SERVICE.mask_frames)
     messages = list(rig.notices) + preflight(rig)
     geometry, tree = scene_tree(depsgraph)
     messages += obstruction_messages(rig, geometry_cast(geometry, tree))

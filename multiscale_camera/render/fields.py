@@ -27,6 +27,7 @@ from dataclasses import dataclass, replace
 import bpy
 import numpy as np
 
+from ..adapters.masks import MaskFrames
 from ..adapters.scene import cache_folder_of, field_settings, rig_from_scene
 from ..adapters.shot import animation_digest, shot_rigs
 from ..adapters.volumes import VolumeGridCache
@@ -159,6 +160,7 @@ class FieldService:
         self.cache = cache if cache is not None else FieldCache(lazy_folder=True)
         self.trees = {}  # pipeline.scene_tree's last result, keyed on its triangles
         self.volume_grids = VolumeGridCache()  # decoded volume sources, every frame
+        self.mask_frames = MaskFrames()  # decoded frames of mask image sequences
         self.reuse = FrameReuse()  # claims and solutions of the last animated build
         self.sequence = Sequence()  # the last frame's first hits: frame-to-frame jumps
         self.shots = {}  # the layout of the last shot (``shot_layout``)
@@ -188,7 +190,7 @@ class FieldService:
         layout, which the live picture must leave to the render's frames. Raises
         RigError when the rig cannot render."""
         group = scene.multiscale
-        rig = rig if rig is not None else rig_from_scene(scene, depsgraph)
+        rig = rig if rig is not None else rig_from_scene(scene, depsgraph, frames=self.mask_frames)
         settings = field_settings(scene)
         if quality is not None and quality != group.quality:
             preset = settings_for(quality, group.accuracy_px)  # the rest as the scene's
@@ -452,6 +454,7 @@ class FieldService:
             self._build.cancel()
         self.reuse = FrameReuse()  # claims and solutions kept from the last builds
         self.shots = {}
+        self.mask_frames.clear()
         return self.cache.clear()
 
 

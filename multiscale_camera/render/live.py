@@ -119,7 +119,7 @@ class LiveJob:
         ``field_width`` wide. Raises RigError (and what reading the scene raises) when
         the rig cannot render. ``pixels``: the masks' pixels just read
         (``adapters.scene.rig_from_scene``), not read again."""
-        rig = rig_from_scene(scene, depsgraph, pixels)
+        rig = rig_from_scene(scene, depsgraph, pixels, SERVICE.mask_frames)
         size = live_size(*rig.size, max_width)
         rig = small_rig(rig, live_size(*rig.size, min(field_width, max_width)))
         # asked as the scene changes, and its own build: no stepping through the frames

@@ -191,7 +191,7 @@ class MULTISCALE_OT_render(bpy.types.Operator):
     def execute(self, context):
         scene = context.scene
         try:
-            rig_from_scene(evaluated_scene(context))
+            rig_from_scene(evaluated_scene(context), frames=SERVICE.mask_frames)
         except Exception as err:
             self.report({"ERROR"}, failure_message(err, "Render Multiscale"))
             return {"CANCELLED"}

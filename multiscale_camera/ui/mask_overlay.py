@@ -97,7 +97,7 @@ def rig_masks(scene, size):
     item without a mask gives an empty one)."""
     w, h = size
     return [
-        mask_from_image(item.mask, w, h, mask_frame(item, scene))[0]
+        mask_from_image(item.mask, w, h, mask_frame(item, scene), frames=SERVICE.mask_frames)[0]
         for item in scene.multiscale.cameras
     ]
 
@@ -158,7 +158,8 @@ class MaskOverlay:
             if j != shown and kept and kept[0] == key and now - kept[1] < OTHERS_SECONDS:
                 cache[j] = kept
             else:
-                cache[j] = (key, now, mask_from_image(item.mask, *size, frame)[0])
+                mask = mask_from_image(item.mask, *size, frame, frames=SERVICE.mask_frames)[0]
+                cache[j] = (key, now, mask)
             out.append(cache[j][2])
         self.cache = cache
         return out

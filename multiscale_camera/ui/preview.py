@@ -61,7 +61,7 @@ class RayPreview:
             if fld is not None:
                 self.lines = preview_lines(fld, settings.preview_rays)
             else:
-                rig = rig_from_scene(scene)
+                rig = rig_from_scene(scene, frames=SERVICE.mask_frames)
                 pos, col = frustum_lines(rig.cameras)
                 self.lines = {"frusta": pos, "frustum_colours": col, "count": 0}
                 note = "Compute the field to see the rays; the frusta are shown"

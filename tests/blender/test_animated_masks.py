@@ -11,9 +11,9 @@ import pytest
 from fixtures.blender.scenes import two_camera_scene
 from multiscale_camera.adapters.masks import (
     ANIMATED_MASK,
-    FRAME_CACHE,
     FRAME_NOT_LOADED,
     MISSING_FRAME,
+    MaskFrames,
     frame_path,
     sequence_frame,
 )
@@ -179,8 +179,8 @@ def test_reading_a_sequence_mask_again_changes_no_blender_data(scene):
     """Reading the rig (as the Rendered viewport does while it draws) must not load
     and remove images each time: that is a change to Blender's data, which redraws
     every view (an endless redraw loop) and is unsafe on a render thread."""
-    FRAME_CACHE.clear()
-    rig_from_scene(scene)  # the first read loads frame 1 once
+    frames = MaskFrames()
+    rig_from_scene(scene, frames=frames)  # the first read loads frame 1 once
     bpy.context.evaluated_depsgraph_get()
     names = sorted(i.name for i in bpy.data.images)
     updates = []
@@ -191,7 +191,7 @@ def test_reading_a_sequence_mask_again_changes_no_blender_data(scene):
     bpy.app.handlers.depsgraph_update_post.append(seen)
     try:
         for _ in range(2):
-            rig_from_scene(scene)
+            rig_from_scene(scene, frames=frames)
             bpy.context.evaluated_depsgraph_get()
     finally:
         bpy.app.handlers.depsgraph_update_post.remove(seen)
@@ -200,18 +200,18 @@ def test_reading_a_sequence_mask_again_changes_no_blender_data(scene):
 
 
 def test_a_frame_first_needed_off_the_main_thread_is_said_not_loaded(scene):
-    FRAME_CACHE.clear()
+    frames = MaskFrames()
     item = scene.multiscale.cameras[0]
     got = {}
-    worker = threading.Thread(target=lambda: got.update(rig=rig_from_scene(scene)))
+    worker = threading.Thread(target=lambda: got.update(rig=rig_from_scene(scene, frames=frames)))
     worker.start()
     worker.join()
     path = bpy.path.abspath(frame_path(item.mask.filepath, 1))
     said = FRAME_NOT_LOADED.format(name=item.mask.name, number=1, path=path)
     assert said in got["rig"].notices
     assert not got["rig"].masks[0].any()
-    rig_from_scene(scene)  # the main thread loads it; then a thread reads it
-    worker = threading.Thread(target=lambda: got.update(rig=rig_from_scene(scene)))
+    rig_from_scene(scene, frames=frames)  # the main thread loads it; then a thread reads it
+    worker = threading.Thread(target=lambda: got.update(rig=rig_from_scene(scene, frames=frames)))
     worker.start()
     worker.join()
     assert got["rig"].masks[0].any()
