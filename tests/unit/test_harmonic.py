@@ -56,3 +56,17 @@ def test_mask_weights_one_hot_inside_masks():
 def test_empty_masks_raise():
     with pytest.raises(RigError, match="Every mask is empty"):
         mask_weights(np.zeros((2, 5, 5), bool))
+
+
+@pytest.mark.parametrize("shape", [(45, 70), (97, 130)])
+def test_last_weight_is_one_minus_the_solved_ones_within_tolerance(shape):
+    """Only N - 1 weights are solved; the last is 1 minus them. At the default tolerance
+    every weight, the last included, stays within 1e-4 of the direct solve."""
+    h, w = shape
+    masks = disk_masks(w, h, 0.15 * w, 0.35 * w)
+    got = mask_weights(masks)
+    ref = dense_reference(masks)
+    assert got.converged
+    np.testing.assert_allclose(got.x, ref, atol=1e-4)
+    np.testing.assert_allclose(got.x.sum(0), 1.0, atol=1e-6)
+    assert (got.x[1][masks[1]] == 1).all() and (got.x[1][masks[0]] == 0).all()

@@ -5,7 +5,12 @@ mask owns get the harmonic interpolation (discrete Laplace equation, 4-neighbour
 zero-flux image borders). The weights of every pixel sum to one.
 
 Each camera's weight is one Laplace solve on the image seen as a one-voxel-thick grid,
-by the same multigrid-preconditioned conjugate gradients as the membership field.
+by the same multigrid-preconditioned conjugate gradients as the membership field, but
+the last camera's: the weights' sum is harmonic, 1 on every mask, so it is 1 everywhere
+(every free pixel is linked to a mask: ``solvers.isolated_voxels``), and the last weight
+is 1 minus the others. Of N cameras N - 1 are solved (one of two on a two-camera rig);
+the weights differ from N independent solves by the solves' tolerance (tested against a
+direct sparse solve).
 """
 
 import numpy as np
@@ -42,9 +47,8 @@ def mask_weights(masks, tol=TOLERANCE):
         raise RigError("Every mask is empty: paint white where each camera's view should be kept")
     x = np.zeros((n, h, w), dtype=np.float64)
     slowest = SolveResult(None, True, 0, ())
-    for i in range(n):
-        if not masks[i].any():
-            continue
+    kept = [i for i in range(n) if masks[i].any()]
+    for i in kept[:-1]:
         result = solve_membership(masks[i][..., None].astype(np.float32), owned[..., None], tol=tol)
         if not result.converged:
             raise SolverDidNotConverge(
@@ -54,6 +58,8 @@ def mask_weights(masks, tol=TOLERANCE):
         x[i] = result.x[..., 0]
         if result.iterations >= slowest.iterations:
             slowest = result
+    # the sum of all weights is 1 exactly (module docstring): the last is what is left
+    x[kept[-1]] = 1.0 - x[kept[:-1]].sum(axis=0)
     x = np.clip(x, 0.0, 1.0)
     x /= np.maximum(x.sum(axis=0, keepdims=True), 1e-12)
     return SolveResult(x.astype(np.float32), True, slowest.iterations, slowest.residuals)
