@@ -10,7 +10,7 @@ from fixtures.rigs import three_camera_rig, turned_rig
 from multiscale_camera.core.field import tracer as field_module
 from multiscale_camera.core.geometry import Rig
 from multiscale_camera.core.methods import prepare, settings_for
-from multiscale_camera.core.quality import fold_map
+from multiscale_camera.core.quality import bending_active, fold_map, quad_folds
 from multiscale_camera.core.quality import report as report_module
 from multiscale_camera.core.runtime import runtime
 from multiscale_camera.core.runtime.worker import probe
@@ -97,8 +97,6 @@ def test_field_workers_import_the_core_and_no_bpy(monkeypatch):
 def brute_force_fold_map(fld):
     """Every quad of the lattice counted on its own (four rays, one quad_folds call):
     the map no banding or sharing can change."""
-    from multiscale_camera.core.quality import bending_active, quad_folds
-
     w, h = fld.rig.size
     out = np.zeros((h - 1, w - 1), dtype=bool)
     cams = fld.rig.cameras
