@@ -6,10 +6,12 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from fixtures.rigs import three_camera_rig
+from fixtures.rigs import three_camera_rig, turned_rig
 from multiscale_camera.core.field import tracer as field_module
 from multiscale_camera.core.geometry import Rig
 from multiscale_camera.core.methods import prepare, settings_for
+from multiscale_camera.core.quality import bending_active, fold_map, quad_folds
+from multiscale_camera.core.quality import report as report_module
 from multiscale_camera.core.runtime import runtime
 from multiscale_camera.core.runtime.worker import probe
 
@@ -90,3 +92,35 @@ def test_field_workers_import_the_core_and_no_bpy(monkeypatch):
         assert "multiscale_camera.core.field.tracer" in loaded or pid not in workers
         layers = {name.split(".")[1] for name in loaded}
         assert layers == {"core"}, layers
+
+
+def brute_force_fold_map(fld):
+    """Every quad of the lattice counted on its own (four rays, one quad_folds call):
+    the map no banding or sharing can change."""
+    w, h = fld.rig.size
+    out = np.zeros((h - 1, w - 1), dtype=bool)
+    cams = fld.rig.cameras
+    for y in range(h - 1):
+        iy, ix = np.meshgrid([y, y + 1], np.arange(w), indexing="ij")
+        bundle = fld.rays(ix.ravel(), iy.ravel())
+        verts = bundle.vertices.reshape(2, w, -1, 3)
+        out[y] = quad_folds(verts, bending_active(verts, cams[-1], None, cams[:-1]))[0]
+    return out
+
+
+@pytest.mark.slow
+def test_folds_counted_in_two_processes_equal_those_counted_in_one(monkeypatch):
+    # bands of 4 lattice rows: 15 of them at 64x48, shared between two workers
+    monkeypatch.setattr(report_module, "FOLD_CHUNK_VERTICES", 64 * 64 * 4)
+    cams, masks = turned_rig(64, 48)
+    fld = prepare(Rig(cams, masks), "IMAGE_BLEND", settings_for("STANDARD"))
+    with runtime().journal() as alone_runs:
+        one, stride = fold_map(fld, processes=1)
+    assert alone_runs == [] and stride == 1
+    with runtime().journal() as runs:
+        two, _ = fold_map(fld, processes=2)
+    assert runs and all(r.in_workers == len(r.where) == 2 for r in runs)
+    expected = brute_force_fold_map(fld)
+    assert expected.any()  # the turned rig's IMAGE_BLEND folds: the maps say where
+    np.testing.assert_array_equal(one, expected)
+    np.testing.assert_array_equal(two, expected)

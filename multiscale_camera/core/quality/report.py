@@ -2,9 +2,11 @@
 actually hands to the renderer."""
 
 import json
+from functools import partial
 
 import numpy as np
 
+from ..runtime import runtime, worker_count
 from .folds import quad_folds
 from .metrics import ERODE_PX, bending_active, measured_pixels, preserved_error
 
@@ -20,10 +22,20 @@ FOLD_CHUNK_VERTICES = 1 << 20
 # Images up to this many pixels are checked quad by quad; larger ones on every other
 # pixel in each direction (a fold narrower than two pixels is then missed).
 FULL_FOLD_PIXELS = 1 << 20
+# Fewer bands than this per worker are counted in this process: a worker's start and
+# the field's trip through shared memory cost more than they save.
+MIN_SHARED_BANDS = 4
 
 
-def fold_map(fld):
+def fold_map(fld, processes=0):
     """Folds among the rendered rays, quad by quad.
+
+    The lattice's rows go in bands of at most ``FOLD_CHUNK_VERTICES`` vertices (each
+    band's last row is the next one's first); with more than ``MIN_SHARED_BANDS`` bands
+    they are shared among worker processes (``processes``: ``runtime.worker_count``'s
+    request, 1 keeps them here), each taking a run of consecutive bands. The bands are
+    the same either way, so is the map (every quad is counted from its four rays
+    alone); a share whose worker is given up runs here.
 
     Returns
     -------
@@ -37,8 +49,31 @@ def fold_map(fld):
     k = traced.vertices.shape[1] if traced is not None else 64
     rows = max(2, FOLD_CHUNK_VERTICES // (len(xs) * k))
     out = np.zeros((max(len(ys) - 1, 0), max(len(xs) - 1, 0)), dtype=bool)
+    starts = list(range(0, len(ys) - 1, rows - 1))
+    workers = min(worker_count(processes), len(starts) // MIN_SHARED_BANDS)
+    if workers < 2:
+        shares = [_fold_bands(fld, xs, ys, rows, starts, None)]
+        runs = [starts]
+    else:
+        # consecutive bands to each share: a share's rays lie together in the image
+        runs = [list(r) for r in np.array_split(np.asarray(starts), workers)]
+        task = partial(_fold_bands, fld, xs, ys, rows)
+        shares = runtime().map(task, runs, workers).results
+    for run, bands in zip(runs, shares):
+        for r0, band in zip(run, bands):
+            out[r0 : r0 + len(band)] = band
+    return out, stride
+
+
+def _fold_bands(fld, xs, ys, rows, starts, context):
+    """The fold maps of the lattice bands starting at rows ``starts`` of ``ys`` (each
+    ``rows`` rows, the last shorter), a list of (rows - 1, len(xs) - 1) bool; what
+    ``fold_map`` runs here or in a worker (``context``: the worker's beat)."""
     last = fld.rig.cameras[-1]
-    for r0 in range(0, len(ys) - 1, rows - 1):
+    out = []
+    for r0 in starts:
+        if context is not None:
+            context()
         band = ys[r0 : r0 + rows]
         iy, ix = np.meshgrid(band, xs, indexing="ij")
         bundle = fld.rays(ix.ravel(), iy.ravel())
@@ -47,12 +82,13 @@ def fold_map(fld):
         exit_index = fld.exit_index(ix.ravel(), iy.ravel())
         counts = None if exit_index is None else (exit_index + 1).reshape(len(band), len(xs))
         active = bending_active(verts, last, counts, fld.rig.cameras[:-1])
-        out[r0 : r0 + len(band) - 1] = quad_folds(verts, active)
-    return out, stride
+        out.append(quad_folds(verts, active))
+    return out
 
 
-def measure(fld):
-    """Preserved errors per camera and folds of a prepared RayField.
+def measure(fld, processes=0):
+    """Preserved errors per camera and folds of a prepared RayField; ``processes``:
+    the fold count's workers (``fold_map``).
 
     Returns
     -------
@@ -77,7 +113,7 @@ def measure(fld):
         if missed:
             entry["unmeasured"] = NEVER_CROSS.format(missed=missed, pixels=pres.pixels)
         cameras.append(entry)
-    folds, _stride = fold_map(fld)
+    folds, _stride = fold_map(fld, processes)
     return cameras, int(folds.sum())
 
 
