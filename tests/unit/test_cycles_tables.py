@@ -3,6 +3,7 @@ padding and the blocks of pinhole rays."""
 
 import re
 
+import bpy  # noqa: F401 (the render layer needs mathutils, which bpy provides)
 import numpy as np
 
 from fixtures.rigs import look_at, three_camera_rig

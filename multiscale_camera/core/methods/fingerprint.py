@@ -12,7 +12,15 @@ def field_key(rig, method, settings):
     """
     h = hashlib.sha1()
     h.update(repr((method, settings, rig.beta, rig.size)).encode())
-    for cam in rig.cameras:
+    hash_cameras(h, rig.cameras)
+    h.update(np.packbits(np.ascontiguousarray(rig.masks)).tobytes())
+    return h.hexdigest()
+
+
+def hash_cameras(h, cameras):
+    """Feed the hasher ``h`` (hashlib) everything of ``cameras`` that shapes their rays:
+    placement, lens, sensor, shift, clipping and pixel aspect, camera after camera."""
+    for cam in cameras:
         h.update(np.ascontiguousarray(cam.matrix_world, dtype=np.float64).tobytes())
         h.update(
             repr(
@@ -30,5 +38,3 @@ def field_key(rig, method, settings):
                 )
             ).encode()
         )
-    h.update(np.packbits(np.ascontiguousarray(rig.masks)).tobytes())
-    return h.hexdigest()

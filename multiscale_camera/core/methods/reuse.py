@@ -23,30 +23,15 @@ import threading
 
 import numpy as np
 
+from .fingerprint import hash_cameras
+
 
 def family_digest(rig, i):
     """Hex digest of what camera ``i``'s claims depend on: cameras 1..i (placement,
     lens, sensor, shift, clipping, size), ``beta`` and camera i's mask."""
     h = hashlib.sha1()
     h.update(repr((rig.beta, rig.size, i)).encode())
-    for cam in rig.cameras[: i + 1]:
-        h.update(np.ascontiguousarray(cam.matrix_world, dtype=np.float64).tobytes())
-        h.update(
-            repr(
-                (
-                    cam.lens,
-                    cam.sensor_width,
-                    cam.sensor_height,
-                    cam.sensor_fit,
-                    cam.shift_x,
-                    cam.shift_y,
-                    cam.clip_start,
-                    cam.clip_end,
-                    cam.pixel_aspect_x,
-                    cam.pixel_aspect_y,
-                )
-            ).encode()
-        )
+    hash_cameras(h, rig.cameras[: i + 1])
     h.update(np.packbits(np.ascontiguousarray(rig.masks[i])).tobytes())
     return h.hexdigest()
 
