@@ -15,7 +15,7 @@ import pytest
 from fixtures.rigs import zoom_rig
 from multiscale_camera.core.field import tracer
 from multiscale_camera.core.geometry import Rig
-from multiscale_camera.core.methods import settings_for, traced
+from multiscale_camera.core.methods import prepare, settings_for, traced
 from multiscale_camera.core.quality import (
     budget_message,
     build_memory,
@@ -31,9 +31,33 @@ GB = 1 << 30
 
 
 def test_constants_are_the_ones_the_code_uses():
+    assert mem.MAX_STRIDE == traced.MAX_STRIDE
     assert mem.MAX_RAYS_PER_SHARE == tracer.MAX_RAYS_PER_SHARE
     assert mem.MIN_RAYS_PER_PROCESS == tracer.MIN_RAYS_PER_PROCESS
     assert mem.DEVIATION_BLOCK_VERTICES == traced.DEVIATION_BLOCK_VERTICES
+
+
+@pytest.mark.parametrize("nested", [False, True])
+def test_copied_stride_and_step_limit_are_those_the_trace_uses(monkeypatch, nested):
+    """The estimate reads the lattice's stride and the trace's step limit off the rig
+    with its own copy of their arithmetic (core.quality cannot import the methods): on a
+    rig, both equal what a build's ``traced.lattice_stride`` and ``trace_field`` use."""
+    limits = []
+    lattice = traced._AdaptiveLattice
+
+    def recording(tracer_, rig_, step, max_steps, tol_px, diag):
+        limits.append(max_steps)
+        return lattice(tracer_, rig_, step, max_steps, tol_px, diag)
+
+    monkeypatch.setattr(traced, "_AdaptiveLattice", recording)
+    cams, masks = zoom_rig(96, 54)
+    rig = Rig(cams, masks)
+    settings = replace(settings_for("PREVIEW"), nested=nested, processes=1)
+    est = estimate_memory(rig, "SCALAR_FIELD", settings)
+    fld = prepare(rig, "SCALAR_FIELD", settings)
+    assert fld.stats["levels"] > 1 if nested else fld.stats["levels"] == 1
+    assert est.shapes["stride"] == fld.stats["stride"]
+    assert limits == [est.shapes["step_limit"]]
 
 
 def test_image_blend_grows_with_pixels_and_cameras_only():
@@ -135,7 +159,8 @@ def test_budget_message_names_the_estimate_the_budget_and_what_to_lower():
         f"The field build would need about {size_text(est.total)} of memory ("
         + ", ".join(f"{k} {size_text(v)}" for k, v in parts)
         + "), more than the budget of 4.0 GB (the scene's Memory Budget); nothing was "
-        "started: lower the resolution (Output Properties > Format > Resolution, or its %), "
+        "started: lower the resolution (Output Properties > Format > Resolution, or its %) "
+        "or the Quality (a looser accuracy target traces fewer rays, with fewer steps), "
         "or raise the Memory Budget (Multiscale > Preview and Cache; 0: the free memory)"
     )
 
@@ -148,6 +173,18 @@ def test_budget_message_says_quality_for_the_grid_and_threads_for_workers():
     )
     assert list(workers.parts)[0].startswith("workers: ")
     assert "Render > Performance > Threads: Fixed, fewer" in budget_message(workers, MB, "x")
+
+
+def test_budget_message_suggests_a_lower_quality_for_traced_rays():
+    """Traced rays shrink with a looser accuracy target as well as with fewer pixels:
+    the refusal says both (it said only the resolution)."""
+    est = build_memory("SCALAR_FIELD", 64, 48, 2, voxels=10, traced_rays=10**6, vertices=400)
+    assert list(est.parts)[0] == "traced rays"
+    text = budget_message(est, MB, "x")
+    assert (
+        "lower the resolution (Output Properties > Format > Resolution, or its %) or the "
+        "Quality (a looser accuracy target traces fewer rays, with fewer steps), or raise"
+    ) in text, text
 
 
 def test_8000x8000_is_refused_before_the_build_starts_with_the_estimate():

@@ -24,6 +24,8 @@ from ..field import (
     step_cells,
 )
 
+# Megabytes as Blender counts them (its memory statistics), and as the project says them
+# everywhere (the Memory Budget, the cache limit, ``size_text``): 2**20 bytes.
 MB = 1 << 20
 
 # A worker process of the field's runtime at work, before its share of rays: a fresh
@@ -72,6 +74,10 @@ LARGEST_ROUND = 0.45
 # tests/unit/test_memory_guard.py).
 MAX_RAYS_PER_SHARE = 16384
 MIN_RAYS_PER_PROCESS = 256
+# ``methods.traced.MAX_STRIDE``, the lattice's widest stride in pixels (the same value,
+# and the stride and step limit ``estimate_memory`` reads off a rig are those of
+# ``traced.lattice_stride`` and ``traced.trace_field``: tests/unit/test_memory_guard.py).
+MAX_STRIDE = 16
 # IMAGE_BLEND's weights: float64 per camera and pixel while each camera is solved.
 WEIGHT_BYTES_PER_CAMERA_PIXEL = 8
 # Traced rays over the image's pixels, beyond the base lattice: the lattice splits
@@ -324,7 +330,8 @@ def estimate_memory(rig, method, settings, workers=1):
 
     Returns
     -------
-    MemoryEstimate (``build_memory``).
+    MemoryEstimate (``build_memory``); for a traced method its ``shapes`` add the
+    lattice's ``stride`` (pixels) and the trace's ``step_limit`` (steps).
     """
     w, h = rig.size
     n = len(rig.cameras)
@@ -345,13 +352,13 @@ def estimate_memory(rig, method, settings, workers=1):
     level = max(g.size for g in grids) if len(grids) > 1 else 0
     # the lattice's stride (``traced.lattice_stride``) and the step limit (``trace_field``)
     px = min(near_plane_width(c) / w for c in rig.cameras)
-    stride = int(np.clip(grids[-1].cell / px / 2, 1, 16))
+    stride = int(np.clip(grids[-1].cell / px / 2, 1, MAX_STRIDE))
     cells = step_cells(settings.accuracy_px, w)
     steps = int(sum(np.ceil(np.linalg.norm(np.array(g.shape)) / cells * 2) for g in grids)) + 8
     widths = [near_plane_width(c) for c in rig.cameras]
     ratio = widths[0] / max(min(widths), 1e-30)
     rays = traced_rays_of(w, h, stride, edge_pixels(rig.masks), settings.accuracy_px, ratio)
-    return build_memory(
+    estimate = build_memory(
         method,
         w,
         h,
@@ -363,11 +370,14 @@ def estimate_memory(rig, method, settings, workers=1):
         workers=workers,
         level_voxels=level,
     )
+    estimate.shapes.update(stride=stride, step_limit=steps)
+    return estimate
 
 
 # What to lower for each part of an estimate (a worker's part: fewer workers).
 LOWER_RESOLUTION = "the resolution (Output Properties > Format > Resolution, or its %)"
 LOWER_QUALITY = "the Quality (its voxel budget)"
+LOWER_TRACED = "the Quality (a looser accuracy target traces fewer rays, with fewer steps)"
 FEWER_WORKERS = "the worker processes (Render > Performance > Threads: Fixed, fewer)"
 RAISE_BUDGET = "or raise the Memory Budget (Multiscale > Preview and Cache; 0: the free memory)"
 
@@ -377,10 +387,20 @@ def size_text(count):
     return f"{count / 2**30:.1f} GB" if count >= 2**30 else f"{count / 2**20:.0f} MB"
 
 
+# Parts of a trace: rays, their vertices and what holds them, which a lower Quality
+# (a looser accuracy target: fewer rays, longer steps) shrinks as well as the resolution.
+TRACED_PARTS = ("traced rays", "error estimate", "shares received", "share of rays")
+
+
 def _lower(part):
+    """What to lower for the part named ``part``: a list of LOWER_* / FEWER_WORKERS."""
     if part.startswith("workers: "):
-        return FEWER_WORKERS
-    return LOWER_QUALITY if part.startswith("grid") else LOWER_RESOLUTION
+        return [FEWER_WORKERS]
+    if part.startswith("grid"):
+        return [LOWER_QUALITY]
+    if part in TRACED_PARTS:
+        return [LOWER_RESOLUTION, LOWER_TRACED]
+    return [LOWER_RESOLUTION]
 
 
 def budget_message(estimate, budget, budget_text, action="The field build"):
@@ -404,8 +424,8 @@ def budget_message(estimate, budget, budget_text, action="The field build"):
     said = ", ".join(f"{name} {size_text(count)}" for name, count in parts)
     advice = []
     for name, count in parts:  # what to lower for the parts that weigh (a quarter or more)
-        if count >= parts[0][1] / 4 and _lower(name) not in advice:
-            advice.append(_lower(name))
+        if count >= parts[0][1] / 4:
+            advice += [a for a in _lower(name) if a not in advice]
     return (
         f"{action} would need about {size_text(estimate.total)} of memory ({said}), more "
         f"than the budget of {size_text(budget)} ({budget_text}); nothing was started: lower "
