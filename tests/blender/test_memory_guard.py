@@ -86,10 +86,12 @@ def test_render_result_of_a_cached_field_is_guarded_too(scene, never_built, monk
     scene.multiscale.memory_budget_mb = 1024
     with pytest.raises(RuntimeError) as info:
         bpy.ops.render.render()
-    # 8000 x 8000 pixels of 72 bytes (passes and copies) and a 64 MB tile in each worker
+    # 8000 x 8000 pixels: 34 B/px in each of two workers, 52 B/px of shared passes, the
+    # Render Result's 20 B/px (core/quality/memory.py, bench/render_memory.py)
     assert (
-        "Error: Multiscale: The render would need about 4.4 GB of memory (render result "
-        "4.3 GB, workers: tile 128 MB), more than the budget of 1.0 GB" in str(info.value)
+        "Error: Multiscale: The render would need about 9.9 GB of memory (workers: share "
+        "of pixels 4.1 GB, shared passes 3.1 GB, render result 1.2 GB), more than the "
+        "budget of 1.0 GB" in str(info.value)
     )
     assert not never_built
 

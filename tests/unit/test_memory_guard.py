@@ -129,10 +129,39 @@ def test_a_small_trace_stays_in_the_main_process():
     assert est.total == est.main
 
 
-def test_render_memory_counts_the_result_and_a_tile_per_worker():
+def test_render_memory_counts_the_engine_arrays_and_the_shared_passes():
+    """The engine's IndexOB and First Hit arrays (16 B/px) and, with workers, the shared
+    passes they write (13 float32 channels) were not counted."""
     est = render_memory(1000, 1000, samples=4, traced_rays=0, workers=2)
-    assert est.main == 10**6 * mem.RESULT_BYTES_PER_PIXEL
-    assert est.worker == mem.TILE_RAYS * mem.TILE_BYTES_PER_RAY and est.workers == 2
+    assert mem.ENGINE_BYTES_PER_PIXEL == 16 and mem.SHARED_PASS_BYTES_PER_PIXEL == 52
+    assert est.main == 10**6 * (mem.RESULT_BYTES_PER_PIXEL + 16 + 52)
+    assert est.worker == mem.RENDER_WORKER_BYTES + 10**6 * mem.RENDER_WORKER_BYTES_PER_PIXEL
+    assert est.workers == 2 and est.parts["engine arrays"] == 16 * 10**6
+    # a small frame renders in-process: a tile there, no shared passes, no workers
+    small = render_memory(400, 300, samples=1, traced_rays=10, vertices=5, workers=2)
+    assert small.workers == 0 and small.worker == 0 and "shared passes" not in small.parts
+    assert small.main == 120000 * (mem.RESULT_BYTES_PER_PIXEL + 16) + 10 * 5 * (
+        mem.FIELD_BYTES_PER_VERTEX
+    ) + mem.TILE_RAYS * mem.TILE_BYTES_PER_RAY
+
+
+def test_render_estimate_was_never_measured_and_now_meets_the_measured_renders():
+    """bench/render_memory.json: each measured render (main process plus workers)
+    against ``render_memory`` of its shapes with today's constants (the estimate put a
+    1920x1080 render with two workers at 0.30 of its peak). With workers within 30%; in
+    one process never under by more than 30% (the resident size there misses memory the
+    build freed and the render reused, so the estimate runs up to 2.1 times over)."""
+    rows = json.loads((ROOT / "bench" / "render_memory.json").read_text())["rows"]
+    assert any(row["held_out"] for row in rows) and len(rows) >= 6
+    for row in rows:
+        w, h = (int(x) for x in row["row"].split(":")[1].split("x"))
+        workers = int(row["row"].split(":p")[1]) if ":p" in row["row"] else 2
+        est = render_memory(w, h, 1, row["traced_rays"], row["vertices"], workers)
+        ratio = est.total / 2**20 / row["measured_mb"]
+        # in one process no worker ran; with workers, the render's (and the build's, idle)
+        assert len(row["peak_workers_added_mb"]) >= est.workers, row
+        assert est.workers or not row["peak_workers_added_mb"], row
+        assert 0.7 <= ratio <= (1.3 if est.workers else 2.5), (ratio, row)
 
 
 def test_edge_pixels_counts_both_sides_of_every_label_change():
@@ -209,15 +238,17 @@ def test_8000x8000_is_refused_before_the_build_starts_with_the_estimate():
 
 
 @pytest.mark.slow
-def test_estimate_is_within_30_percent_of_the_measured_peak_on_a_small_rig():
-    """The zoom rig at 480x270, PREVIEW, SCALAR_FIELD: the peak resident size of a fresh
-    process plus its workers' (bench/memory.py) against the estimate made before."""
+def test_estimate_is_within_30_percent_of_the_measured_peak_on_a_held_out_row():
+    """The zoom rig at 480x270, STANDARD, SCALAR_FIELD with three workers, a row the
+    constants were not calibrated on (bench/memory.py HELD_OUT): the peak resident size
+    of a fresh process plus its workers' against the estimate made before. (It measured
+    a calibration row: in-sample.)"""
     done = subprocess.run(
         [
             sys.executable,
             str(ROOT / "bench" / "memory.py"),
             "--one",
-            "zoom_rig:SCALAR_FIELD:PREVIEW:480x270",
+            "zoom_rig:SCALAR_FIELD:STANDARD:480x270:p3",
         ],
         capture_output=True,
         text=True,
@@ -226,5 +257,6 @@ def test_estimate_is_within_30_percent_of_the_measured_peak_on_a_small_rig():
     )
     assert done.returncode == 0, done.stderr[-2000:]
     row = json.loads(done.stdout.strip().splitlines()[-1])
-    assert row["peak_workers_mb"], "the trace ran in workers"
+    assert row["held_out"], "a row the constants were not fitted to"
+    assert len(row["peak_workers_mb"]) == 3, "the trace ran in three workers"
     assert 0.7 <= row["estimated_mb"] / row["measured_mb"] <= 1.3, row

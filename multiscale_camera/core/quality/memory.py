@@ -94,12 +94,30 @@ TRACED_RATIO_EXPONENT = 2.0
 TRACED_WIDTH_EXPONENT = 0.6
 # The longest traced ray over the trace's step limit.
 VERTICES_OF_LIMIT = 0.35
-# A render: the Render Result's passes (Combined 4, Depth 1, Normal 3, IndexOB 1,
-# Membership 1 float32 channels) and Blender's display and saved copies of Combined;
-# each tile (``pipeline.rows_per_tile``: 16384 rays) and its segments in a worker.
-RESULT_BYTES_PER_PIXEL = 10 * 4 + 2 * 4 * 4
+# A render, measured (bench/render_memory.py: the two-camera scene, IMAGE_BLEND, at
+# 480x270, 960x540 and 1920x1080, in-process and with two workers; the peak resident
+# size a render adds to Blender's process and each worker's). Per pixel in Blender's
+# process: what the Render Result takes (measured: the in-process slope, 34 B/px, less
+# the engine's arrays; less than its 10 float32 channels, 40 B/px), the engine's
+# IndexOB and First Hit arrays of the whole image (float32, 1 + 3 channels,
+# ``engine._render``), and with workers the shared passes they write (``PASSES`` and
+# the First Hit pass: 13 float32 channels, ``workers.shared_passes``).
+RESULT_BYTES_PER_PIXEL = 20
+ENGINE_BYTES_PER_PIXEL = (1 + 3) * 4
+SHARED_PASS_BYTES_PER_PIXEL = 13 * 4
+# A tile (``pipeline.rows_per_tile``: 16384 rays) rendered in Blender's process, with
+# its scene (BVH, lights), per ray (measured: the in-process intercept, about 30 MB).
 TILE_RAYS = 16384
-TILE_BYTES_PER_RAY = 4096
+TILE_BYTES_PER_RAY = 2048
+# A render worker at work: a fresh interpreter, the frame it is sent (``portable``) and
+# its tiles (measured: 294 MB at any size on the two-camera scene; what of it is the
+# frame's and what the tile's is not separated, so a larger scene may need more), and
+# per pixel its share of the shared passes and the frame's per-pixel arrays (34 B/px
+# with two workers).
+RENDER_WORKER_BYTES = 294 * MB
+RENDER_WORKER_BYTES_PER_PIXEL = 34
+# ``render.workers.MIN_RAYS``: under this many rays a frame renders in-process.
+RENDER_MIN_RAYS = 200_000
 # Per traced vertex of the field a frame renders: its rays (float32 xyz and membership)
 # and the sampler's leaf schedules and ray measures (shared memory).
 FIELD_BYTES_PER_VERTEX = 16 + 24
@@ -249,8 +267,10 @@ def build_memory(
 
 def render_memory(width, height, samples=1, traced_rays=0, vertices=0, workers=1):
     """Peak memory of rendering a frame whose field is built, from shapes: the Render
-    Result, the field's traced rays and the sampler's schedules of them, and a tile in
-    each worker.
+    Result, the engine's per-pixel arrays, the field's traced rays and the sampler's
+    schedules of them, and a tile in the main process or, with workers (at least
+    ``RENDER_MIN_RAYS`` rays), the shared passes and each worker. Not modelled: the
+    Cycles hand-off (its tables and Cycles' own memory, docs/performance.md).
 
     Parameters
     ----------
@@ -263,15 +283,22 @@ def render_memory(width, height, samples=1, traced_rays=0, vertices=0, workers=1
     MemoryEstimate
     """
     pixels = int(width) * int(height)
+    n = int(workers) if workers > 1 and pixels * samples >= RENDER_MIN_RAYS else 0
     main = {
         "render result": pixels * RESULT_BYTES_PER_PIXEL,
+        "engine arrays": pixels * ENGINE_BYTES_PER_PIXEL,
         "field rays": int(traced_rays) * int(vertices) * FIELD_BYTES_PER_VERTEX,
     }
     tile = min(pixels * (1 + (samples if samples > 1 else 0)), TILE_RAYS)
-    n = int(workers) if workers > 1 else 0
-    worker = {"tile": tile * TILE_BYTES_PER_RAY}
-    if not n:
-        main.update(worker)
+    worker = {}
+    if n:
+        main["shared passes"] = pixels * SHARED_PASS_BYTES_PER_PIXEL
+        worker = {
+            "render worker": RENDER_WORKER_BYTES,
+            "share of pixels": pixels * RENDER_WORKER_BYTES_PER_PIXEL,
+        }
+    else:
+        main["tile"] = tile * TILE_BYTES_PER_RAY
     shapes = dict(pixels=pixels, traced_rays=int(traced_rays), vertices=int(vertices))
     return _estimate(main, worker, n, shapes)
 
