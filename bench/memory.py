@@ -25,8 +25,10 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 OUT = ROOT / "bench" / "memory.json"
-# rig:method:quality:WxH; SCALAR_FIELD_NESTED forces nested grids, SCALAR_FIELD one
-# uniform grid (as bench/methods.py).
+# rig:method:quality:WxH[:pN]; SCALAR_FIELD_NESTED forces nested grids, SCALAR_FIELD one
+# uniform grid (as bench/methods.py); pN sets the worker processes (default: one per
+# core). ROWS calibrated the constants of core/quality/memory.py; HELD_OUT rows were
+# measured after the constants were frozen, to check them on rows they were not fitted to.
 ROWS = (
     "zoom_rig:IMAGE_BLEND:STANDARD:1920x1080",
     "three_camera_rig:IMAGE_BLEND:STANDARD:1920x1080",
@@ -40,6 +42,12 @@ ROWS = (
     "zoom_rig:SCALAR_FIELD_NESTED:STANDARD:480x270",
     "zoom25_rig:SCALAR_FIELD_NESTED:PREVIEW:480x270",
     "zoom1000_rig:SCALAR_FIELD_NESTED:PREVIEW:480x270",
+)
+HELD_OUT = (
+    "three_camera_rig:SCALAR_FIELD:PREVIEW:960x540",
+    "zoom25_rig:SCALAR_FIELD:STANDARD:480x270",
+    "zoom_rig:SCALAR_FIELD:PREVIEW:480x270:p1",
+    "zoom_rig:SCALAR_FIELD:STANDARD:480x270:p3",
 )
 
 
@@ -63,13 +71,15 @@ def run_one(spec):
     from multiscale_camera.core.quality import estimate_memory
     from multiscale_camera.core.runtime import runtime, worker_count
 
-    rig_name, method, quality, size = spec.split(":")
+    rig_name, method, quality, size, *more = spec.split(":")
     width, height = (int(x) for x in size.split("x"))
     cams, masks = getattr(rigs, rig_name)(width, height)
     rig = Rig(cams, masks)
     settings = settings_for(quality)
     if method.startswith("SCALAR_FIELD"):
         settings = replace(settings, nested=method.endswith("NESTED"))
+    if more:
+        settings = replace(settings, processes=int(more[0].lstrip("p")))
     method = method.replace("_NESTED", "")
     before = _kb("VmRSS") / 1024
     estimate = estimate_memory(rig, method, settings, worker_count(settings.processes))
@@ -95,6 +105,8 @@ def run_one(spec):
     workers = list(peaks.values())
     measured = main + sum(workers)
     estimated = before + estimate.total / 2**20
+    estimated_main = before + estimate.main / 2**20
+    estimated_worker = estimate.worker / 2**20
     return {
         "row": spec,
         "built": fld.method,
@@ -107,26 +119,43 @@ def run_one(spec):
         "peak_workers_mb": [round(w, 1) for w in workers],
         "measured_mb": round(measured, 1),
         "estimated_mb": round(estimated, 1),
-        "estimated_main_mb": round(before + estimate.main / 2**20, 1),
-        "estimated_worker_mb": round(estimate.worker / 2**20, 1),
+        "estimated_main_mb": round(estimated_main, 1),
+        "estimated_worker_mb": round(estimated_worker, 1),
         "ratio": round(estimated / measured, 3),
+        "held_out": spec in HELD_OUT,
+        **ratios(main, workers, estimated_main, estimated_worker),
         "parts_mb": {k: round(v / 2**20, 1) for k, v in estimate.parts.items()},
         "build_seconds": round(seconds, 2),
         "load_1min": round(os.getloadavg()[0], 2),
     }
 
 
+def ratios(main, workers, estimated_main, estimated_worker):
+    """The main process's and the largest worker's estimate over measured peak (MB);
+    the worker's None when no worker ran or none was estimated."""
+    worker = max(workers) if workers and estimated_worker else None
+    return {
+        "main_ratio": round(estimated_main / main, 3),
+        "worker_ratio": round(estimated_worker / worker, 3) if worker else None,
+    }
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rows", nargs="+", default=list(ROWS))
+    parser.add_argument("--held-out", action="store_true", help="run the HELD_OUT rows")
     parser.add_argument("--out", type=Path, default=OUT)
+    parser.add_argument(
+        "--merge", action="store_true", help="replace only these rows in --out, keep the rest"
+    )
     parser.add_argument("--one", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.one:
         print(json.dumps(run_one(args.one)))
         return
+    specs = list(HELD_OUT) if args.held_out else args.rows
     rows = []
-    for spec in args.rows:
+    for spec in specs:
         done = subprocess.run(
             [sys.executable, __file__, "--one", spec], capture_output=True, text=True, cwd=ROOT
         )
@@ -137,11 +166,16 @@ def main():
         rows.append(row)
         print(
             f"{spec:50s} measured {row['measured_mb']:7.1f} MB  estimated "
-            f"{row['estimated_mb']:7.1f} MB  ratio {row['ratio']:.2f}  "
+            f"{row['estimated_mb']:7.1f} MB  ratio {row['ratio']:.2f} (main "
+            f"{row['main_ratio']:.2f}, worker {row['worker_ratio']})  "
             f"(rays {row['traced_rays']} est {row['estimated_traced_rays']}, "
             f"{row['build_seconds']} s, load {row['load_1min']})",
             flush=True,
         )
+    if args.merge and args.out.exists():
+        new = {row["row"] for row in rows}
+        kept = [r for r in json.loads(args.out.read_text())["rows"] if r["row"] not in new]
+        rows = kept + rows
     args.out.write_text(json.dumps({"rows": rows}, indent=1) + "\n")
 
 

@@ -28,6 +28,7 @@ import zipfile
 
 import numpy as np
 
+from ..core.quality import MB
 from .fields import field_from_arrays, field_to_arrays
 from .locks import BuildLock, holder_id
 
@@ -282,8 +283,9 @@ class FieldCache:
         """Remove the least recently used disk entries until the cache fits its limit
         (the newest entry stays even if it alone is larger, and so do the entries used
         in the last ``IN_USE_SECONDS``: in a folder shared by a farm's workers, fields
-        a running job still needs). Returns the files removed."""
-        limit = (self.limit_mb if limit_mb is None else float(limit_mb)) * 1e6
+        a running job still needs). The limit is in MB of 2**20 bytes (``core.quality.MB``,
+        as Blender and the Memory Budget count). Returns the files removed."""
+        limit = (self.limit_mb if limit_mb is None else float(limit_mb)) * MB
         entries = self.entries()
         total = sum(e[1] for e in entries)
         removed = 0

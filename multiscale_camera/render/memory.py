@@ -1,27 +1,41 @@
 """The memory guard: before a field is built and before a frame is rendered, the peak
 memory of Blender's process and the workers is estimated from shapes (the grid, the
-image, the rig: ``core.methods.estimate_memory``, ``render_memory``) and work whose
+image, the rig: ``core.quality.estimate_memory``, ``render_memory``) and work whose
 estimate passes the budget is refused with the estimate, the budget and what to lower,
 before anything large is allocated (docs/failures.md, "Memory").
 
-The budget is the scene's Memory Budget (``scene.multiscale.memory_budget_mb``) when
-set, else the memory the machine has free (``MemAvailable`` of /proc/meminfo, or the
-free pages where there is none) less a margin. Where neither can be read the guard
-lets the work go on.
+The budget is the scene's Memory Budget (``scene.multiscale.memory_budget_mb``, MB of
+2**20 bytes as Blender counts them) when set, else the memory the machine has free less
+a margin, and never under ``MIN_BUDGET_BYTES``: on Linux ``MemAvailable`` of
+/proc/meminfo, on Windows ``GlobalMemoryStatusEx``, on macOS ``vm_stat``'s free and
+inactive pages, elsewhere the free physical pages. Where none can be read the guard
+lets the work go on, and says so once (``GUARD_OFF``).
 """
 
+import ctypes
 import os
+import re
+import subprocess
+import sys
 
 from ..core.errors import RigError
-from ..core.quality import budget_message, estimate_memory, render_memory, size_text
+from ..core.quality import MB, budget_message, estimate_memory, render_memory, size_text
 from ..core.runtime import worker_count
 from .fields import SERVICE
 
-MB = 1 << 20
 # Kept free under the automatic budget: the larger of a fixed margin and a fraction of
 # what is free (Blender, the desktop and the file cache need some).
 MARGIN_BYTES = 512 * MB
 MARGIN_FRACTION = 0.1
+# The automatic budget never falls under this: a machine short of memory still builds
+# and renders small work (a 64x48 preview) rather than refusing everything.
+MIN_BUDGET_BYTES = 256 * MB
+GUARD_OFF = (
+    "The memory guard is off: this machine's free memory cannot be read, so builds and "
+    "renders too large for it are not refused; set a Memory Budget (Multiscale > Preview "
+    "and Cache) to have them refused"
+)
+_SAID_OFF = []  # one entry once GUARD_OFF has been said in this session
 
 
 class MemoryBudgetError(RigError):
@@ -29,9 +43,8 @@ class MemoryBudgetError(RigError):
     what to lower."""
 
 
-def available_bytes(meminfo="/proc/meminfo"):
-    """int, bytes of memory the machine has free for new work (Linux: ``MemAvailable``;
-    elsewhere the free physical pages), or None when it cannot be told."""
+def linux_available(meminfo="/proc/meminfo"):
+    """int, bytes of ``MemAvailable`` in ``meminfo`` (a /proc/meminfo file), or None."""
     try:
         with open(meminfo) as lines:
             for line in lines:
@@ -39,6 +52,76 @@ def available_bytes(meminfo="/proc/meminfo"):
                     return int(line.split()[1]) * 1024
     except (OSError, ValueError, IndexError):
         pass
+    return None
+
+
+class MEMORYSTATUSEX(ctypes.Structure):
+    """Windows' MEMORYSTATUSEX (sysinfoapi.h); ``dwLength`` must be set to its size."""
+
+    _fields_ = [
+        ("dwLength", ctypes.c_uint32),
+        ("dwMemoryLoad", ctypes.c_uint32),
+        ("ullTotalPhys", ctypes.c_uint64),
+        ("ullAvailPhys", ctypes.c_uint64),
+        ("ullTotalPageFile", ctypes.c_uint64),
+        ("ullAvailPageFile", ctypes.c_uint64),
+        ("ullTotalVirtual", ctypes.c_uint64),
+        ("ullAvailVirtual", ctypes.c_uint64),
+        ("ullAvailExtendedVirtual", ctypes.c_uint64),
+    ]
+
+
+def windows_available(kernel32=None):
+    """int, bytes of physical memory available (``ullAvailPhys`` of
+    ``GlobalMemoryStatusEx``), or None. ``kernel32``: the library to ask (default
+    ``ctypes.windll.kernel32``)."""
+    try:
+        kernel32 = kernel32 if kernel32 is not None else ctypes.windll.kernel32
+        status = MEMORYSTATUSEX()
+        status.dwLength = ctypes.sizeof(MEMORYSTATUSEX)
+        if not kernel32.GlobalMemoryStatusEx(ctypes.pointer(status)):
+            return None
+    except (AttributeError, OSError):
+        return None
+    return int(status.ullAvailPhys)
+
+
+def parse_vm_stat(text):
+    """int, bytes of the free and inactive pages in macOS ``vm_stat`` output ``text``
+    (what can be had without paging out: psutil's ``available``), or None."""
+    size = re.search(r"page size of (\d+) bytes", text)
+    pages = {}
+    for name, count in re.findall(r"^Pages (free|inactive):\s+(\d+)\.?\s*$", text, re.M):
+        pages[name] = int(count)
+    if not size or len(pages) < 2:
+        return None
+    return (pages["free"] + pages["inactive"]) * int(size.group(1))
+
+
+def macos_available(run=subprocess.run):
+    """int, bytes free on macOS (``parse_vm_stat`` of ``vm_stat``), or None."""
+    try:
+        done = run(["vm_stat"], capture_output=True, text=True, timeout=5)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return parse_vm_stat(done.stdout) if done.returncode == 0 else None
+
+
+def available_bytes(platform=None):
+    """int, bytes of memory the machine has free for new work (by ``platform``, default
+    ``sys.platform``: ``linux_available``, ``windows_available``, ``macos_available``,
+    else the free physical pages), or None when it cannot be told."""
+    platform = platform or sys.platform
+    if platform.startswith("linux"):
+        free = linux_available()
+    elif platform == "win32":
+        free = windows_available()
+    elif platform == "darwin":
+        free = macos_available()
+    else:
+        free = None
+    if free is not None:
+        return free
     try:
         return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
     except (AttributeError, OSError, ValueError):
@@ -55,8 +138,12 @@ def budget_of(scene, available=None):
     if free is None:
         return None, ""
     margin = max(MARGIN_BYTES, int(MARGIN_FRACTION * free))
-    budget = max(free - margin, 0)
-    return budget, f"free memory {size_text(free)} less a margin of {size_text(margin)}"
+    if free - margin < MIN_BUDGET_BYTES:
+        return MIN_BUDGET_BYTES, (
+            f"free memory {size_text(free)} less a margin of {size_text(margin)} is under "
+            f"the least budget, {size_text(MIN_BUDGET_BYTES)}"
+        )
+    return free - margin, f"free memory {size_text(free)} less a margin of {size_text(margin)}"
 
 
 def guard_memory(scene, request, render=False):
@@ -64,13 +151,22 @@ def guard_memory(scene, request, render=False):
     ``render``, the frame's render, when either's estimated peak passes the scene's
     budget (``budget_of``).
 
+    Returns
+    -------
+    ``GUARD_OFF`` the first time in a session that there is no budget (no Memory Budget
+    and the free memory cannot be read), for the caller to say where the user looks;
+    else None.
+
     Raises
     ------
     MemoryBudgetError with the estimate, the budget and what to lower.
     """
     budget, where = budget_of(scene)
     if budget is None:
-        return
+        if _SAID_OFF:
+            return None
+        _SAID_OFF.append(True)
+        return GUARD_OFF
     workers = worker_count(request.settings.processes)
     fld = SERVICE.cached(request)
     if fld is None:
@@ -89,3 +185,4 @@ def guard_memory(scene, request, render=False):
         said = budget_message(estimate, budget, where, "The render")
         if said:
             raise MemoryBudgetError(said)
+    return None

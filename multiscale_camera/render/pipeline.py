@@ -123,7 +123,7 @@ def clear_fields():
     SERVICE.clear()
 
 
-def prepare_frame(depsgraph, diag=None, report=False, step_frames=True):
+def prepare_frame(depsgraph, diag=None, report=False, step_frames=True, render=True):
     """Build (or reuse) the ray field and the scene's BVH.
 
     ``diag`` (core.diagnostics.Diagnostics or None) steers the work (Esc) and becomes
@@ -131,6 +131,9 @@ def prepare_frame(depsgraph, diag=None, report=False, step_frames=True):
     the field is measured (once per field) and the frame carries its build report.
     ``step_frames`` False (the viewport's picture, drawn) takes a rig in motion's shot
     layout only when it is known (``FieldService.request``).
+    ``render``: the frame will be rendered at the scene's full size, so the memory guard
+    weighs that render too (False for the viewport's small picture and for Export Rays,
+    which renders nothing).
 
     Raises
     ------
@@ -145,7 +148,9 @@ def prepare_frame(depsgraph, diag=None, report=False, step_frames=True):
     volumes, volume_notices = prepare_volumes(depsgraph)
     with diag.stage("field"), runtime().journal() as runs:  # what the field's workers did
         request = SERVICE.request(scene, depsgraph=depsgraph, step_frames=step_frames)
-        guard_memory(scene, request, render=True)  # before anything large is allocated
+        guard_off = guard_memory(scene, request, render=render)  # before large allocations
+        if guard_off:
+            diag.warn(guard_off)
         result = SERVICE.get(request, diag, measure=report)
     if not result.built:  # said as "field (cached)" in the timings
         diag.seconds["field (cached)"] = diag.seconds.pop("field")

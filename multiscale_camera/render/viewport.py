@@ -17,6 +17,7 @@ from gpu_extras.presets import draw_texture_2d
 from . import pipeline
 from .failures import failure_message
 from .fields import SERVICE
+from .memory import guard_memory
 from .pipeline import _cast_and_shade, _rgba
 
 # The viewport picture is at most this many pixels wide: about 37k rays at 16:9, under a
@@ -61,16 +62,22 @@ def frame_for_view(depsgraph, view):
     """The pipeline Frame when the scene's field is cached; otherwise start building it
     in the background (the field service) and return None, ``view.message`` saying why.
 
-    ``view`` : ViewDraw, the picture that asked (it keeps the build it waits for).
+    ``view`` : ViewDraw, the picture that asked (it keeps the build it waits for). A
+    build whose estimated memory passes the scene's budget is not started (the picture
+    says why, ``memory.guard_memory``); the picture itself, at most ``VIEW_MAX_WIDTH``
+    pixels wide, is not weighed as a render.
     """
     try:
         # drawing: no stepping through the frames for a shot's layout
         request = SERVICE.request(depsgraph.scene, depsgraph=depsgraph, step_frames=False)
         if SERVICE.cached(request) is None:
+            guard_off = guard_memory(depsgraph.scene, request)  # before large allocations
             view.build = SERVICE.start(request)
-            view.message = "Multiscale: building the ray field..."
+            view.message = "Multiscale: building the ray field..." + (
+                f" ({guard_off})" if guard_off else ""
+            )
             return None
-        return pipeline.prepare_frame(depsgraph, step_frames=False)
+        return pipeline.prepare_frame(depsgraph, step_frames=False, render=False)
     except Exception as err:  # said on the picture, as the render says it
         view.message = f"Multiscale: {failure_message(err, 'The viewport picture')}"
         return None

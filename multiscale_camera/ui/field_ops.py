@@ -10,7 +10,7 @@ from bpy.props import BoolProperty, StringProperty
 from ..adapters.scene import rig_from_scene
 from ..core.diagnostics import Diagnostics, interrupt_stops
 from ..core.errors import Cancelled
-from ..core.quality import headline, readable
+from ..core.quality import headline, readable, size_text
 from ..render import pipeline
 from ..render.checks import validate_scene
 from ..render.export import export_rays
@@ -154,11 +154,13 @@ class MULTISCALE_OT_compute_field(bpy.types.Operator):
         scene = evaluated_scene(context)
         request = SERVICE.request(scene, rig)
         try:  # before anything large is allocated
-            guard_memory(scene, request)
+            guard_off = guard_memory(scene, request)
         except MemoryBudgetError as err:
             publish_report(context.scene, None)
             self.report({"ERROR"}, str(err))
             return None, None
+        if guard_off:  # said once a session: no budget, nothing is refused
+            self.report({"WARNING"}, guard_off)
         diag = Diagnostics(should_stop=should_stop)
         diag.extend(messages)
         self._checked = len(diag.messages)
@@ -255,7 +257,8 @@ class MULTISCALE_OT_export_rays(bpy.types.Operator):
             return {"CANCELLED"}
         path = bpy.path.ensure_ext(bpy.path.abspath(self.filepath), ".exr")
         try:
-            frame = pipeline.prepare_frame(context.evaluated_depsgraph_get())
+            # rays only: the guard weighs the build, not a render
+            frame = pipeline.prepare_frame(context.evaluated_depsgraph_get(), render=False)
             exr_path, npz_path = export_rays(frame, path)
         except Exception as err:  # every failure is said, never a traceback
             self.report({"ERROR"}, failure_message(err, "Export Rays"))
@@ -316,7 +319,7 @@ class MULTISCALE_OT_cache_clear(bpy.types.Operator):
     def execute(self, context):
         size = SERVICE.cache.size_bytes()
         removed = SERVICE.clear()
-        self.report({"INFO"}, f"Removed {removed} cached fields ({size / 1e6:.1f} MB)")
+        self.report({"INFO"}, f"Removed {removed} cached fields ({size_text(size)})")
         return {"FINISHED"}
 
 

@@ -195,16 +195,18 @@ class MultiscaleSettings(bpy.types.PropertyGroup):
         default=2048,
         min=16,
         max=1 << 20,
-        description="Size limit of the field cache on disk, megabytes (oldest fields go first)",
+        description="Size limit of the field cache on disk, in MB of 1,048,576 bytes as "
+        "Blender counts them (oldest fields go first)",
     )
     memory_budget_mb: IntProperty(
         name="Memory Budget",
         default=0,
         min=0,
         max=1 << 24,
-        description="Most memory, in megabytes, that a field build or a render may take "
-        "(Blender's process and its workers together); larger work is refused before it "
-        "starts, saying what to lower. 0: what the machine has free, less a margin",
+        description="Most memory, in MB of 1,048,576 bytes as Blender counts them, that a "
+        "field build or a render may add: beyond what Blender holds already, plus what its "
+        "worker processes take; larger work is refused before it starts, saying what to "
+        "lower. 0: what the machine has free, less a margin (at least 256 MB)",
     )
     guide_opacity: FloatProperty(
         name="Guide Opacity",

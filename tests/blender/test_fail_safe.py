@@ -349,6 +349,48 @@ def test_viewport_picture_says_a_bad_rig_or_a_defect_instead_of_a_traceback(scen
     )
 
 
+def test_viewport_picture_refuses_a_build_past_the_memory_budget(scene, monkeypatch):
+    """Rendered shading starts no build whose estimate passes the budget, and says so on
+    the picture; its own small picture is not weighed as a full-size render."""
+    from multiscale_camera.render import viewport
+
+    started = []
+    monkeypatch.setattr(fields.SERVICE, "start", lambda request: started.append(request))
+    view = viewport.ViewDraw()
+    scene.render.resolution_x = scene.render.resolution_y = 4000
+    scene.multiscale.memory_budget_mb = 64
+    assert viewport.frame_for_view(bpy.context.evaluated_depsgraph_get(), view) is None
+    assert view.message.startswith("Multiscale: The field build would need about "), view.message
+    assert "more than the budget of 64 MB (the scene's Memory Budget)" in view.message
+    assert not started
+
+    # a cached field: the frame goes on to the field, not refused as a 4000x4000 render
+    def reached(*_a, **_k):
+        raise LookupError("reached the field")
+
+    monkeypatch.setattr(fields.SERVICE, "cached", lambda _request: object())
+    monkeypatch.setattr(fields.SERVICE, "get", reached)
+    scene.multiscale.memory_budget_mb = 512  # a 4000x4000 render would need 1.1 GB
+    assert viewport.frame_for_view(bpy.context.evaluated_depsgraph_get(), view) is None
+    assert "(LookupError: reached the field)" in view.message, view.message
+
+
+def test_export_rays_is_not_refused_as_a_render(scene, monkeypatch, tmp_path):
+    """Export Rays renders nothing: only its build is weighed, not a full-size render."""
+
+    def reached(*_a, **_k):
+        raise LookupError("reached the field")
+
+    monkeypatch.setattr(fields.SERVICE, "cached", lambda _request: object())
+    monkeypatch.setattr(fields.SERVICE, "get", reached)
+    scene.render.resolution_x = scene.render.resolution_y = 4000
+    scene.multiscale.memory_budget_mb = 512  # a 4000x4000 render would need 1.1 GB
+    with pytest.raises(RuntimeError) as info:
+        bpy.ops.multiscale.export_rays(filepath=str(tmp_path / "rays.exr"))
+    assert "(LookupError: reached the field)" in str(info.value), str(info.value)
+    assert not (tmp_path / "rays.exr").exists()
+
+
 def render_passes(scene, path):
     scene.render.image_settings.media_type = "MULTI_LAYER_IMAGE"
     scene.render.filepath = str(path)

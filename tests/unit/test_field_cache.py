@@ -94,7 +94,7 @@ def test_disk_cache_hit_after_restart_miss_after_change_and_trim(rig, tmp_path):
     size = os.path.getsize(tmp_path / f"{key}.npz")
     again.put("b" * 40, fld)
     os.utime(tmp_path / f"{key}.npz", (1, 1))
-    again.limit_mb = 1.5 * size / 1e6
+    again.limit_mb = 1.5 * size / (1 << 20)
     assert again.trim() == 1
     assert sorted(os.listdir(tmp_path)) == ["b" * 40 + ".npz"]
     assert again.clear() == 1 and os.listdir(tmp_path) == [] and again.memory == {}
@@ -265,3 +265,21 @@ def test_memory_reads_during_a_concurrent_trim_raise_no_key_error():
         sys.setswitchinterval(switch)
     assert errors == []
     assert len(cache.memory) <= 2
+
+
+def test_cache_limit_counts_megabytes_of_2_20_bytes_as_the_memory_budget(rig, tmp_path):
+    """The cache limit's MB are Blender's (2**20 bytes), as the Memory Budget's and
+    ``size_text``'s: a limit of exactly the entries' size in those MB keeps them all
+    (counted in MB of 10**6 bytes it fell 5% short and removed one)."""
+    fld = prepare(rig, "IMAGE_BLEND", SETTINGS)
+    cache = FieldCache(str(tmp_path))
+    cache.put("a" * 40, fld)
+    cache.put("b" * 40, fld)
+    old = time.time() - IN_USE_SECONDS - 1
+    os.utime(tmp_path / ("a" * 40 + ".npz"), (old, old))
+    os.utime(tmp_path / ("b" * 40 + ".npz"), (old + 1, old + 1))
+    total = cache.size_bytes()
+    assert cache.trim(limit_mb=total / 2**20) == 0
+    assert len(os.listdir(tmp_path)) == 2
+    assert cache.trim(limit_mb=(total - 1) / 2**20) == 1  # a byte over: the oldest goes
+    assert os.listdir(tmp_path) == ["b" * 40 + ".npz"]

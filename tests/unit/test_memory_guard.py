@@ -15,7 +15,7 @@ import pytest
 from fixtures.rigs import zoom_rig
 from multiscale_camera.core.field import tracer
 from multiscale_camera.core.geometry import Rig
-from multiscale_camera.core.methods import settings_for, traced
+from multiscale_camera.core.methods import prepare, settings_for, traced
 from multiscale_camera.core.quality import (
     budget_message,
     build_memory,
@@ -31,9 +31,33 @@ GB = 1 << 30
 
 
 def test_constants_are_the_ones_the_code_uses():
+    assert mem.MAX_STRIDE == traced.MAX_STRIDE
     assert mem.MAX_RAYS_PER_SHARE == tracer.MAX_RAYS_PER_SHARE
     assert mem.MIN_RAYS_PER_PROCESS == tracer.MIN_RAYS_PER_PROCESS
     assert mem.DEVIATION_BLOCK_VERTICES == traced.DEVIATION_BLOCK_VERTICES
+
+
+@pytest.mark.parametrize("nested", [False, True])
+def test_copied_stride_and_step_limit_are_those_the_trace_uses(monkeypatch, nested):
+    """The estimate reads the lattice's stride and the trace's step limit off the rig
+    with its own copy of their arithmetic (core.quality cannot import the methods): on a
+    rig, both equal what a build's ``traced.lattice_stride`` and ``trace_field`` use."""
+    limits = []
+    lattice = traced._AdaptiveLattice
+
+    def recording(tracer_, rig_, step, max_steps, tol_px, diag):
+        limits.append(max_steps)
+        return lattice(tracer_, rig_, step, max_steps, tol_px, diag)
+
+    monkeypatch.setattr(traced, "_AdaptiveLattice", recording)
+    cams, masks = zoom_rig(96, 54)
+    rig = Rig(cams, masks)
+    settings = replace(settings_for("PREVIEW"), nested=nested, processes=1)
+    est = estimate_memory(rig, "SCALAR_FIELD", settings)
+    fld = prepare(rig, "SCALAR_FIELD", settings)
+    assert fld.stats["levels"] > 1 if nested else fld.stats["levels"] == 1
+    assert est.shapes["stride"] == fld.stats["stride"]
+    assert limits == [est.shapes["step_limit"]]
 
 
 def test_image_blend_grows_with_pixels_and_cameras_only():
@@ -105,10 +129,39 @@ def test_a_small_trace_stays_in_the_main_process():
     assert est.total == est.main
 
 
-def test_render_memory_counts_the_result_and_a_tile_per_worker():
+def test_render_memory_counts_the_engine_arrays_and_the_shared_passes():
+    """The engine's IndexOB and First Hit arrays (16 B/px) and, with workers, the shared
+    passes they write (13 float32 channels) were not counted."""
     est = render_memory(1000, 1000, samples=4, traced_rays=0, workers=2)
-    assert est.main == 10**6 * mem.RESULT_BYTES_PER_PIXEL
-    assert est.worker == mem.TILE_RAYS * mem.TILE_BYTES_PER_RAY and est.workers == 2
+    assert mem.ENGINE_BYTES_PER_PIXEL == 16 and mem.SHARED_PASS_BYTES_PER_PIXEL == 52
+    assert est.main == 10**6 * (mem.RESULT_BYTES_PER_PIXEL + 16 + 52)
+    assert est.worker == mem.RENDER_WORKER_BYTES + 10**6 * mem.RENDER_WORKER_BYTES_PER_PIXEL
+    assert est.workers == 2 and est.parts["engine arrays"] == 16 * 10**6
+    # a small frame renders in-process: a tile there, no shared passes, no workers
+    small = render_memory(400, 300, samples=1, traced_rays=10, vertices=5, workers=2)
+    assert small.workers == 0 and small.worker == 0 and "shared passes" not in small.parts
+    assert small.main == 120000 * (mem.RESULT_BYTES_PER_PIXEL + 16) + 10 * 5 * (
+        mem.FIELD_BYTES_PER_VERTEX
+    ) + mem.TILE_RAYS * mem.TILE_BYTES_PER_RAY
+
+
+def test_render_estimate_was_never_measured_and_now_meets_the_measured_renders():
+    """bench/render_memory.json: each measured render (main process plus workers)
+    against ``render_memory`` of its shapes with today's constants (the estimate put a
+    1920x1080 render with two workers at 0.30 of its peak). With workers within 30%; in
+    one process never under by more than 30% (the resident size there misses memory the
+    build freed and the render reused, so the estimate runs up to 2.1 times over)."""
+    rows = json.loads((ROOT / "bench" / "render_memory.json").read_text())["rows"]
+    assert any(row["held_out"] for row in rows) and len(rows) >= 6
+    for row in rows:
+        w, h = (int(x) for x in row["row"].split(":")[1].split("x"))
+        workers = int(row["row"].split(":p")[1]) if ":p" in row["row"] else 2
+        est = render_memory(w, h, 1, row["traced_rays"], row["vertices"], workers)
+        ratio = est.total / 2**20 / row["measured_mb"]
+        # in one process no worker ran; with workers, the render's (and the build's, idle)
+        assert len(row["peak_workers_added_mb"]) >= est.workers, row
+        assert est.workers or not row["peak_workers_added_mb"], row
+        assert 0.7 <= ratio <= (1.3 if est.workers else 2.5), (ratio, row)
 
 
 def test_edge_pixels_counts_both_sides_of_every_label_change():
@@ -135,7 +188,8 @@ def test_budget_message_names_the_estimate_the_budget_and_what_to_lower():
         f"The field build would need about {size_text(est.total)} of memory ("
         + ", ".join(f"{k} {size_text(v)}" for k, v in parts)
         + "), more than the budget of 4.0 GB (the scene's Memory Budget); nothing was "
-        "started: lower the resolution (Output Properties > Format > Resolution, or its %), "
+        "started: lower the resolution (Output Properties > Format > Resolution, or its %) "
+        "or the Quality (a looser accuracy target traces fewer rays, with fewer steps), "
         "or raise the Memory Budget (Multiscale > Preview and Cache; 0: the free memory)"
     )
 
@@ -148,6 +202,18 @@ def test_budget_message_says_quality_for_the_grid_and_threads_for_workers():
     )
     assert list(workers.parts)[0].startswith("workers: ")
     assert "Render > Performance > Threads: Fixed, fewer" in budget_message(workers, MB, "x")
+
+
+def test_budget_message_suggests_a_lower_quality_for_traced_rays():
+    """Traced rays shrink with a looser accuracy target as well as with fewer pixels:
+    the refusal says both (it said only the resolution)."""
+    est = build_memory("SCALAR_FIELD", 64, 48, 2, voxels=10, traced_rays=10**6, vertices=400)
+    assert list(est.parts)[0] == "traced rays"
+    text = budget_message(est, MB, "x")
+    assert (
+        "lower the resolution (Output Properties > Format > Resolution, or its %) or the "
+        "Quality (a looser accuracy target traces fewer rays, with fewer steps), or raise"
+    ) in text, text
 
 
 def test_8000x8000_is_refused_before_the_build_starts_with_the_estimate():
@@ -172,15 +238,17 @@ def test_8000x8000_is_refused_before_the_build_starts_with_the_estimate():
 
 
 @pytest.mark.slow
-def test_estimate_is_within_30_percent_of_the_measured_peak_on_a_small_rig():
-    """The zoom rig at 480x270, PREVIEW, SCALAR_FIELD: the peak resident size of a fresh
-    process plus its workers' (bench/memory.py) against the estimate made before."""
+def test_estimate_is_within_30_percent_of_the_measured_peak_on_a_held_out_row():
+    """The zoom rig at 480x270, STANDARD, SCALAR_FIELD with three workers, a row the
+    constants were not calibrated on (bench/memory.py HELD_OUT): the peak resident size
+    of a fresh process plus its workers' against the estimate made before. (It measured
+    a calibration row: in-sample.)"""
     done = subprocess.run(
         [
             sys.executable,
             str(ROOT / "bench" / "memory.py"),
             "--one",
-            "zoom_rig:SCALAR_FIELD:PREVIEW:480x270",
+            "zoom_rig:SCALAR_FIELD:STANDARD:480x270:p3",
         ],
         capture_output=True,
         text=True,
@@ -189,5 +257,6 @@ def test_estimate_is_within_30_percent_of_the_measured_peak_on_a_small_rig():
     )
     assert done.returncode == 0, done.stderr[-2000:]
     row = json.loads(done.stdout.strip().splitlines()[-1])
-    assert row["peak_workers_mb"], "the trace ran in workers"
+    assert row["held_out"], "a row the constants were not fitted to"
+    assert len(row["peak_workers_mb"]) == 3, "the trace ran in three workers"
     assert 0.7 <= row["estimated_mb"] / row["measured_mb"] <= 1.3, row

@@ -8,6 +8,7 @@ alone, so it needs none of the methods.
 
 from .folds import quad_folds, section_points
 from .memory import (
+    MB,
     MemoryEstimate,
     budget_message,
     build_memory,
@@ -45,6 +46,7 @@ from .validate import (
 )
 
 __all__ = [
+    "MB",
     "ERODE_PX",
     "MAX_MEASURED",
     "MAX_TURN_DEG",

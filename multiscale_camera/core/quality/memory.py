@@ -24,6 +24,8 @@ from ..field import (
     step_cells,
 )
 
+# Megabytes as Blender counts them (its memory statistics), and as the project says them
+# everywhere (the Memory Budget, the cache limit, ``size_text``): 2**20 bytes.
 MB = 1 << 20
 
 # A worker process of the field's runtime at work, before its share of rays: a fresh
@@ -72,6 +74,10 @@ LARGEST_ROUND = 0.45
 # tests/unit/test_memory_guard.py).
 MAX_RAYS_PER_SHARE = 16384
 MIN_RAYS_PER_PROCESS = 256
+# ``methods.traced.MAX_STRIDE``, the lattice's widest stride in pixels (the same value,
+# and the stride and step limit ``estimate_memory`` reads off a rig are those of
+# ``traced.lattice_stride`` and ``traced.trace_field``: tests/unit/test_memory_guard.py).
+MAX_STRIDE = 16
 # IMAGE_BLEND's weights: float64 per camera and pixel while each camera is solved.
 WEIGHT_BYTES_PER_CAMERA_PIXEL = 8
 # Traced rays over the image's pixels, beyond the base lattice: the lattice splits
@@ -88,12 +94,30 @@ TRACED_RATIO_EXPONENT = 2.0
 TRACED_WIDTH_EXPONENT = 0.6
 # The longest traced ray over the trace's step limit.
 VERTICES_OF_LIMIT = 0.35
-# A render: the Render Result's passes (Combined 4, Depth 1, Normal 3, IndexOB 1,
-# Membership 1 float32 channels) and Blender's display and saved copies of Combined;
-# each tile (``pipeline.rows_per_tile``: 16384 rays) and its segments in a worker.
-RESULT_BYTES_PER_PIXEL = 10 * 4 + 2 * 4 * 4
+# A render, measured (bench/render_memory.py: the two-camera scene, IMAGE_BLEND, at
+# 480x270, 960x540 and 1920x1080, in-process and with two workers; the peak resident
+# size a render adds to Blender's process and each worker's). Per pixel in Blender's
+# process: what the Render Result takes (measured: the in-process slope, 34 B/px, less
+# the engine's arrays; less than its 10 float32 channels, 40 B/px), the engine's
+# IndexOB and First Hit arrays of the whole image (float32, 1 + 3 channels,
+# ``engine._render``), and with workers the shared passes they write (``PASSES`` and
+# the First Hit pass: 13 float32 channels, ``workers.shared_passes``).
+RESULT_BYTES_PER_PIXEL = 20
+ENGINE_BYTES_PER_PIXEL = (1 + 3) * 4
+SHARED_PASS_BYTES_PER_PIXEL = 13 * 4
+# A tile (``pipeline.rows_per_tile``: 16384 rays) rendered in Blender's process, with
+# its scene (BVH, lights), per ray (measured: the in-process intercept, about 30 MB).
 TILE_RAYS = 16384
-TILE_BYTES_PER_RAY = 4096
+TILE_BYTES_PER_RAY = 2048
+# A render worker at work: a fresh interpreter, the frame it is sent (``portable``) and
+# its tiles (measured: 294 MB at any size on the two-camera scene; what of it is the
+# frame's and what the tile's is not separated, so a larger scene may need more), and
+# per pixel its share of the shared passes and the frame's per-pixel arrays (34 B/px
+# with two workers).
+RENDER_WORKER_BYTES = 294 * MB
+RENDER_WORKER_BYTES_PER_PIXEL = 34
+# ``render.workers.MIN_RAYS``: under this many rays a frame renders in-process.
+RENDER_MIN_RAYS = 200_000
 # Per traced vertex of the field a frame renders: its rays (float32 xyz and membership)
 # and the sampler's leaf schedules and ray measures (shared memory).
 FIELD_BYTES_PER_VERTEX = 16 + 24
@@ -243,8 +267,10 @@ def build_memory(
 
 def render_memory(width, height, samples=1, traced_rays=0, vertices=0, workers=1):
     """Peak memory of rendering a frame whose field is built, from shapes: the Render
-    Result, the field's traced rays and the sampler's schedules of them, and a tile in
-    each worker.
+    Result, the engine's per-pixel arrays, the field's traced rays and the sampler's
+    schedules of them, and a tile in the main process or, with workers (at least
+    ``RENDER_MIN_RAYS`` rays), the shared passes and each worker. Not modelled: the
+    Cycles hand-off (its tables and Cycles' own memory, docs/performance.md).
 
     Parameters
     ----------
@@ -257,15 +283,22 @@ def render_memory(width, height, samples=1, traced_rays=0, vertices=0, workers=1
     MemoryEstimate
     """
     pixels = int(width) * int(height)
+    n = int(workers) if workers > 1 and pixels * samples >= RENDER_MIN_RAYS else 0
     main = {
         "render result": pixels * RESULT_BYTES_PER_PIXEL,
+        "engine arrays": pixels * ENGINE_BYTES_PER_PIXEL,
         "field rays": int(traced_rays) * int(vertices) * FIELD_BYTES_PER_VERTEX,
     }
     tile = min(pixels * (1 + (samples if samples > 1 else 0)), TILE_RAYS)
-    n = int(workers) if workers > 1 else 0
-    worker = {"tile": tile * TILE_BYTES_PER_RAY}
-    if not n:
-        main.update(worker)
+    worker = {}
+    if n:
+        main["shared passes"] = pixels * SHARED_PASS_BYTES_PER_PIXEL
+        worker = {
+            "render worker": RENDER_WORKER_BYTES,
+            "share of pixels": pixels * RENDER_WORKER_BYTES_PER_PIXEL,
+        }
+    else:
+        main["tile"] = tile * TILE_BYTES_PER_RAY
     shapes = dict(pixels=pixels, traced_rays=int(traced_rays), vertices=int(vertices))
     return _estimate(main, worker, n, shapes)
 
@@ -324,7 +357,8 @@ def estimate_memory(rig, method, settings, workers=1):
 
     Returns
     -------
-    MemoryEstimate (``build_memory``).
+    MemoryEstimate (``build_memory``); for a traced method its ``shapes`` add the
+    lattice's ``stride`` (pixels) and the trace's ``step_limit`` (steps).
     """
     w, h = rig.size
     n = len(rig.cameras)
@@ -345,13 +379,13 @@ def estimate_memory(rig, method, settings, workers=1):
     level = max(g.size for g in grids) if len(grids) > 1 else 0
     # the lattice's stride (``traced.lattice_stride``) and the step limit (``trace_field``)
     px = min(near_plane_width(c) / w for c in rig.cameras)
-    stride = int(np.clip(grids[-1].cell / px / 2, 1, 16))
+    stride = int(np.clip(grids[-1].cell / px / 2, 1, MAX_STRIDE))
     cells = step_cells(settings.accuracy_px, w)
     steps = int(sum(np.ceil(np.linalg.norm(np.array(g.shape)) / cells * 2) for g in grids)) + 8
     widths = [near_plane_width(c) for c in rig.cameras]
     ratio = widths[0] / max(min(widths), 1e-30)
     rays = traced_rays_of(w, h, stride, edge_pixels(rig.masks), settings.accuracy_px, ratio)
-    return build_memory(
+    estimate = build_memory(
         method,
         w,
         h,
@@ -363,11 +397,14 @@ def estimate_memory(rig, method, settings, workers=1):
         workers=workers,
         level_voxels=level,
     )
+    estimate.shapes.update(stride=stride, step_limit=steps)
+    return estimate
 
 
 # What to lower for each part of an estimate (a worker's part: fewer workers).
 LOWER_RESOLUTION = "the resolution (Output Properties > Format > Resolution, or its %)"
 LOWER_QUALITY = "the Quality (its voxel budget)"
+LOWER_TRACED = "the Quality (a looser accuracy target traces fewer rays, with fewer steps)"
 FEWER_WORKERS = "the worker processes (Render > Performance > Threads: Fixed, fewer)"
 RAISE_BUDGET = "or raise the Memory Budget (Multiscale > Preview and Cache; 0: the free memory)"
 
@@ -377,10 +414,20 @@ def size_text(count):
     return f"{count / 2**30:.1f} GB" if count >= 2**30 else f"{count / 2**20:.0f} MB"
 
 
+# Parts of a trace: rays, their vertices and what holds them, which a lower Quality
+# (a looser accuracy target: fewer rays, longer steps) shrinks as well as the resolution.
+TRACED_PARTS = ("traced rays", "error estimate", "shares received", "share of rays")
+
+
 def _lower(part):
+    """What to lower for the part named ``part``: a list of LOWER_* / FEWER_WORKERS."""
     if part.startswith("workers: "):
-        return FEWER_WORKERS
-    return LOWER_QUALITY if part.startswith("grid") else LOWER_RESOLUTION
+        return [FEWER_WORKERS]
+    if part.startswith("grid"):
+        return [LOWER_QUALITY]
+    if part in TRACED_PARTS:
+        return [LOWER_RESOLUTION, LOWER_TRACED]
+    return [LOWER_RESOLUTION]
 
 
 def budget_message(estimate, budget, budget_text, action="The field build"):
@@ -404,8 +451,8 @@ def budget_message(estimate, budget, budget_text, action="The field build"):
     said = ", ".join(f"{name} {size_text(count)}" for name, count in parts)
     advice = []
     for name, count in parts:  # what to lower for the parts that weigh (a quarter or more)
-        if count >= parts[0][1] / 4 and _lower(name) not in advice:
-            advice.append(_lower(name))
+        if count >= parts[0][1] / 4:
+            advice += [a for a in _lower(name) if a not in advice]
     return (
         f"{action} would need about {size_text(estimate.total)} of memory ({said}), more "
         f"than the budget of {size_text(budget)} ({budget_text}); nothing was started: lower "
