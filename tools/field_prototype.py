@@ -10,7 +10,9 @@ processes (default 1, so that CPU and memory are this process's); ``cells_per_px
 cells across the smallest camera's near plane per pixel of the accuracy target (the
 build's constant is 8: 16 cells at 0.5 px), the prototype of a grid that follows the
 image size; ``step_cells=X`` the RK4 step in cells at 0.5 px on a 1920-wide image (the
-build's ``field.STEP_CELLS``, 1.5).
+build's ``field.STEP_CELLS``, 1.5); ``clock=cpu`` the build's stage seconds (``stages``,
+as the report's) in CPU seconds of this process instead of wall seconds: with ``proc=1``
+the whole build, so a shared machine's load does not blur them.
 """
 
 import dataclasses
@@ -44,6 +46,8 @@ def main(argv):
         fill.MIN_CELLS_ACROSS_NEAR = scalar_field.MIN_CELLS_ACROSS_NEAR = 4
     if "step_cells" in opts:
         tracer.STEP_CELLS = float(opts["step_cells"])
+    if opts.get("clock") == "cpu":
+        time.perf_counter = time.process_time
     wall, cpu = time.perf_counter(), time.process_time()
     fld = prepare(Rig(cams, masks), method, settings)
     wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
@@ -57,9 +61,11 @@ def main(argv):
         f"{c['name']} {fig(c['preserved_px']['p95'])}/{fig(c['preserved_px']['max'])}"
         for c in rep["cameras"]
     )
+    stages = ", ".join(f"{k} {v:.2f}" for k, v in fld.seconds.items())
     print(
         f"{rig} {width}x{height} {method}->{fld.method} {quality} {opts}: build {wall:.1f} s wall, "
-        f"{cpu:.1f} s CPU, peak {peak:.0f} MB; p95/max px {cams_out}; folds {rep['folds']}; "
+        f"{cpu:.1f} s CPU, peak {peak:.0f} MB; stages {stages}; "
+        f"p95/max px {cams_out}; folds {rep['folds']}; "
         f"levels {rep['levels']}, grid {rep['grids'][:1]}, traced {fld.stats.get('traced')}; "
         f"newton_lost {rep['newton_lost']}, stalled {rep['stalled']}"
     )

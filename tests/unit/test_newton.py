@@ -4,7 +4,7 @@ that say where the trace put something in place of the field."""
 import numpy as np
 import pytest
 
-from fixtures.rigs import zoom1000_rig
+from fixtures.rigs import demo_rig, zoom1000_rig
 from multiscale_camera.core.field import StopReason, Traced
 from multiscale_camera.core.geometry import Family, Rig
 from multiscale_camera.core.geometry.family import LOST_TOLERANCE, RETRY_TOLERANCE
@@ -29,6 +29,39 @@ def test_newton_lost_points_far_off_the_image_of_the_1000x_rig_are_found(i, taus
     assert not lost.any()
     back, _ = fam.evaluate(su, sv, st)
     assert np.linalg.norm(back - pts, axis=1).max() <= RETRY_TOLERANCE * fam.scale
+
+
+def test_warm_starts_one_newton_step_short_are_finished_without_the_damped_retry(
+    monkeypatch,
+):
+    """The trace's predicted starts get one Newton step; where that leaves a point
+    short, a few more plain steps finish it. The damped retry from camera 1's pixel,
+    dozens of evaluations a point, is left for the runs that diverge."""
+    cams, _ = demo_rig(240, 135)
+    fam = Family(cams, 2, 0.2)
+    rng = np.random.default_rng(3)
+    u, v, tau = rng.uniform(20, 220, 300), rng.uniform(10, 125, 300), rng.uniform(0.1, 2.9, 300)
+    pts, _ = fam.evaluate(u, v, tau)
+    su, sv = u + rng.normal(0, 3, 300), v + rng.normal(0, 3, 300)
+    st = np.maximum(tau + rng.normal(0, 0.1, 300), 0.0)
+    one = fam.invert(pts, su, sv, st, 1, tolerance=1e-6)[3]
+    short = int((one > RETRY_TOLERANCE * fam.scale).sum())
+    assert short >= 30  # one step leaves them short
+    damped = []
+    plain = Family.invert_damped
+
+    def counted(self, points, *args, **kwargs):
+        damped.append(len(points))
+        return plain(self, points, *args, **kwargs)
+
+    monkeypatch.setattr(Family, "invert_damped", counted)
+    ru, rv, rt, _tangent, lost = fam.solve(pts, su, sv, st, 1, tolerance=1e-6)
+    assert lost == 0 and sum(damped) <= short // 10  # (all of them before)
+    back, _ = fam.evaluate(ru, rv, rt)
+    assert np.linalg.norm(back - pts, axis=1).max() <= RETRY_TOLERANCE * fam.scale
+    # the points' own rays (the family is one-to-one here), to within that distance
+    assert np.abs(ru - u).max() < 0.05 and np.abs(rv - v).max() < 0.05
+    assert np.abs(rt - tau).max() < 1e-3
 
 
 def test_substitutions_are_said_with_the_camera_and_the_pixels():

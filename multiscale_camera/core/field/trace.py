@@ -349,11 +349,11 @@ class _Tracer:
             return self._step(x, k0, h[:, None], rays)
         first = np.clip(self.split(x, k0, rays, h), 0.0, h)
         cut = (first > 1e-9 * h) & (first < (1.0 - 1e-9) * h)
-        out = np.empty_like(x)
-        whole = ~cut
-        out[whole] = self._step(x[whole], k0[whole], h[whole, None], rays[whole])
+        # the whole steps and the cut steps' first parts share their stages' field
+        # evaluations: a few cut rays would otherwise cost as many calls as all the rest
+        out = self._step(x, k0, np.where(cut, first, h)[:, None], rays)
         if cut.any():
-            mid = self._step(x[cut], k0[cut], first[cut, None], rays[cut])
+            mid = out[cut]
             k_mid = self._field(mid, rays[cut])[0]
             out[cut] = self._step(mid, k_mid, (h - first)[cut, None], rays[cut])
         return out
