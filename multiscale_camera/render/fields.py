@@ -471,7 +471,9 @@ def _measure(fld, request: FieldRequest, start: float) -> dict:
     """The build report of ``fld`` (measured once, kept with the field), a copy."""
     report = getattr(fld, "report", None)
     if report is None:
-        report = build_report(fld, request.quality, time.perf_counter() - start)
+        report = build_report(
+            fld, request.quality, time.perf_counter() - start, request.settings.processes
+        )
         fld.report = report  # derived from the field alone: the same for every caller
     return dict(report)
 

@@ -10,7 +10,7 @@ from fixtures.rigs import three_camera_rig, turned_rig
 from multiscale_camera.core.field import tracer as field_module
 from multiscale_camera.core.geometry import Rig
 from multiscale_camera.core.methods import prepare, settings_for
-from multiscale_camera.core.quality import bending_active, fold_map, quad_folds
+from multiscale_camera.core.quality import bending_active, build_report, fold_map, quad_folds
 from multiscale_camera.core.quality import report as report_module
 from multiscale_camera.core.runtime import runtime
 from multiscale_camera.core.runtime.worker import probe
@@ -124,3 +124,20 @@ def test_folds_counted_in_two_processes_equal_those_counted_in_one(monkeypatch):
     assert expected.any()  # the turned rig's IMAGE_BLEND folds: the maps say where
     np.testing.assert_array_equal(one, expected)
     np.testing.assert_array_equal(two, expected)
+
+
+@pytest.mark.slow
+def test_build_report_keeps_the_fold_count_in_one_process_when_threads_say_one(monkeypatch):
+    """The report's fold count ignored the build's worker count (Blender's Threads):
+    ``build_report`` called ``fold_map`` with its default, one worker per core, even
+    where the build was asked to stay in one process (a farm node at Fixed 1)."""
+    monkeypatch.setattr(report_module, "FOLD_CHUNK_VERTICES", 64 * 64 * 4)
+    cams, masks = turned_rig(64, 48)
+    fld = prepare(Rig(cams, masks), "IMAGE_BLEND", settings_for("STANDARD"))
+    with runtime().journal() as runs:
+        alone = build_report(fld, "STANDARD", processes=1)
+    assert runs == []
+    with runtime().journal() as runs:
+        shared = build_report(fld, "STANDARD", processes=2)
+    assert runs and all(r.in_workers == 2 for r in runs)
+    assert alone["folds"] == shared["folds"] > 0

@@ -99,7 +99,7 @@ def prepare_auto(rig, settings=None, diag=None, reuse=None):
         if n:
             diag.check()
         fld = METHODS[name](rig, settings, diag)
-        cameras, folds = measure(fld, settings.processes)
+        cameras, folds = measure(fld, settings.processes, diag.should_stop)
         fld.measured = (cameras, folds)
         why = shortfall(cameras, folds, settings.accuracy_px)
         if not why:

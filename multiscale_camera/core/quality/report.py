@@ -27,13 +27,14 @@ FULL_FOLD_PIXELS = 1 << 20
 MIN_SHARED_BANDS = 4
 
 
-def fold_map(fld, processes=0):
+def fold_map(fld, processes=1, should_stop=None):
     """Folds among the rendered rays, quad by quad.
 
     The lattice's rows go in bands of at most ``FOLD_CHUNK_VERTICES`` vertices (each
     band's last row is the next one's first); with more than ``MIN_SHARED_BANDS`` bands
     they are shared among worker processes (``processes``: ``runtime.worker_count``'s
-    request, 1 keeps them here), each taking a run of consecutive bands. The bands are
+    request: 0 one per core, 1 keeps them here), each taking a run of consecutive
+    bands; ``should_stop`` (callable () -> bool) cancels the shared count. The bands are
     the same either way, so is the map (every quad is counted from its four rays
     alone); a share whose worker is given up runs here.
 
@@ -58,7 +59,7 @@ def fold_map(fld, processes=0):
         # consecutive bands to each share: a share's rays lie together in the image
         runs = [list(r) for r in np.array_split(np.asarray(starts), workers)]
         task = partial(_fold_bands, fld, xs, ys, rows)
-        shares = runtime().map(task, runs, workers).results
+        shares = runtime().map(task, runs, workers, should_stop).results
     for run, bands in zip(runs, shares):
         for r0, band in zip(run, bands):
             out[r0 : r0 + len(band)] = band
@@ -86,9 +87,9 @@ def _fold_bands(fld, xs, ys, rows, starts, context):
     return out
 
 
-def measure(fld, processes=0):
-    """Preserved errors per camera and folds of a prepared RayField; ``processes``:
-    the fold count's workers (``fold_map``).
+def measure(fld, processes=1, should_stop=None):
+    """Preserved errors per camera and folds of a prepared RayField; ``processes`` and
+    ``should_stop``: the fold count's workers and cancel (``fold_map``).
 
     Returns
     -------
@@ -113,7 +114,7 @@ def measure(fld, processes=0):
         if missed:
             entry["unmeasured"] = NEVER_CROSS.format(missed=missed, pixels=pres.pixels)
         cameras.append(entry)
-    folds, _stride = fold_map(fld, processes)
+    folds, _stride = fold_map(fld, processes, should_stop)
     return cameras, int(folds.sum())
 
 
@@ -146,15 +147,17 @@ def unmeasured_camera(name, reason):
     }
 
 
-def build_report(fld, quality, total_seconds=None):
+def build_report(fld, quality, total_seconds=None, processes=1):
     """The report of a prepared field as a dict of schema version 2.
 
     Parameters
     ----------
     fld : RayField. quality : str, the quality enum name.
     total_seconds : float, wall time of the build (default: the sum of the stages).
+    processes : int, the fold count's worker processes (``fold_map``; the build's
+    ``Settings.processes``, so Blender's Threads setting holds for it too).
     """
-    cameras, folds = measure(fld)
+    cameras, folds = measure(fld, processes)
     seconds = {k: float(fld.seconds.get(k, 0.0)) for k in ("fill", "solve", "tangents", "trace")}
     seconds["total"] = float(total_seconds if total_seconds is not None else sum(seconds.values()))
     return {
