@@ -302,17 +302,25 @@ class FieldCache:
         return removed
 
     def clear(self, disk=True):
-        """Forget every field in memory and (``disk``) on disk. Returns files removed."""
+        """Forget every field in memory and (``disk``) on disk: in the folder in use and
+        in the default one (a scene's own folder, ``use_folder``, may be the one in use
+        while the next scene reads the default). Returns files removed."""
         with self._memory_lock:
             self.memory.clear()
         removed = 0
         if disk:
-            for p, _size, _t in self.entries():
-                try:
-                    os.remove(p)
-                    removed += 1
-                except OSError:
-                    pass
+            chosen = self._chosen
+            try:
+                for choice in dict.fromkeys((chosen, None)):
+                    self._chosen = choice
+                    for p, _size, _t in self.entries():
+                        try:
+                            os.remove(p)
+                            removed += 1
+                        except OSError:
+                            pass
+            finally:
+                self._chosen = chosen
         return removed
 
 

@@ -1,9 +1,9 @@
 """Ctrl-C (SIGINT) in `blender -b` stops every stage of a build and a render within 2 s
 (docs/failures.md; the bound is 1 s on an idle machine, 2 s for a loaded one): the
-signal is sent a quarter of a second into the stage named (``Diagnostics.stage``, or the
-Cycles hand-off's march and tables), and the time from the signal to the end of the call
-is measured in Blender's own process. Nothing is written and no worker's shared memory
-is left."""
+signal is sent a quarter of a second into the stage named (``Diagnostics.stage``, or
+the Cycles hand-off's march and tables), or as it starts for stages shorter than that,
+and the time from the signal to the end of the call is measured in Blender's own
+process. Nothing is written and no worker's shared memory is left."""
 
 import os
 import subprocess
@@ -37,20 +37,23 @@ opened = []  # the stages open now, innermost last
 
 def interrupt():
     sent.append(time.perf_counter())
-    print("OPEN", opened[-1] if opened else None, flush=True)
+    print("OPEN", ",".join(opened) or None, flush=True)
     os.kill(os.getpid(), signal.SIGINT)
 
 def arm(name):
     if not sent and name == {stage!r}:
         print("STAGE", name, flush=True)
-        threading.Timer({delay}, interrupt).start()
+        if {delay} > 0:
+            threading.Timer({delay}, interrupt).start()
+        else:  # at once, from inside the stage: a stage too short for a timer
+            interrupt()
 
 stage = diagnostics.Diagnostics.stage
 
 @contextmanager
 def armed(self, name):
-    arm(name)
     opened.append(name)
+    arm(name)
     try:
         with stage(self, name):
             yield self
@@ -60,8 +63,8 @@ def armed(self, name):
 diagnostics.Diagnostics.stage = armed
 for name in ("ray_tables", "write_tables"):
     def wrapped(*args, _name=name, _f=getattr(cycles, name), **kwargs):
-        arm(_name)
         opened.append(_name)
+        arm(_name)
         try:
             return _f(*args, **kwargs)
         finally:
@@ -86,9 +89,11 @@ RENDER_CANCELLED = "Error: Multiscale: Render cancelled (Ctrl-C); nothing was wr
 def interrupted_at(
     stage, call, tmp_path, method="SCALAR_FIELD", shading="SOLID", size=(320, 240), delay=0.25
 ):
-    """Run ``call`` in `blender -b` and SIGINT it ``delay`` s into ``stage``; (seconds
-    from the signal to the call's end, what the call gave, the output). Fails when the
-    signal was never sent or ``stage`` was no longer the open stage when it was."""
+    """Run ``call`` in `blender -b` and SIGINT it ``delay`` s into ``stage`` (0: at once,
+    from inside the stage, for stages shorter than a timer's delay); (seconds from the
+    signal to the call's end, what the call gave, the output). Fails when the signal
+    was never sent or ``stage`` was no longer open (itself or around an inner stage)
+    when it was."""
     out = tmp_path / "existing.png"
     out.write_bytes(b"the user's own image")
     code = SCRIPT.format(
@@ -119,14 +124,14 @@ def interrupted_at(
     open_at_signal = []
     for line in output.splitlines():
         if line.startswith("OPEN "):
-            open_at_signal.append(line[len("OPEN ") :].strip())
+            open_at_signal.append(line[len("OPEN ") :].strip().split(","))
         if line.startswith("SECONDS "):
             seconds = float(line.split()[1])
         if line.startswith("RESULT "):
             result = line[len("RESULT ") :].strip()
     assert open_at_signal, f"no SIGINT was sent: the call ended before the timer fired\n{output}"
-    assert open_at_signal == [stage], (
-        f"SIGINT came with stage {open_at_signal[0]!r} open, not {stage!r}\n{output}"
+    assert len(open_at_signal) == 1 and stage in open_at_signal[0], (
+        f"SIGINT came with stages {open_at_signal[0]!r} open, not {stage!r}\n{output}"
     )
     assert seconds is not None, output
     assert out.read_bytes() == b"the user's own image"
@@ -144,23 +149,27 @@ def test_ctrl_c_stops_compute_field_in_each_stage_within_2_s(tmp_path, stage):
 
 
 def test_ctrl_c_stops_compute_field_in_the_tangents_within_2_s(tmp_path):
-    seconds, result, output = interrupted_at("tangents", COMPUTE, tmp_path, "VECTOR_FIELD")
+    # VECTOR_FIELD's tangents at 320x240 can take less than a quarter of a second
+    seconds, result, output = interrupted_at(
+        "tangents", COMPUTE, tmp_path, "VECTOR_FIELD", delay=0.0
+    )
     assert result == CANCELLED, output
     assert seconds < 2.0, output
 
 
 @pytest.mark.parametrize("stage", ["trace", "simplify", "render"])
 def test_ctrl_c_stops_a_render_in_each_stage_within_2_s(tmp_path, stage):
-    seconds, result, output = interrupted_at(stage, RENDER, tmp_path)
+    # simplification and the 320x240 tile loop can end within a quarter of a second
+    delay = 0.25 if stage == "trace" else 0.0
+    seconds, result, output = interrupted_at(stage, RENDER, tmp_path, delay=delay)
     assert result == RENDER_CANCELLED, output
     assert seconds < 2.0, output
 
 
 @pytest.mark.parametrize("stage", ["ray_tables", "write_tables"])
 def test_ctrl_c_stops_the_cycles_tables_within_2_s(tmp_path, stage):
-    """The tables are written in a fraction of a second: the signal comes 0.05 s into
-    them, before Cycles' own stage, which hears Esc only (docs/failures.md)."""
-    delay = 0.25 if stage == "ray_tables" else 0.05
-    seconds, result, output = interrupted_at(stage, RENDER, tmp_path, shading="CYCLES", delay=delay)
+    """The tables are made and written in a fraction of a second: the signal comes as
+    each starts, before Cycles' own stage, which hears Esc only (docs/failures.md)."""
+    seconds, result, output = interrupted_at(stage, RENDER, tmp_path, shading="CYCLES", delay=0.0)
     assert result == RENDER_CANCELLED, output
     assert seconds < 2.0, output

@@ -283,3 +283,18 @@ def test_cache_limit_counts_megabytes_of_2_20_bytes_as_the_memory_budget(rig, tm
     assert len(os.listdir(tmp_path)) == 2
     assert cache.trim(limit_mb=(total - 1) / 2**20) == 1  # a byte over: the oldest goes
     assert os.listdir(tmp_path) == ["b" * 40 + ".npz"]
+
+
+def test_clear_forgets_the_default_folder_while_a_scene_folder_is_in_use(rig, tmp_path):
+    """Clear Cache after a scene with its own cache folder cleared that folder alone: the
+    next scene, on the default folder, still found the field it had built before."""
+    fld = prepare(rig, "IMAGE_BLEND", SETTINGS)
+    cache = FieldCache(str(tmp_path / "default"))
+    cache.put("a" * 40, fld)
+    cache.use_folder(str(tmp_path / "scene"))
+    cache.put("b" * 40, fld)
+    assert cache.clear() == 2
+    cache.use_folder(None)
+    assert cache.get("a" * 40, rig) is None
+    assert os.listdir(tmp_path / "default") == []
+    assert os.listdir(tmp_path / "scene") == []
