@@ -51,7 +51,7 @@ HELD_OUT = (
 )
 
 
-def _kb(field, pid="self"):
+def proc_status_kb(field, pid="self"):
     """A field of /proc/<pid>/status in kB (0 when it cannot be read)."""
     try:
         with open(f"/proc/{pid}/status") as status:
@@ -81,14 +81,14 @@ def run_one(spec):
     if more:
         settings = replace(settings, processes=int(more[0].lstrip("p")))
     method = method.replace("_NESTED", "")
-    before = _kb("VmRSS") / 1024
+    before = proc_status_kb("VmRSS") / 1024
     estimate = estimate_memory(rig, method, settings, worker_count(settings.processes))
     peaks, done = {}, threading.Event()
 
     def watch():  # every worker's peak, also of one given up (ended) before the build ends
         while not done.wait(0.25):
             for pid in runtime().pids():
-                peaks[pid] = max(peaks.get(pid, 0), _kb("VmHWM", pid) / 1024)
+                peaks[pid] = max(peaks.get(pid, 0), proc_status_kb("VmHWM", pid) / 1024)
 
     watcher = threading.Thread(target=watch, daemon=True)
     watcher.start()
@@ -98,10 +98,10 @@ def run_one(spec):
     done.set()
     watcher.join()
     for pid in runtime().pids():
-        peaks[pid] = max(peaks.get(pid, 0), _kb("VmHWM", pid) / 1024)
+        peaks[pid] = max(peaks.get(pid, 0), proc_status_kb("VmHWM", pid) / 1024)
     # VmHWM, not ru_maxrss: Linux carries the maximum of the process that forked this
     # one across exec (from pytest with bpy imported: 940 MB before any work)
-    main = _kb("VmHWM") / 1024
+    main = proc_status_kb("VmHWM") / 1024
     workers = list(peaks.values())
     measured = main + sum(workers)
     estimated = before + estimate.total / 2**20

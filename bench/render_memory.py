@@ -26,6 +26,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 OUT = ROOT / "bench" / "render_memory.json"
+
+from bench.memory import proc_status_kb  # noqa: E402 (after the path)
+
 # method:WxH[:pN] (pN: the render's worker processes, default one per core). ROWS set
 # the render constants of core/quality/memory.py; HELD_OUT rows were measured after.
 ROWS = (
@@ -36,18 +39,6 @@ ROWS = (
     "IMAGE_BLEND:1920x1080:p1",
 )
 HELD_OUT = ("IMAGE_BLEND:1280x720", "SCALAR_FIELD:960x540")
-
-
-def _kb(field, pid="self"):
-    """A field of /proc/<pid>/status in kB (0 when it cannot be read)."""
-    try:
-        with open(f"/proc/{pid}/status") as status:
-            for line in status:
-                if line.startswith(field + ":"):
-                    return int(line.split()[1])
-    except OSError:
-        pass
-    return 0
 
 
 def _reset_peak(pid="self"):
@@ -86,17 +77,17 @@ def run_one(spec):
     estimate = render_memory(
         width, height, max(1, int(scene.multiscale.samples)), rays, vertices, processes
     )
-    before = {pid: _kb("VmRSS", pid) / 1024 for pid in runtime().pids()}
+    before = {pid: proc_status_kb("VmRSS", pid) / 1024 for pid in runtime().pids()}
     for pid in before:
         _reset_peak(pid)
     _reset_peak()
-    main_before = _kb("VmRSS") / 1024
+    main_before = proc_status_kb("VmRSS") / 1024
     peaks, done = {}, threading.Event()
 
     def watch():  # workers started during the render count from 0
         while not done.wait(0.2):
             for pid in runtime().pids():
-                peaks[pid] = max(peaks.get(pid, 0), _kb("VmHWM", pid) / 1024)
+                peaks[pid] = max(peaks.get(pid, 0), proc_status_kb("VmHWM", pid) / 1024)
 
     watcher = threading.Thread(target=watch, daemon=True)
     watcher.start()
@@ -106,8 +97,8 @@ def run_one(spec):
     done.set()
     watcher.join()
     for pid in runtime().pids():
-        peaks[pid] = max(peaks.get(pid, 0), _kb("VmHWM", pid) / 1024)
-    main = _kb("VmHWM") / 1024 - main_before
+        peaks[pid] = max(peaks.get(pid, 0), proc_status_kb("VmHWM", pid) / 1024)
+    main = proc_status_kb("VmHWM") / 1024 - main_before
     workers = [round(peak - before.get(pid, 0), 1) for pid, peak in peaks.items()]
     measured = main + sum(workers)
     return {
