@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from fixtures.rigs import two_camera_rig, zoom1000_rig, zoom_rig
+from fixtures.rigs import three_camera_rig, two_camera_rig, zoom1000_rig, zoom_rig
 from multiscale_camera.core.errors import RigError
 from multiscale_camera.core.geometry import Rig, resolve_conflicts
 from multiscale_camera.core.methods import prepare, settings_for
@@ -71,14 +71,43 @@ def test_auto_takes_image_blend_where_its_rays_do_not_fold():
     )
 
 
+def test_eased_weights_keep_zero_one_and_the_sum_and_leave_them_flat():
+    from multiscale_camera.core.methods.image_blend import eased
+
+    w = np.array([0.0, 1e-3, 0.25, 0.5, 0.999, 1.0])
+    out = eased(np.stack([w, 1.0 - w]))
+    assert out.dtype == np.float32
+    np.testing.assert_allclose(out.sum(axis=0), 1.0, atol=1e-6)
+    assert out[0, 0] == 0.0 and out[0, -1] == 1.0 and out[0, 3] == pytest.approx(0.5)
+    # zero slope at both ends: a weight 1e-3 from an end moves about 3e-6 from it
+    assert out[0, 1] < 1e-5 and out[0, 4] > 1.0 - 1e-5
+    assert np.all(np.diff(out[0]) > 0)
+
+
+def test_image_blend_rays_at_a_mask_edge_do_not_cross_their_neighbours():
+    """At 480x270 on the three-camera 6x rig, the rays one pixel outside camera 3's mask
+    took 2% of camera 2's curve and crossed camera 3's own: 11 folded quads along the
+    mask's edge, which sent AUTO to SCALAR_FIELD. Eased weights leave the edge flat."""
+    from multiscale_camera.core.field import mask_weights
+    from multiscale_camera.core.methods import prepare_image_blend
+    from multiscale_camera.core.quality import fold_map
+
+    cams, masks = three_camera_rig(480, 270)
+    fld = prepare_image_blend(Rig(cams, masks))
+    assert not fold_map(fld)[0].any()
+    fld.weights = mask_weights(masks).x.astype(np.float32)  # the weights as they were
+    assert fold_map(fld)[0].sum() == 11
+
+
 def test_auto_says_so_when_no_method_meets_the_target():
-    """Turned 60 degrees, IMAGE_BLEND folds 43 quads and SCALAR_FIELD 46 at PREVIEW; AUTO
-    once took SCALAR_FIELD on IMAGE_BLEND's folds alone and said nothing of its own."""
+    """Turned 60 degrees, IMAGE_BLEND folds 12 quads (43 before its weights were eased)
+    and SCALAR_FIELD 46 at PREVIEW; AUTO once took SCALAR_FIELD on IMAGE_BLEND's folds
+    alone and said nothing of its own."""
     cams, masks = zoom_rig(96, 72, turn_deg=60)
     fld = prepare(Rig(cams, masks), "AUTO", settings_for("PREVIEW"))
     assert fld.method == "SCALAR_FIELD"
     misses = (
-        "IMAGE_BLEND would miss it: 43 folded quads; SCALAR_FIELD would miss it: 46 folded quads"
+        "IMAGE_BLEND would miss it: 12 folded quads; SCALAR_FIELD would miss it: 46 folded quads"
     )
     assert fld.stats["auto"] == "SCALAR_FIELD: no method meets the target on this rig; " + misses
     assert fld.warnings[-1] == (

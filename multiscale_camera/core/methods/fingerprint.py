@@ -4,6 +4,10 @@ import hashlib
 
 import numpy as np
 
+# The methods' revision: a change that alters the rays of an unchanged rig (IMAGE_BLEND's
+# eased weights: 2) bumps it, so fields cached on disk before it are built again.
+REVISION = 2
+
 
 def field_key(rig, method, settings):
     """Hex digest of the rig (cameras, masks, beta), the method and its settings.
@@ -11,7 +15,7 @@ def field_key(rig, method, settings):
     Lights, materials and geometry are not part of it: changing them needs no new field.
     """
     h = hashlib.sha1()
-    h.update(repr((method, settings, rig.beta, rig.size)).encode())
+    h.update(repr((REVISION, method, settings, rig.beta, rig.size)).encode())
     hash_cameras(h, rig.cameras)
     h.update(np.packbits(np.ascontiguousarray(rig.masks)).tobytes())
     return h.hexdigest()

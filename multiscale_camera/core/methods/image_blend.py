@@ -1,4 +1,4 @@
-"""IMAGE_BLEND: each pixel's ray is its curves R_i blended by harmonic mask weights."""
+"""IMAGE_BLEND: each pixel's ray is its curves R_i blended by eased harmonic mask weights."""
 
 import time
 from dataclasses import dataclass
@@ -32,8 +32,31 @@ class CurveBlendField(RayField):
         return self._bundle(ix, iy, verts, np.repeat(m[:, None], verts.shape[1], axis=1))
 
 
+def eased(weights):
+    """Harmonic mask weights eased at both ends, so that every weight leaves 0 and 1
+    with zero slope.
+
+    A harmonic weight leaves its mask with its steepest slope: one pixel out, a small
+    camera's ray already takes a few hundredths of the next camera's curve, which
+    beyond its near plane runs far from the small camera's own (a camera turned 10
+    degrees, 2% of its curve: several of the small camera's pixels). The rays at a
+    mask's edge crossed their neighbours inside it (4 to 396 quads at 1920x1080 on the
+    bench rigs, none after easing: docs/performance.md). Smoothstep
+    ``3 w^2 - 2 w^3`` keeps 0, 1 and the order of the weights, and the sum is restored
+    by dividing by it.
+
+    weights : (N, H, W) float array, each pixel's weights summing to one.
+    Returns (N, H, W) float32, each pixel's summing to one.
+    """
+    w = np.asarray(weights, dtype=np.float64)
+    s = w * w * (3.0 - 2.0 * w)
+    s /= s.sum(axis=0, keepdims=True)
+    return s.astype(np.float32)
+
+
 def prepare_image_blend(rig, settings=None, diag=None):
-    """IMAGE_BLEND: each pixel's ray is its curves R_i blended by harmonic mask weights.
+    """IMAGE_BLEND: each pixel's ray is its curves R_i blended by harmonic mask weights,
+    eased at both ends (``eased``).
 
     Exact where it matters: a pixel inside camera i's mask gets R_i itself, so beyond
     camera i's near plane it is camera i's own pinhole ray. Neighbouring rays can cross
@@ -42,7 +65,7 @@ def prepare_image_blend(rig, settings=None, diag=None):
     warnings = check_rig(rig)
     start = time.perf_counter()
     solve = mask_weights(rig.masks)
-    fld = CurveBlendField(rig=rig, method="IMAGE_BLEND", weights=solve.x, warnings=warnings)
+    fld = CurveBlendField(rig=rig, method="IMAGE_BLEND", weights=eased(solve.x), warnings=warnings)
     record_seconds(fld, {"solve": time.perf_counter() - start})
     fld.solver.update(
         iterations=solve.iterations,
