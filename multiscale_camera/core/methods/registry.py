@@ -14,7 +14,7 @@ gets its seconds per stage.
 
 from ..diagnostics import diagnostics_of
 from ..errors import RigError
-from ..quality import measure
+from ..quality import kept_folds, measure_map
 from .base import Settings
 from .image_blend import prepare_image_blend
 from .linear import prepare_linear
@@ -54,6 +54,14 @@ def shortfall(cameras, folds, accuracy_px):
     -------
     str, the misses joined by "; " (camera names and figures), or "".
     """
+    out = accuracy_misses(cameras, accuracy_px)
+    if folds:
+        out.append(f"{folds} folded quads")
+    return "; ".join(out)
+
+
+def accuracy_misses(cameras, accuracy_px):
+    """``shortfall``'s misses of accuracy alone: a list of str, one per camera."""
     worst = MAX_OVER_TARGET * accuracy_px
     out = []
     for cam in cameras:
@@ -67,9 +75,19 @@ def shortfall(cameras, folds, accuracy_px):
                 f"camera '{cam['name']}' p95 {p95:.2f} px, max {top:.2f} px "
                 f"(target {accuracy_px:g} and {worst:g})"
             )
-    if folds:
-        out.append(f"{folds} folded quads")
-    return "; ".join(out)
+    return out
+
+
+def seam_message(folds, pairs):
+    """The warning for folds no method avoids (``quality.kept_folds``): ``folds`` int,
+    ``pairs`` the (str, str) cameras whose masks touch there."""
+    seams = ", ".join(f"'{a}' and '{b}'" for a, b in pairs) or "one camera"
+    return (
+        f"{folds} folded quads lie where the masks of {seams} touch, with no transition "
+        "between them: the rays there are those cameras' own with every method, so they "
+        "cross whatever is built. Leave a gap between the masks (erase one of them "
+        "there) for the rays to turn in."
+    )
 
 
 def prepare_auto(rig, settings=None, diag=None, reuse=None):
@@ -80,7 +98,11 @@ def prepare_auto(rig, settings=None, diag=None, reuse=None):
     every camera, exact folds); the first whose rays meet the target (``shortfall``) is
     kept. IMAGE_BLEND's preserved rays are its cameras' curves by construction, so it
     misses only where its transition rays fold (the turned rig) or a preserved ray goes
-    wrong. When no candidate meets the target, the last is kept and the report says why.
+    wrong. Folds that every method would have (``quality.kept_folds``: quads across a
+    seam where masks touch) send it no further: its rays are kept and a warning names the
+    cameras. When no candidate meets the target, the one that misses it least is kept
+    (fewest folds, then fewest cameras off the target, then the cheapest) and the report
+    says why.
     The choice and why are in ``stats["auto"]``; the measurement stays with the field
     (``measured``), so the report does not measure it again.
 
@@ -94,27 +116,48 @@ def prepare_auto(rig, settings=None, diag=None, reuse=None):
         out = prepare_scalar_field(rig, settings, diag, reuse)
         out.stats["auto"] = "SCALAR_FIELD: the rig moves, and a shot keeps one method"
         return out
-    misses = []
+    misses, kept = [], []
+    names = [cam.name for cam in rig.cameras]
     for n, name in enumerate(AUTO_CANDIDATES):
         if n:
             diag.check()
         fld = METHODS[name](rig, settings, diag)
-        cameras, folds = measure(fld, settings.processes, diag.should_stop)
+        cameras, fold_quads, stride = measure_map(fld, settings.processes, diag.should_stop)
+        folds = int(fold_quads.sum())
         fld.measured = (cameras, folds)
-        why = shortfall(cameras, folds, settings.accuracy_px)
-        if not why:
-            tried = "".join(f"; {m}" for m in misses)
+        off = accuracy_misses(cameras, settings.accuracy_px)
+        target = (
+            f"p95 <= {settings.accuracy_px:g} px, max <= "
+            f"{MAX_OVER_TARGET * settings.accuracy_px:g} px along every preserved ray"
+        )
+        tried = "".join(f"; {m}" for m in misses)
+        if not off and not folds:
             fld.stats["auto"] = (
-                f"{name}: the cheapest method whose rays meet the target (p95 <= "
-                f"{settings.accuracy_px:g} px, max <= {MAX_OVER_TARGET * settings.accuracy_px:g}"
-                f" px along every preserved ray, no fold) on this rig{tried}"
+                f"{name}: the cheapest method whose rays meet the target ({target}, no "
+                f"fold) on this rig{tried}"
             )
             return fld
-        misses.append(f"{name} would miss it: {why}")
+        if not off:
+            fixed, pairs = kept_folds(rig.masks, fold_quads, stride, names)
+            if fixed == folds:  # no other method can do better: say so, keep this one
+                fld.stats["auto"] = (
+                    f"{name}: the cheapest method whose rays meet the target ({target}); "
+                    f"its {folds} folded quads lie where masks touch, and every method's "
+                    f"rays fold there{tried}"
+                )
+                fld.warnings.append(seam_message(folds, pairs))
+                return fld
+        misses.append(f"{name} would miss it: {shortfall(cameras, folds, settings.accuracy_px)}")
+        kept.append((folds, len(off), n, fld))
+    # none meets it: the one that misses least (fewest folds: a fold is a visible tear;
+    # then fewest cameras off the target; then the cheapest)
+    *_, fld = min(kept, key=lambda k: k[:3])
+    name = fld.method
     fld.stats["auto"] = f"{name}: no method meets the target on this rig; " + "; ".join(misses)
     fld.warnings.append(
         f"No method meets the accuracy target on this rig ({'; '.join(misses)}); "
-        f"{name} is used. Move the masks' edges apart or turn the cameras less."
+        f"{name} is used, the one that misses it least. Move the masks' edges apart or "
+        "turn the cameras less."
     )
     return fld
 

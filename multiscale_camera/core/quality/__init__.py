@@ -28,7 +28,16 @@ from .metrics import (
     measured_pixels,
     preserved_error,
 )
-from .report import build_report, fold_map, headline, measure, readable, to_json
+from .report import (
+    build_report,
+    fold_map,
+    headline,
+    kept_folds,
+    measure,
+    measure_map,
+    readable,
+    to_json,
+)
 from .validate import (
     MAX_TURN_DEG,
     bending_paths,
@@ -71,7 +80,9 @@ __all__ = [
     "guard_messages",
     "guard_pairs",
     "headline",
+    "kept_folds",
     "measure",
+    "measure_map",
     "measured_pixels",
     "obstruction_messages",
     "preflight",

@@ -100,6 +100,13 @@ def measure(fld, processes=1, should_stop=None):
     done = getattr(fld, "measured", None)
     if done is not None:
         return done
+    cameras, folds, _stride = measure_map(fld, processes, should_stop)
+    return cameras, int(folds.sum())
+
+
+def measure_map(fld, processes=1, should_stop=None):
+    """``measure`` with the fold map itself: cameras (list of dict), folds ((Hy - 1,
+    Wx - 1) bool, ``fold_map``'s) and the map's stride (int)."""
     rig = fld.rig
     cameras = []
     for i, cam in enumerate(rig.cameras):
@@ -114,8 +121,38 @@ def measure(fld, processes=1, should_stop=None):
         if missed:
             entry["unmeasured"] = NEVER_CROSS.format(missed=missed, pixels=pres.pixels)
         cameras.append(entry)
-    folds, _stride = fold_map(fld, processes, should_stop)
-    return cameras, int(folds.sum())
+    folds, stride = fold_map(fld, processes, should_stop)
+    return cameras, folds, stride
+
+
+def kept_folds(masks, folds, stride, names):
+    """The folds no method can avoid: quads whose four pixels every camera's mask keeps.
+
+    A preserved pixel's ray is its camera's own, whatever the method; so where masks of
+    two cameras touch (they overlapped, and the smaller camera kept the shared pixels,
+    or were painted edge to edge) the rays of a quad across the seam are fixed, and if
+    they cross, every method's do.
+
+    Parameters
+    ----------
+    masks : (N, H, W) bool, at most one True per pixel. folds : (Hy - 1, Wx - 1) bool,
+    ``fold_map``'s, on the lattice of ``stride``. names : N str.
+
+    Returns
+    -------
+    count : int, folded quads whose four pixels are all kept (by any cameras).
+    pairs : list of (str, str), the cameras whose masks meet in them, in rig order.
+    """
+    n, h, w = masks.shape
+    xs = np.unique(np.append(np.arange(0, w, stride), w - 1))
+    ys = np.unique(np.append(np.arange(0, h, stride), h - 1))
+    owner = np.where(masks.any(axis=0), masks.argmax(axis=0), -1)[np.ix_(ys, xs)]
+    corners = np.stack([owner[:-1, :-1], owner[:-1, 1:], owner[1:, 1:], owner[1:, :-1]])
+    fixed = folds & (corners >= 0).all(axis=0)
+    seen = corners[:, fixed]
+    low, high = seen.min(axis=0), seen.max(axis=0)
+    pairs = sorted({(int(a), int(b)) for a, b in zip(low, high) if a != b})
+    return int(fixed.sum()), [(names[a], names[b]) for a, b in pairs]
 
 
 # Why a camera's figures are null (schema key "unmeasured" of a camera).
