@@ -29,8 +29,9 @@ METHOD_ITEMS = [
     ),
 ]
 
-# The most accurate method the code has (docs/methods.md).
-DEFAULT_METHOD = "SCALAR_FIELD"
+# The cheapest method that meets the accuracy target on the rig, and says why
+# (docs/methods.md, docs/report.md).
+DEFAULT_METHOD = "AUTO"
 
 QUALITY_ITEMS = [
     ("PREVIEW", "Preview", "Fast; about 2 px accuracy"),

@@ -61,6 +61,20 @@ def test_field_is_reused_until_the_rig_changes(empty_scene):
 
 
 @pytest.mark.slow
+def test_auto_is_the_default_method_and_the_report_says_what_it_built(empty_scene):
+    """The method's default was SCALAR_FIELD, minutes at 1920x1080 where IMAGE_BLEND's
+    rays meet the target in seconds; AUTO is the default (docs/report.md)."""
+    scene = empty_scene
+    two_camera_scene(scene)
+    scene.multiscale.property_unset("method")
+    assert scene.multiscale.method == "AUTO"
+    pipeline.clear_fields()
+    assert bpy.ops.multiscale.compute_field() == {"FINISHED"}
+    report = json.loads(scene.multiscale.report)
+    assert report["method"] == "IMAGE_BLEND" and report["folds"] == 0
+    assert report["auto"].startswith("IMAGE_BLEND: the cheapest method whose rays meet")
+
+
 def test_compute_field_says_when_its_workers_were_given_up(empty_scene, monkeypatch, capfd):
     """The field's trace, in workers that stalled, went on in Blender's process without a
     word; Compute Field now says why it was slow, and the field is the one traced by
