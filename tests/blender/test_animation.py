@@ -379,6 +379,7 @@ def test_dolly_keeps_one_layout_over_its_frames(empty_scene):
     samples.build_dolly(scene)
     scene.render.resolution_percentage = 25
     scene.multiscale.method = "SCALAR_FIELD"  # the sample's
+    fields.SERVICE.clear()  # built here: a field read from disk keeps no nested domain
     layouts, own, keys = set(), [], set()
     for frame in range(scene.frame_start, scene.frame_end + 1):
         scene.frame_set(frame)
@@ -418,7 +419,7 @@ def test_auto_keeps_image_blend_for_the_dollys_shot(empty_scene, monkeypatch):
     samples.build_dolly(scene)
     scene.render.resolution_percentage = 25
     scene.multiscale.method = "AUTO"
-    fields.SERVICE.forget_sequence()
+    fields.SERVICE.clear()  # fields, reuse store, the shot's choice: nothing kept
     measured = []
     real = fields.choose_shot_method
 
