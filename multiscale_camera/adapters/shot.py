@@ -1,8 +1,9 @@
 """A shot: the frames a rig in motion is keyed over (else the scene's frame range). Its
 layout (the grids of every frame, ``core.methods.plan_shot``) needs each frame's
-cameras; they are read by stepping the scene through its frames and back, which only
-Blender's main thread may do (a render started from the window runs its engine on a
-thread of its own)."""
+cameras, and AUTO's one method for it (``core.methods.choose_shot_method``) a few
+frames' rigs (``sampled_rigs``); they are read by stepping the scene through its frames
+and back, which only Blender's main thread may do (a render started from the window
+runs its engine on a thread of its own)."""
 
 import hashlib
 import threading
@@ -10,8 +11,10 @@ import threading
 import numpy as np
 
 from ..core.geometry import Rig
+from ..core.methods import sample_frames
 from .cameras import pinhole_from_object
-from .scene import evaluated
+from .masks import ANIMATED_SOURCES
+from .scene import evaluated, rig_from_scene
 
 try:  # Blender 4.4 and later: an action's curves live in the channel bag of a slot
     from bpy_extras.anim_utils import action_get_channelbag_for_slot
@@ -54,6 +57,77 @@ def shot_range(scene):
     return int(np.floor(min(a for a, _b in spans))), int(np.ceil(max(b for _a, b in spans)))
 
 
+def shot_keys(scene):
+    """The frames (floats, ascending, no repeats) of the list cameras' keys: their
+    objects', parents' and camera data's F-curves."""
+    scene = getattr(scene, "original", None) or scene
+    keys = set()
+    for block in _blocks(scene):
+        anim = getattr(block, "animation_data", None)
+        for curve in _fcurves(anim) if anim is not None else []:
+            got = np.zeros(2 * len(curve.keyframe_points), dtype=np.float64)
+            curve.keyframe_points.foreach_get("co", got)
+            keys.update(got[0::2].tolist())
+    return sorted(keys)
+
+
+def shot_samples(scene):
+    """The frames of the shot AUTO measures IMAGE_BLEND on (``core.methods.sample_frames``
+    of ``shot_range`` and ``shot_keys``): the same in every process."""
+    first, last = shot_range(scene)
+    return sample_frames(first, last, shot_keys(scene))
+
+
+def sampled_rigs(scene, frames, depsgraph=None, mask_frames=None):
+    """[(frame, Rig)] of the scene at each of ``frames``: each frame's cameras as the view
+    layer evaluates them there and each frame's masks (``rig_from_scene``, sequences
+    read at that frame through ``mask_frames``, an ``adapters.masks.MaskFrames``). The
+    scene is stepped and set back to its frame and subframe. None when this thread may
+    not step frames (``can_step_frames``)."""
+    if not can_step_frames():
+        return None
+    scene = getattr(scene, "original", None) or scene
+    layer = _layer(scene, depsgraph)
+    frame, subframe = scene.frame_current, scene.frame_subframe
+    out = []
+    try:
+        for f in frames:
+            scene.frame_set(f)
+            out.append((int(f), rig_from_scene(scene, layer.depsgraph, frames=mask_frames)))
+    finally:
+        scene.frame_set(frame, subframe=subframe)
+    return out
+
+
+def masks_source_digest(scene, rig):
+    """Hex digest of what the shot's masks are: ``rig``'s masks (the frame's) when every
+    mask is still, else each list item's mask image, file and sequence mapping (frames,
+    start, offset, cyclic), so that every frame of a shot with animated masks names the
+    same shot."""
+    scene = getattr(scene, "original", None) or scene
+    items = list(scene.multiscale.cameras)
+    images = [item.mask for item in items]
+    h = hashlib.sha1()
+    if not any(getattr(im, "source", "") in ANIMATED_SOURCES for im in images):
+        h.update(np.packbits(np.ascontiguousarray(rig.masks)).tobytes())
+        return h.hexdigest()
+    for item, im in zip(items, images, strict=True):
+        source = None if im is None else (im.name, im.source, im.filepath)
+        mapping = tuple(
+            getattr(item, k, None)
+            for k in ("mask_frames", "mask_frame_start", "mask_frame_offset", "mask_cyclic")
+        )
+        h.update(repr((source, mapping)).encode())
+    return h.hexdigest()
+
+
+def _layer(scene, depsgraph):
+    """The view layer of the render's ``depsgraph`` (else the scene's first)."""
+    name = depsgraph.view_layer.name if depsgraph is not None else None
+    layer = scene.view_layers.get(name) if name else None
+    return layer if layer is not None else scene.view_layers[0]
+
+
 def shot_frames(scene):
     """The frames of the shot (``shot_range``) its layout reads: every one, or
     MAX_SHOT_FRAMES evenly spread over a longer shot, both ends kept."""
@@ -80,9 +154,7 @@ def shot_rigs(scene, rig, depsgraph=None):
     if not can_step_frames():
         return None
     scene = getattr(scene, "original", None) or scene
-    name = depsgraph.view_layer.name if depsgraph is not None else None
-    layer = scene.view_layers.get(name) if name else None
-    layer = layer if layer is not None else scene.view_layers[0]
+    layer = _layer(scene, depsgraph)
     frame, subframe = scene.frame_current, scene.frame_subframe
     rigs = []
     try:

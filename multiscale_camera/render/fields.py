@@ -12,7 +12,8 @@ When a build started with ``start`` ends, the service stores it and tells its li
 ``SERVICE`` is the one instance; it owns the caches: fields, the frame's BVH tree
 (``trees``, see ``pipeline.scene_tree``), decoded volume sources (``volume_grids``),
 what a build of an animated rig may take from the frame before it (``reuse``,
-``core.methods.FrameReuse``) and the first hits of the frame rendered last
+``core.methods.FrameReuse``), the last shot's layout and AUTO's method for it
+(``shots``, ``choices``) and the first hits of the frame rendered last
 (``sequence``, ``render.sequence``).
 """
 
@@ -29,12 +30,26 @@ import numpy as np
 
 from ..adapters.masks import MaskFrames
 from ..adapters.scene import cache_folder_of, field_settings, rig_from_scene
-from ..adapters.shot import animation_digest, shot_rigs
+from ..adapters.shot import (
+    animation_digest,
+    masks_source_digest,
+    sampled_rigs,
+    shot_rigs,
+    shot_samples,
+)
 from ..adapters.volumes import VolumeGridCache
 from ..core.diagnostics import Diagnostics, Level
 from ..core.errors import Cancelled
 from ..core.geometry import Rig
-from ..core.methods import FrameReuse, Settings, field_key, plan_shot, prepare, settings_for
+from ..core.methods import (
+    FrameReuse,
+    Settings,
+    choose_shot_method,
+    field_key,
+    plan_shot,
+    prepare,
+    settings_for,
+)
 from ..core.quality import build_report, crossing_messages, empty_mask_messages, to_json
 from ..core.runtime import gave_up, runtime
 from ..io.cache import DEFAULT_LIMIT_MB, FieldCache
@@ -164,6 +179,7 @@ class FieldService:
         self.reuse = FrameReuse()  # claims and solutions of the last animated build
         self.sequence = Sequence()  # the last frame's first hits: frame-to-frame jumps
         self.shots = {}  # the layout of the last shot (``shot_layout``)
+        self.choices = {}  # AUTO's method for the last shot (``shot_choice``)
         self._listeners: list[Callable] = []
         self._build: FieldBuild | None = None
         self.live = None  # the live picture (ui/live_picture.py), made by its register()
@@ -203,7 +219,10 @@ class FieldService:
             )
         if steady is not None:
             settings = replace(settings, steady=steady)
-        if settings.steady and group.method in SHOT_METHODS:
+        if settings.steady and group.method == "AUTO":
+            choice = self.shot_choice(scene, rig, settings, depsgraph, step_frames)
+            settings = replace(settings, shot=choice)
+        if settings.steady and group.method in SHOT_METHODS and not _blends(settings):
             layout = self.shot_layout(scene, rig, settings, depsgraph, step_frames)
             settings = replace(settings, layout=layout)
         notices = tuple(rig.notices) + tuple(empty_mask_messages(rig))
@@ -244,6 +263,31 @@ class FieldService:
                 return None
             self.shots = {key: plan_shot(rigs, settings)}  # one shot at a time
         return self.shots[key]
+
+    def shot_choice(self, scene, rig, settings, depsgraph=None, step_frames=True):
+        """AUTO's one method for the shot of a rig in motion (``core.methods.ShotChoice``):
+        IMAGE_BLEND measured on the frames ``adapters.shot.shot_samples`` picks (each
+        frame's cameras and masks), chosen once per shot (its cameras' animation, masks,
+        size and settings) and kept, so no frame measures again. The frames and each
+        measure depend on the shot alone: every process of a farm chooses alike. None
+        where the frames cannot be stepped and the shot's choice is not known (AUTO then
+        builds SCALAR_FIELD and says the shot was not measured)."""
+        key = (
+            animation_digest(scene),
+            masks_source_digest(scene, rig),
+            rig.size,
+            rig.beta,
+            tuple(c.name for c in rig.cameras),
+            repr(replace(settings, layout=None, shot=None)),
+        )
+        if key not in self.choices:
+            samples = None
+            if step_frames:
+                samples = sampled_rigs(scene, shot_samples(scene), depsgraph, self.mask_frames)
+            if samples is None:
+                return None
+            self.choices = {key: choose_shot_method(samples, settings)}  # one shot at a time
+        return self.choices[key]
 
     def cached(self, request: FieldRequest, memory_only: bool = False):
         """The cached field of ``request`` (memory, then disk unless ``memory_only``),
@@ -441,11 +485,12 @@ class FieldService:
         return self.cache.put(request.key, fld)
 
     def forget_sequence(self):
-        """Drop what a sequence of frames kept (first hits, reuse store, shot layout):
-        a file load starts afresh, whatever the new file's scenes are called."""
+        """Drop what a sequence of frames kept (first hits, reuse store, shot layout and
+        method): a file load starts afresh, whatever the new file's scenes are called."""
         self.sequence = Sequence()
         self.reuse = FrameReuse()
         self.shots = {}
+        self.choices = {}
 
     def clear(self) -> int:
         """Forget every field (memory and disk), cancel a background build. Returns the
@@ -454,8 +499,14 @@ class FieldService:
             self._build.cancel()
         self.reuse = FrameReuse()  # claims and solutions kept from the last builds
         self.shots = {}
+        self.choices = {}
         self.mask_frames.clear()
         return self.cache.clear()
+
+
+def _blends(settings: Settings) -> bool:
+    """Whether AUTO keeps IMAGE_BLEND for the shot (no grids: no shot layout)."""
+    return settings.shot is not None and settings.shot.method == "IMAGE_BLEND"
 
 
 def _build(request: FieldRequest, diag: Diagnostics):

@@ -219,7 +219,8 @@ def prepare_frame(depsgraph, diag=None, report=False, step_frames=True, render=T
 def frame_rebuilt(number, result, tree_built, seconds):
     """What frame ``number``'s preparation built and what it took as it was, for the
     log and the report's ``frame`` (docs/report.md): ``built`` and ``reused`` list the
-    parts ("field", "camera claims ...", "membership solve (warm start)", "BVH"),
+    parts ("field", "camera claims ...", "membership solve (warm start)", "mask
+    weights", "curves", "BVH"),
     ``seconds`` the stages' seconds so far. ``result`` is the field service's
     FieldResult, ``tree_built`` whether the BVH was built."""
     built, reused = [], []
@@ -229,6 +230,9 @@ def frame_rebuilt(number, result, tree_built, seconds):
         took = result.field.stats.get("reuse")
         if took is None:
             built.append("field")
+        elif "weights" in took:  # IMAGE_BLEND: its weights, and this frame's curves
+            (reused if took["weights"] == "reused" else built).append("mask weights")
+            built.append("curves")
         else:
             names = ", ".join(f"'{n}'" for n in took["claims_reused"])
             if names:

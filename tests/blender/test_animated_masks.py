@@ -18,6 +18,8 @@ from multiscale_camera.adapters.masks import (
     sequence_frame,
 )
 from multiscale_camera.adapters.scene import rig_from_scene
+from multiscale_camera.core.methods import prepare
+from multiscale_camera.render import fields, pipeline
 from multiscale_camera.render.fields import SERVICE
 from multiscale_camera.ui.mask_overlay import rig_masks
 
@@ -225,3 +227,59 @@ def test_the_overlay_shows_a_sequence_mask_at_the_scene_frame(scene):
     np.testing.assert_array_equal(rig_masks(scene, (W, H))[0], left)
     scene.frame_set(2)
     np.testing.assert_array_equal(rig_masks(scene, (W, H))[0], right)
+
+
+def moving(scene):
+    """Camera 2 keyed to move a little on frames 1-3: a rig in motion."""
+    c2 = scene.multiscale.cameras[1].camera
+    for frame in (1, 2, 3):
+        c2.location.x += 0.01
+        c2.keyframe_insert("location", frame=frame)
+    scene.frame_set(1)
+
+
+def test_image_blend_solves_its_weights_again_where_a_mask_sequence_changes(scene):
+    """Camera 1's mask is the left half at frame 1 and the right half from frame 2 on,
+    camera 2 moves: frame 2 solves the weights again, frame 3 (the same masks) takes
+    them as they were, and each frame's weights equal those of a cold build."""
+    moving(scene)
+    scene.multiscale.method = "IMAGE_BLEND"
+    SERVICE.forget_sequence()
+    said = {}
+    for frame in (1, 2, 3):
+        scene.frame_set(frame)
+        ready = pipeline.prepare_frame(bpy.context.evaluated_depsgraph_get())
+        said[frame] = ready.field.stats["reuse"]["weights"]
+        assert ("mask weights" in ready.rebuilt["built"]) == (said[frame] == "solved")
+        cold = prepare(ready.field.rig, "IMAGE_BLEND")
+        np.testing.assert_array_equal(ready.field.weights, cold.weights)
+    assert said == {1: "solved", 2: "solved", 3: "reused"}
+
+
+def test_auto_measures_each_sampled_frame_with_its_own_masks(scene, monkeypatch):
+    """A shot with a mask sequence is one shot at every frame (the choice is keyed by
+    the sequence, not the frame's pixels): measured once, each sampled frame with the
+    masks Blender shows there."""
+    moving(scene)
+    scene.multiscale.method = "AUTO"
+    SERVICE.forget_sequence()
+    left, right = halves()
+    measured = []
+    real = fields.choose_shot_method
+
+    def choose(samples, *args):
+        measured.append({f: rig.masks[0].copy() for f, rig in samples})
+        return real(samples, *args)
+
+    monkeypatch.setattr(fields, "choose_shot_method", choose)
+    shots = set()
+    for frame in (1, 2, 3):
+        scene.frame_set(frame)
+        depsgraph = bpy.context.evaluated_depsgraph_get()
+        shots.add(SERVICE.request(depsgraph.scene, depsgraph=depsgraph).settings.shot)
+    assert len(measured) == 1 and len(shots) == 1
+    assert sorted(measured[0]) == [1, 2, 3]
+    c2 = rig_from_scene(scene).masks[1]
+    np.testing.assert_array_equal(measured[0][1], left & ~c2)
+    np.testing.assert_array_equal(measured[0][2], right & ~c2)
+    np.testing.assert_array_equal(measured[0][3], right & ~c2)

@@ -121,13 +121,21 @@ def render_animation(scene, folder):
 
 
 @pytest.mark.slow
-def test_animation_render_reads_each_frames_cameras(empty_scene, tmp_path):
+@pytest.mark.parametrize("method", ["SCALAR_FIELD", "AUTO"])
+def test_animation_render_reads_each_frames_cameras(empty_scene, tmp_path, method):
     """render(animation=True) with keyframed cameras once gave frames 1 and 2 the same
-    picture: the render read the cameras' original objects, not the frame's."""
+    picture: the render read the cameras' original objects, not the frame's. With AUTO
+    the shot's one method (IMAGE_BLEND here) too."""
     scene = empty_scene
     cams = animated_rig(scene)
+    scene.multiscale.method = method
     renders = render_animation(scene, tmp_path)
     assert_each_frame_its_cameras(scene, cams, renders)
+    if method == "AUTO":
+        report = json.loads(scene.multiscale.report)
+        print(report["auto"])
+        assert report["method"] == "IMAGE_BLEND", report["auto"]
+        assert report["auto"].endswith("at frames 1, 2, 3 of the shot"), report["auto"]
 
 
 @pytest.mark.slow
@@ -309,14 +317,17 @@ DOLLY_FLICKER_FRAMES = (1, 7, 13)
 
 
 @pytest.mark.slow
-def test_dolly_moves_rays_continuously(empty_scene):
+@pytest.mark.parametrize("method", ["SCALAR_FIELD", "AUTO"])
+def test_dolly_moves_rays_continuously(empty_scene, method):
     """The flicker test on sample_blends/dolly.blend's scene (160x90, its own HIGH
     quality): camera 3 dollies in and camera 2 pans, uniformly; over frames t, t + d/2
     and t + d the p95 first-hit move to t + d is 1.6 to 2.4 times that to t + d/2, in
-    camera 3's preserved region and in the transitions."""
+    camera 3's preserved region and in the transitions. With the sample's SCALAR_FIELD
+    and with AUTO, which keeps IMAGE_BLEND for the dolly's shot."""
     scene = empty_scene
     samples.build_dolly(scene)
     scene.render.resolution_percentage = 25
+    scene.multiscale.method = method
     cam1 = scene.objects["Cam1 Square"]
 
     def at(frame):
@@ -324,6 +335,8 @@ def test_dolly_moves_rays_continuously(empty_scene):
 
     ratios = move_ratios(scene, [at(f) for f in DOLLY_FLICKER_FRAMES], cam1, 2)
     assert_moves_linearly(ratios)
+    built = pipeline.prepare_frame(bpy.context.evaluated_depsgraph_get()).field.method
+    assert built == {"SCALAR_FIELD": "SCALAR_FIELD", "AUTO": "IMAGE_BLEND"}[method]
 
 
 def test_dolly_sample_moves_uniformly(empty_scene):
@@ -360,12 +373,13 @@ def test_dolly_keeps_one_layout_over_its_frames(empty_scene):
     """The steady layout re-snapped inside the shot: on the dolly at 160x90 HIGH, each
     frame's own layout changed 11 times over frames 1-48 (every level at frames 16, 38
     and 41). The shot's layout is chosen once from all its frames: every frame's
-    request carries the same one, it holds every frame's own grids, and AUTO builds
-    SCALAR_FIELD on it at both ends of the shot."""
+    request carries the same one, it holds every frame's own grids, and SCALAR_FIELD
+    builds on it at both ends of the shot."""
     scene = empty_scene
     samples.build_dolly(scene)
     scene.render.resolution_percentage = 25
-    scene.multiscale.method = "AUTO"  # the sample's SCALAR_FIELD, chosen by AUTO
+    scene.multiscale.method = "SCALAR_FIELD"  # the sample's
+    fields.SERVICE.clear()  # built here: a field read from disk keeps no nested domain
     layouts, own, keys = set(), [], set()
     for frame in range(scene.frame_start, scene.frame_end + 1):
         scene.frame_set(frame)
@@ -398,6 +412,78 @@ def test_dolly_keeps_one_layout_over_its_frames(empty_scene):
 
 
 @pytest.mark.slow
+def test_auto_keeps_image_blend_for_the_dollys_shot(empty_scene, monkeypatch):
+    """AUTO built SCALAR_FIELD for every rig in motion. On the dolly (160x90, HIGH) it
+    measures IMAGE_BLEND once, at frames 1, 24 and 48 (the first, middle and last of its
+    keys), finds it meets the target there and keeps it for every frame: each request
+    carries the same choice and no grid layout, no frame measures again, and a frame
+    after another takes its mask weights (the masks hold still)."""
+    scene = empty_scene
+    samples.build_dolly(scene)
+    scene.render.resolution_percentage = 25
+    scene.multiscale.method = "AUTO"
+    fields.SERVICE.clear()  # fields, reuse store, the shot's choice: nothing kept
+    measured = []
+    real = fields.choose_shot_method
+
+    def choose(samples, *args):
+        measured.append([f for f, _rig in samples])
+        return real(samples, *args)
+
+    monkeypatch.setattr(fields, "choose_shot_method", choose)
+    choices = set()
+    for frame in (1, 2, 30, 48):
+        scene.frame_set(frame)
+        depsgraph = bpy.context.evaluated_depsgraph_get()
+        request = fields.SERVICE.request(depsgraph.scene, depsgraph=depsgraph)
+        assert request.settings.layout is None, frame
+        choices.add(request.settings.shot)
+    assert measured == [[1, 24, 48]]
+    (choice,) = choices
+    print(choice.why)
+    assert choice.method == "IMAGE_BLEND" and choice.frames == (1, 24, 48)
+    fields.SERVICE.reuse = FrameReuse()
+    for frame, weights in ((1, "built"), (2, "reused")):
+        scene.frame_set(frame)
+        ready = pipeline.prepare_frame(bpy.context.evaluated_depsgraph_get())
+        print(pipeline.rebuilt_line(ready.rebuilt))
+        assert ready.field.method == "IMAGE_BLEND"
+        assert ready.field.stats["auto"] == choice.why
+        assert "mask weights" in ready.rebuilt[weights], ready.rebuilt
+        assert "curves" in ready.rebuilt["built"], ready.rebuilt
+    assert measured == [[1, 24, 48]]
+
+
+def test_a_workers_frame_range_keeps_autos_method_for_the_shot(empty_scene):
+    """AUTO's method for a shot is measured on frames picked from the cameras' keys, so
+    farm workers given different ranges (each its own process: nothing kept) measure
+    the same frames and choose alike; a rig that turns far within the shot gets
+    SCALAR_FIELD for all of it, whichever of its frames a worker renders."""
+    scene = empty_scene
+    _c1, c2 = animated_rig(scene)  # keys on frames 1 and 3
+    scene.multiscale.method = "AUTO"
+    for turn, method in ((0.0, "IMAGE_BLEND"), (1.0, "SCALAR_FIELD")):
+        if turn:  # camera 2 turns 57 degrees more by frame 3: IMAGE_BLEND folds there
+            c2.rotation_euler.z += turn
+            c2.keyframe_insert("rotation_euler", frame=FRAMES[-1])
+        choices = []
+        for start, end in ((1, 3), (2, 3), (3, 3), (1, 10)):
+            fields.SERVICE.forget_sequence()
+            scene.frame_start, scene.frame_end = start, end
+            scene.frame_set(start)
+            depsgraph = bpy.context.evaluated_depsgraph_get()
+            choices.append(
+                fields.SERVICE.request(depsgraph.scene, depsgraph=depsgraph).settings.shot
+            )
+        print(choices[0].why)
+        assert all(c == choices[0] and c.why == choices[0].why for c in choices), choices
+        assert choices[0].method == method
+        assert choices[0].frames == (1, 2, 3)[: len(choices[0].frames)]
+        if method == "IMAGE_BLEND":
+            assert choices[0].frames == (1, 2, 3)
+
+
+@pytest.mark.slow
 def test_jump_is_reported_where_pass_indices_are_0(empty_scene, tmp_path):
     """The jump was measured on IndexOB (the objects' pass index, 0 = no hit), so in a
     scene whose pass indices were all 0, as in ordinary scenes, it was always null."""
@@ -426,7 +512,7 @@ def test_clear_and_a_file_load_forget_the_sequence(empty_scene):
     index, hits = np.ones((2, 2)), np.zeros((2, 2, 3))
     service.reuse.claims[("grid", "digest")] = (None, None)
     service.clear()
-    assert service.reuse.claims == {} and service.shots == {}
+    assert service.reuse.claims == {} and service.shots == {} and service.choices == {}
     service.sequence.add(("", "Scene", "ViewLayer"), 1, 1, index, hits)
     service.reuse.solved[("grid", "tag")] = None
     bpy.ops.wm.read_homefile(use_empty=True)

@@ -84,13 +84,16 @@ def render_range(blend, first, last):
 
 @pytest.mark.slow
 @pytest.mark.e2e
-def test_three_farm_workers_share_frames_and_fields(empty_scene, tmp_path, fresh_service):
+@pytest.mark.parametrize("method", ["SCALAR_FIELD", "AUTO"])
+def test_three_farm_workers_share_frames_and_fields(empty_scene, tmp_path, fresh_service, method):
     """Three processes render overlapping ranges of one .blend with placeholders and
     no overwrite, and one cache folder beside the file: every frame is written once,
     each of the two fields is built once (builds.jsonl says by whom), and every frame
-    equals the same frame rendered cold in one process."""
+    equals the same frame rendered cold in one process. With AUTO each worker chooses
+    the shot's method on its own: they agree, or the fields' keys would differ."""
     scene = empty_scene
     held_rig(scene)
+    scene.multiscale.method = method
     scene.multiscale.cache_folder = "//cache"
     scene.render.use_placeholder, scene.render.use_overwrite = True, False
     scene.render.filepath = "//frames/f_####"
@@ -125,6 +128,11 @@ def test_three_farm_workers_share_frames_and_fields(empty_scene, tmp_path, fresh
     one, three = (read_passes(tmp_path / "cold" / f"f_{f:04d}.exr") for f in (1, 3))
     assert not np.array_equal(one["Combined"], three["Combined"])  # two rigs indeed
     print(json.dumps(builds))
+    if method == "AUTO":
+        report = json.loads(scene.multiscale.report)
+        print(report["auto"])
+        assert report["method"] == "IMAGE_BLEND"
+        assert report["auto"].endswith("at frames 1, 2, 4 of the shot"), report["auto"]
 
 
 @pytest.mark.slow

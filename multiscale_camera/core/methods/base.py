@@ -32,6 +32,8 @@ class Settings:
     layout : field.ShotLayout or None, the grids chosen once for a whole shot
         (``scalar_field.plan_shot``): SCALAR_FIELD builds on them wherever they hold
         the frame's rig (its own steady layout elsewhere). Part of the field's identity.
+    shot : shot.ShotChoice or None, AUTO's method for a whole shot of a rig in motion
+        (``shot.choose_shot_method``); None: SCALAR_FIELD. Part of the field's identity.
     """
 
     accuracy_px: float = 0.5
@@ -41,6 +43,7 @@ class Settings:
     processes: int = field(default=0, repr=False, compare=False)
     steady: bool = False
     layout: object = None
+    shot: object = None
 
 
 # Quality presets: accuracy target in pixels and voxel budget (about 0.1, 0.4 and

@@ -54,23 +54,38 @@ def eased(weights):
     return s.astype(np.float32)
 
 
-def prepare_image_blend(rig, settings=None, diag=None):
+def prepare_image_blend(rig, settings=None, diag=None, reuse=None):
     """IMAGE_BLEND: each pixel's ray is its curves R_i blended by harmonic mask weights,
     eased at both ends (``eased``).
 
     Exact where it matters: a pixel inside camera i's mask gets R_i itself, so beyond
     camera i's near plane it is camera i's own pinhole ray. Neighbouring rays can cross
     in the transitions (folds), since nothing ties them together.
+
+    ``reuse`` (``reuse.FrameReuse`` or None): the weights depend on the masks alone, so
+    a build whose masks are those the store kept takes its weights as they were (no
+    solve), and one whose masks changed solves and keeps them; what it did is in
+    ``stats["reuse"]`` (``FrameReuse.record_weights``).
     """
     warnings = check_rig(rig)
     start = time.perf_counter()
-    solve = mask_weights(rig.masks)
-    fld = CurveBlendField(rig=rig, method="IMAGE_BLEND", weights=eased(solve.x), warnings=warnings)
+    kept = reuse.mask_weights(rig.masks) if reuse is not None else None
+    if kept is not None:
+        weights, solver = kept
+    else:
+        solve = mask_weights(rig.masks)
+        weights = eased(solve.x)
+        solver = {
+            "iterations": solve.iterations,
+            "residual": solve.residuals[-1] if solve.residuals else 0.0,
+            "converged": solve.converged,
+        }
+        if reuse is not None:
+            reuse.keep_weights(rig.masks, weights, solver)
+    fld = CurveBlendField(rig=rig, method="IMAGE_BLEND", weights=weights, warnings=warnings)
     record_seconds(fld, {"solve": time.perf_counter() - start})
-    fld.solver.update(
-        iterations=solve.iterations,
-        residual=solve.residuals[-1] if solve.residuals else 0.0,
-        converged=solve.converged,
-    )
+    fld.solver.update(solver)
     fld.warnings += guard_warnings(rig)
+    if reuse is not None:
+        fld.stats["reuse"] = reuse.record_weights(kept is not None, fld.seconds)
     return fld

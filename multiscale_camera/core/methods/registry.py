@@ -37,6 +37,12 @@ MAX_OVER_TARGET = 4.0
 # streamlines, which do not cross. LINEAR folds wherever a transition has more than one
 # nearest preserved pixel and VECTOR_FIELD's preserved rays drift (docs/methods.md).
 AUTO_CANDIDATES = ("IMAGE_BLEND", "SCALAR_FIELD")
+# AUTO's word on a rig in motion whose shot was not measured (its frames could not be
+# stepped: ``Settings.shot`` None).
+UNMEASURED_SHOT = (
+    "SCALAR_FIELD: the rig moves and a shot keeps one method; the shot's frames were not "
+    "measured for IMAGE_BLEND"
+)
 
 
 def shortfall(cameras, folds, accuracy_px):
@@ -106,15 +112,20 @@ def prepare_auto(rig, settings=None, diag=None, reuse=None):
     The choice and why are in ``stats["auto"]``; the measurement stays with the field
     (``measured``), so the report does not measure it again.
 
-    A rig in motion (``settings.steady``) gets SCALAR_FIELD at every frame: one method
-    for the whole shot (a choice measured frame by frame could switch it mid-shot),
-    built with ``reuse`` (``reuse.FrameReuse`` or None) as SCALAR_FIELD is.
+    A rig in motion (``settings.steady``) keeps one method for the whole shot (a choice
+    measured frame by frame could switch it mid-shot): the one ``settings.shot`` holds
+    (``shot.choose_shot_method``, made once per shot from a few of its frames), else
+    SCALAR_FIELD; either is built with ``reuse`` (``reuse.FrameReuse`` or None).
     """
     settings = settings or Settings()
     diag = diagnostics_of(diag)
     if settings.steady:
-        out = prepare_scalar_field(rig, settings, diag, reuse)
-        out.stats["auto"] = "SCALAR_FIELD: the rig moves, and a shot keeps one method"
+        choice = settings.shot
+        if choice is not None and choice.method == "IMAGE_BLEND":
+            out = prepare_image_blend(rig, settings, diag, reuse)
+        else:
+            out = prepare_scalar_field(rig, settings, diag, reuse)
+        out.stats["auto"] = choice.why if choice is not None else UNMEASURED_SHOT
         return out
     misses, kept = [], []
     names = [cam.name for cam in rig.cameras]
@@ -168,15 +179,15 @@ METHODS["AUTO"] = prepare_auto
 def prepare(rig, method, settings=None, diag=None, reuse=None):
     """Prepare the ray field of ``method`` (the enum name of ``scene.multiscale.method``)
     for ``rig``, steered by ``diag`` (core.diagnostics.Diagnostics or None). ``reuse``
-    (``reuse.FrameReuse`` or None): what SCALAR_FIELD may take from earlier builds of a
-    sequence, and keeps for the next (AUTO on a rig in motion too; other methods build
-    from scratch)."""
+    (``reuse.FrameReuse`` or None): what SCALAR_FIELD and IMAGE_BLEND may take from
+    earlier builds of a sequence, and keep for the next (AUTO on a rig in motion too;
+    other methods build from scratch)."""
     try:
         builder = METHODS[method]
     except KeyError:
         raise RigError(
             f"Method '{method}' is not available in this version; use one of: " + ", ".join(METHODS)
         ) from None
-    if builder in (prepare_scalar_field, prepare_auto):
+    if builder in (prepare_scalar_field, prepare_image_blend, prepare_auto):
         return builder(rig, settings or Settings(), diag, reuse)
     return builder(rig, settings or Settings(), diag)

@@ -14,8 +14,12 @@ while the rig stays inside them, so from one frame to the next:
 - everything else (the other cameras' claims, the trace) is built again: every ray of
   a transition depends on the cameras on either side of it.
 
+IMAGE_BLEND has no grid: its weights (``field.mask_weights``, eased) depend on the masks
+alone, and are most of its build; a frame whose masks are those of the build before
+takes them as they were (``weights``), one whose masks changed solves them again.
+
 ``FrameReuse`` holds that between builds (the field service keeps one per process) and
-says per build what was taken and what was built (``record``).
+says per build what was taken and what was built (``record``, ``record_weights``).
 """
 
 import hashlib
@@ -36,6 +40,14 @@ def family_digest(rig, i):
     return h.hexdigest()
 
 
+def masks_digest(masks):
+    """Hex digest of ``masks`` ((N, H, W) bool): their shape and pixels."""
+    masks = np.ascontiguousarray(masks, dtype=bool)
+    h = hashlib.sha1(repr(masks.shape).encode())
+    h.update(np.packbits(masks).tobytes())
+    return h.hexdigest()
+
+
 def solve_phrase(solve):
     """How a frame's report names its membership solve, from ``record``'s ``solve``:
     "membership solve", "membership solve (warm start)" or "membership solve (warm
@@ -53,14 +65,44 @@ class FrameReuse:
 
     claims : dict (Grid, family digest) -> (core, halo), (nx, ny, nz) bool each.
     solved : dict (Grid, method, settings) -> (nx, ny, nz) float32 membership.
+    weights : dict masks digest (``masks_digest``) -> (weights, solver): IMAGE_BLEND's
+        eased weights ((N, H, W) float32, read only) and its solve's ``solver`` dict;
+        the last build's alone.
     last : dict, what the last build took and built (``record``).
     """
 
     def __init__(self):
         self.claims = {}
         self.solved = {}
+        self.weights = {}
         self.last = {}
         self._lock = threading.Lock()
+
+    def mask_weights(self, masks):
+        """(weights, solver) kept for ``masks`` ((N, H, W) bool), or None."""
+        key = masks_digest(masks)
+        with self._lock:
+            return self.weights.get(key)
+
+    def keep_weights(self, masks, weights, solver):
+        """Keep IMAGE_BLEND's ``weights`` (and its ``solver`` dict) for ``masks``, and
+        no other: masks that changed leave their weights behind."""
+        weights.setflags(write=False)  # shared by the fields built on them
+        with self._lock:
+            self.weights = {masks_digest(masks): (weights, dict(solver))}
+
+    def record_weights(self, reused, seconds):
+        """What an IMAGE_BLEND build took and built, for its report (``stats["reuse"]``):
+        ``weights`` ("reused" or "solved"), ``rebuilt`` (["weights"] or []),
+        ``seconds`` (dict stage -> float, rounded)."""
+        out = {
+            "weights": "reused" if reused else "solved",
+            "rebuilt": [] if reused else ["weights"],
+            "seconds": {k: round(float(v), 3) for k, v in seconds.items()},
+        }
+        with self._lock:
+            self.last = out
+        return dict(out)
 
     def known(self, rig, grids):
         """Per grid of ``grids``, per camera: its (core, halo) kept from an earlier
