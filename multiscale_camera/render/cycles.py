@@ -140,8 +140,8 @@ def render(engine, depsgraph, frame):
         engine.report({"WARNING"}, f"Multiscale: {reason}; rendering with Solid shading")
         return None
     report = HandoffReport()
-    # Esc, or Ctrl-C headless (the engine's ``should_stop``; Blender's own check alone
-    # never hears Ctrl-C there)
+    # Esc, or Ctrl-C headless (the engine's ``should_stop``: its SIGINT handler replaces
+    # Blender's, except during Cycles' own render)
     stop = engine.should_stop
     camera = engine.camera_override or depsgraph.scene_eval.camera
     if camera is None or camera.type != "CAMERA":
@@ -199,10 +199,13 @@ def render(engine, depsgraph, frame):
         ):
             engine.add_pass(name, channels, chan_id)
         lap("tables")
-        if stop():  # Cycles' own stage hears Esc alone: never start it once stopped
+        if stop():  # never start Cycles' own stage once stopped
             return report
         engine.update_stats("", "Multiscale: Cycles")
-        _run_cycles(engine, depsgraph, bpy.data)
+        # Cycles polls Blender's break flag (Esc, or Ctrl-C headless through Blender's
+        # own handler) and runs no Python until it ends: Ctrl-C goes to Blender for it
+        with engine.ctrl_c_to_blender():
+            _run_cycles(engine, depsgraph, bpy.data)
         lap("cycles")
         if stop():
             return report
