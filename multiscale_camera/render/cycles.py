@@ -48,6 +48,14 @@ from .tables import ray_tables
 MIN_VERSION = (4, 5, 0)
 # Depth written where a ray hits nothing, as in the other passes (pipeline.MISS_DEPTH).
 MISS_DEPTH = 1e10
+# Cycles polls Blender's break flag (Esc, Ctrl-C) between its batches of samples, and
+# headless (`blender -b`) it schedules batches of up to 30 s of work (Cycles'
+# render_scheduler.cpp): a batch never spans more than a tile, so there the hand-off
+# renders in tiles of at most this many pixel samples (about 0.4 s a tile measured on
+# the two-camera test scene with 2 cores shared, docs/performance.md), at least
+# ``MIN_TILE`` px a side (Cycles' own least tile size).
+TILE_PIXEL_SAMPLES = 1 << 17
+MIN_TILE = 8
 
 
 @dataclass(frozen=True)
@@ -106,6 +114,14 @@ def unsupported_reason(version=None):
     if "cycles" not in bpy.types.Scene.bl_rna.properties:
         return "Cycles shading needs the Cycles add-on: enable it in Preferences > Add-ons"
     return None
+
+
+def cancel_tile(samples, tile_size=None):
+    """int, pixels a side of the tiles a headless hand-off renders in: at most
+    ``TILE_PIXEL_SAMPLES`` pixel samples a tile for ``samples`` samples a pixel, never
+    below ``MIN_TILE`` nor above the scene's own ``tile_size`` (None: no tiles)."""
+    tile = max(MIN_TILE, int(np.sqrt(TILE_PIXEL_SAMPLES / max(int(samples), 1))))
+    return min(tile, int(tile_size)) if tile_size else tile
 
 
 def index_pass_name(version=None):
@@ -190,6 +206,11 @@ def render(engine, depsgraph, frame):
         settings = depsgraph.scene_eval.cycles
         settings.device = "CPU"  # OSL custom cameras run on the CPU (and OptiX) only
         settings.use_denoising = False
+        if bpy.app.background:  # Ctrl-C heard within a tile (``TILE_PIXEL_SAMPLES``)
+            tile = cancel_tile(
+                settings.samples, settings.tile_size if settings.use_auto_tile else None
+            )
+            settings.use_auto_tile, settings.tile_size = True, tile
         index_name = index_pass_name()
         for name, channels, chan_id in (
             ("Depth", 1, "Z"),
