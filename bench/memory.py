@@ -9,7 +9,10 @@ worker given up on the way counts too; summed: each peak counted as if they came
 once, as the guard must assume). The estimate (``core.quality.memory``) is
 made from the rig's shapes before the build; its main-process part is added to the
 process's resident size before the build (the interpreter, numpy and the rig, already
-held when a render starts). Prints a table and writes bench/memory.json.
+held when a render starts). Each row also records the rounds of the lattice's trace
+(``rounds``: rays, and of them preserved pixels'), the rounds the workers share.
+Prints a table and writes bench/memory.json. ``--re-estimate`` makes the estimate
+columns of every row in --out again with the model as it is, without building.
 """
 
 import argparse
@@ -21,6 +24,8 @@ import threading
 import time
 from dataclasses import replace
 from pathlib import Path
+
+import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -63,24 +68,60 @@ def proc_status_kb(field, pid="self"):
     return 0
 
 
-def run_one(spec):
-    """Build one field in this process; its row (a dict)."""
+def row_rig(spec):
+    """(Rig, method, the core's Settings) of row ``spec``."""
     from fixtures import rigs
     from multiscale_camera.core.geometry import Rig
-    from multiscale_camera.core.methods import prepare, settings_for
-    from multiscale_camera.core.quality import estimate_memory
-    from multiscale_camera.core.runtime import runtime, worker_count
+    from multiscale_camera.core.methods import settings_for
 
     rig_name, method, quality, size, *more = spec.split(":")
     width, height = (int(x) for x in size.split("x"))
     cams, masks = getattr(rigs, rig_name)(width, height)
-    rig = Rig(cams, masks)
     settings = settings_for(quality)
     if method.startswith("SCALAR_FIELD"):
         settings = replace(settings, nested=method.endswith("NESTED"))
     if more:
         settings = replace(settings, processes=int(more[0].lstrip("p")))
-    method = method.replace("_NESTED", "")
+    return Rig(cams, masks), method.replace("_NESTED", ""), settings
+
+
+def estimated(row, estimate, before):
+    """``row``'s estimate columns for ``estimate`` (a MemoryEstimate) made in a process
+    of ``before`` MB, against its measured peaks."""
+    estimated_main = before + estimate.main / 2**20
+    estimated_worker = estimate.worker / 2**20
+    total = before + estimate.total / 2**20
+    return {
+        "estimated_traced_rays": estimate.shapes.get("traced_rays", 0),
+        "estimated_vertices": estimate.shapes.get("vertices", 0),
+        "estimated_mb": round(total, 1),
+        "estimated_main_mb": round(estimated_main, 1),
+        "estimated_worker_mb": round(estimated_worker, 1),
+        "ratio": round(total / row["measured_mb"], 3),
+        **ratios(row["peak_main_mb"], row["peak_workers_mb"], estimated_main, estimated_worker),
+        "parts_mb": {k: round(v / 2**20, 1) for k, v in estimate.parts.items()},
+    }
+
+
+def re_estimate(row):
+    """``row`` (measured before) with its estimate columns made again by the
+    committed model, without building."""
+    from multiscale_camera.core.quality import estimate_memory
+    from multiscale_camera.core.runtime import worker_count
+
+    rig, method, settings = row_rig(row["row"])
+    estimate = estimate_memory(rig, method, settings, worker_count(settings.processes))
+    return {**row, **estimated(row, estimate, row["before_mb"])}
+
+
+def run_one(spec):
+    """Build one field in this process; its row (a dict)."""
+    from multiscale_camera.core.field.tracer import FieldTracer
+    from multiscale_camera.core.methods import prepare
+    from multiscale_camera.core.quality import estimate_memory
+    from multiscale_camera.core.runtime import runtime, worker_count
+
+    rig, method, settings = row_rig(spec)
     before = proc_status_kb("VmRSS") / 1024
     estimate = estimate_memory(rig, method, settings, worker_count(settings.processes))
     peaks, done = {}, threading.Event()
@@ -90,10 +131,22 @@ def run_one(spec):
             for pid in runtime().pids():
                 peaks[pid] = max(peaks.get(pid, 0), proc_status_kb("VmHWM", pid) / 1024)
 
+    rounds = []  # each round of the lattice's trace: [rays, of them preserved pixels']
+    trace_pixels = FieldTracer.trace_pixels
+
+    def counted(tracer, ix, iy, *args, **kwargs):
+        preserved = int(np.any([m[iy, ix] for m in tracer.rig.masks], axis=0).sum())
+        rounds.append([len(ix), preserved])
+        return trace_pixels(tracer, ix, iy, *args, **kwargs)
+
     watcher = threading.Thread(target=watch, daemon=True)
     watcher.start()
     start = time.perf_counter()
-    fld = prepare(rig, method, settings)
+    FieldTracer.trace_pixels = counted
+    try:
+        fld = prepare(rig, method, settings)
+    finally:
+        FieldTracer.trace_pixels = trace_pixels
     seconds = time.perf_counter() - start
     done.set()
     watcher.join()
@@ -104,27 +157,21 @@ def run_one(spec):
     main = proc_status_kb("VmHWM") / 1024
     workers = list(peaks.values())
     measured = main + sum(workers)
-    estimated = before + estimate.total / 2**20
-    estimated_main = before + estimate.main / 2**20
-    estimated_worker = estimate.worker / 2**20
-    return {
+    row = {
         "row": spec,
         "built": fld.method,
         "traced_rays": int(fld.stats.get("traced", 0)),
-        "estimated_traced_rays": estimate.shapes.get("traced_rays", 0),
         "vertices": int(fld.traced.vertices.shape[1]) if getattr(fld, "traced", None) else 0,
-        "estimated_vertices": estimate.shapes.get("vertices", 0),
         "before_mb": round(before, 1),
         "peak_main_mb": round(main, 1),
         "peak_workers_mb": [round(w, 1) for w in workers],
         "measured_mb": round(measured, 1),
-        "estimated_mb": round(estimated, 1),
-        "estimated_main_mb": round(estimated_main, 1),
-        "estimated_worker_mb": round(estimated_worker, 1),
-        "ratio": round(estimated / measured, 3),
         "held_out": spec in HELD_OUT,
-        **ratios(main, workers, estimated_main, estimated_worker),
-        "parts_mb": {k: round(v / 2**20, 1) for k, v in estimate.parts.items()},
+    }
+    return {
+        **row,
+        **estimated(row, estimate, before),
+        "rounds": rounds,
         "build_seconds": round(seconds, 2),
         "load_1min": round(os.getloadavg()[0], 2),
     }
@@ -148,10 +195,19 @@ def main():
     parser.add_argument(
         "--merge", action="store_true", help="replace only these rows in --out, keep the rest"
     )
+    parser.add_argument(
+        "--re-estimate",
+        action="store_true",
+        help="make the estimate columns of every row in --out again, without building",
+    )
     parser.add_argument("--one", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.one:
         print(json.dumps(run_one(args.one)))
+        return
+    if args.re_estimate:
+        rows = [re_estimate(r) for r in json.loads(args.out.read_text())["rows"]]
+        args.out.write_text(json.dumps({"rows": rows}, indent=1) + "\n")
         return
     specs = list(HELD_OUT) if args.held_out else args.rows
     rows = []

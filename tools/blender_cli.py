@@ -32,11 +32,19 @@ end along; the emulator keeps the range it was given for -a and -f's relative fr
 ``sys.argv`` is ``["blender", *arguments]``. Without ``--factory-startup`` the user's
 preferences and startup file (under $BLENDER_USER_RESOURCES, if set) are loaded.
 The process is always in background mode: the wheel has no window.
+
+Ctrl-C (SIGINT) acts as in `blender -b` (``emulate_ctrl_c``): it sets Blender's break
+flag, which renders and Cycles poll, and says so; a second one exits 2.
 """
 
 import builtins
+import ctypes
+import mmap
 import os
+import signal
+import struct
 import sys
+import threading
 import traceback
 
 SETTINGS = {"-b", "--background", "--factory-startup", "-v", "--version"}
@@ -251,6 +259,87 @@ def set_format(scene, name):
     return True
 
 
+# Blender's ``Global`` (BKE_global.hh) in the bpy 5.0.1 wheel: its size, and the offsets
+# of ``is_break`` and of ``background``, the next member (1 in a background process).
+GLOBAL_SIZE, IS_BREAK, BACKGROUND = 3552, 3104, 3105
+
+
+def global_address(library):
+    """The address of Blender's ``G`` in this process, from ``library``'s (the wheel's
+    bpy/__init__.so) symbol table and where it is loaded, or None when either is missing
+    or ``G`` is not the ``Global`` of ``GLOBAL_SIZE`` bytes this emulation knows."""
+    try:
+        with open(library, "rb") as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as m:
+            shoff = struct.unpack_from("<Q", m, 0x28)[0]
+            shentsize, shnum = struct.unpack_from("<HH", m, 0x3A)
+            sections = [
+                struct.unpack_from("<IIQQQQIIQQ", m, shoff + i * shentsize) for i in range(shnum)
+            ]
+            symtab = next(s for s in sections if s[1] == 2)  # SHT_SYMTAB
+            strtab = sections[symtab[6]]
+            name = m.find(b"\0G\0", strtab[4], strtab[4] + strtab[5]) + 1 - strtab[4]
+            value = None
+            for i in range(symtab[5] // 24):  # Elf64_Sym: name, info, other, shndx, value, size
+                st_name, st_info, _o, _n, st_value, st_size = struct.unpack_from(
+                    "<IBBHQQ", m, symtab[4] + 24 * i
+                )
+                if st_name == name and st_info & 0xF == 1 and st_size == GLOBAL_SIZE:
+                    value = st_value
+                    break
+    except (OSError, ValueError, StopIteration, struct.error):
+        return None
+    if value is None:
+        return None
+    for line in open("/proc/self/maps"):
+        parts = line.split()
+        if len(parts) >= 6 and parts[1].endswith("p") and int(parts[2], 16) == 0:
+            if os.path.realpath(parts[5]) == os.path.realpath(library):
+                return int(parts[0].split("-")[0], 16) + value
+    return None
+
+
+def emulate_ctrl_c(bpy):
+    """Blender's Ctrl-C in background mode (creator_signals.cc, sig_handle_blender_esc:
+    set ``G.is_break``, print "Sent an internal break event", exit 2 on a second one),
+    which the wheel lacks (SIGINT raises KeyboardInterrupt there). A Python handler runs
+    only when the main thread runs Python, not during a render in C; so the handler
+    here is Python's own C handler with ``signal.set_wakeup_fd``, and a thread woken by
+    it writes ``G.is_break`` (found by ``global_address``) at once, while this handler is
+    SIGINT's (an add-on's own handler, while it holds, hears Ctrl-C alone). Without
+    ``G`` Ctrl-C stays Python's and a warning says so."""
+    library = os.path.join(os.path.dirname(bpy.__file__).split(os.sep + "5.0" + os.sep)[0])
+    address = global_address(os.path.join(library, "__init__.so"))
+    if address is None or ctypes.c_ubyte.from_address(address + BACKGROUND).value != 1:
+        print(
+            "tools/blender: Blender's G not found: Ctrl-C raises KeyboardInterrupt", file=sys.stderr
+        )
+        return
+    is_break = ctypes.c_bool.from_address(address + IS_BREAK)
+
+    def blender_esc(_signum, _frame):  # the thread does Blender's work
+        pass
+
+    read, write = os.pipe()
+    os.set_blocking(write, False)
+    signal.signal(signal.SIGINT, blender_esc)
+    signal.set_wakeup_fd(write, warn_on_full_buffer=False)
+
+    def watch():
+        breaks = 0
+        while True:
+            for signum in os.read(read, 64):
+                if signum != signal.SIGINT or signal.getsignal(signal.SIGINT) is not blender_esc:
+                    continue
+                is_break.value = True
+                if breaks:
+                    print("\nBlender killed", flush=True)
+                    os._exit(2)
+                print("\nSent an internal break event. Press ^C again to kill Blender", flush=True)
+                breaks += 1
+
+    threading.Thread(target=watch, name="blender-esc", daemon=True).start()
+
+
 def main(args):
     try:
         settings, actions = parse(args)
@@ -265,6 +354,7 @@ def main(args):
         print_version(bpy)
         return 0
     load_startup(bpy, factory="--factory-startup" in settings)
+    emulate_ctrl_c(bpy)
 
     exit_code_on_error = 0
     span = FrameRange()

@@ -15,7 +15,9 @@ and progress; ``merge`` brings them back.
 
 from __future__ import annotations
 
+import ctypes
 import enum
+import os
 import signal
 import threading
 import time
@@ -181,20 +183,110 @@ def diagnostics_of(diag: Diagnostics | None) -> Diagnostics:
     return diag if diag is not None else Diagnostics()
 
 
+class Interrupt(threading.Event):
+    """What ``interrupt_stops`` yields: set by Ctrl-C (SIGINT) while the block runs;
+    ``to_host`` hands SIGINT back to the handler the process had before, for a call
+    into C code that polls that handler's flag itself."""
+
+    def __init__(self):
+        super().__init__()
+        self._host = None  # (Python's handler before, the C handler's sigaction, ours)
+
+    @contextmanager
+    def to_host(self):
+        """Within the block SIGINT goes to the handler the process had before
+        ``interrupt_stops``: in `blender -b` Blender's own (in C), which sets the break
+        flag that Blender's C code polls (Cycles' ``test_break``). A Python handler runs
+        only when the main thread runs Python again, so a long call in C (a Cycles
+        render) would hear ours only when it ends. Nothing changes outside
+        ``interrupt_stops``, off the main thread, or when the handler before would end
+        the process or raise ``KeyboardInterrupt`` (the default action, Python's own)."""
+        host = self._host
+        if host is None:
+            yield self
+            return
+        previous, native, ours = host
+        if native is not None:
+            _set_action(native)
+        elif callable(previous) and previous is not signal.default_int_handler:
+            signal.signal(signal.SIGINT, previous)
+        else:
+            yield self
+            return
+        try:
+            yield self
+        finally:
+            signal.signal(signal.SIGINT, ours)
+
+
 @contextmanager
 def interrupt_stops():
     """Within the block, Ctrl-C (SIGINT) asks the job to stop instead of raising
-    ``KeyboardInterrupt`` wherever the main thread happens to be: yields a
-    ``threading.Event`` that SIGINT sets, for the job's cancel check (headless Blender,
-    where no Esc reaches the job). Off the main thread (a render in Blender's window)
-    it changes nothing. The handler before it is put back after; one Python did not
-    install (Blender's own, in C) cannot be, and SIGINT then has its default action."""
-    interrupted = threading.Event()
+    ``KeyboardInterrupt`` wherever the main thread happens to be: yields an
+    ``Interrupt`` (a ``threading.Event``) that SIGINT sets, for the job's cancel check
+    (headless Blender, where no Esc reaches the job). Off the main thread (a render in
+    Blender's window) it changes nothing. The handler before it is put back after,
+    also one Python did not install (Blender's own, in C: its ``sigaction`` is kept)."""
+    interrupted = Interrupt()
     if threading.current_thread() is not threading.main_thread():
         yield interrupted
         return
-    previous = signal.signal(signal.SIGINT, lambda _signum, _frame: interrupted.set())
+    before = _get_action()
+
+    def ours(_signum, _frame):
+        interrupted.set()
+
+    previous = signal.signal(signal.SIGINT, ours)
+    mine = _get_action()
+    native = None
+    if before is not None and mine is not None and _handler_of(before) > 1:
+        # a handler of its own, neither SIG_DFL, SIG_IGN nor Python's
+        native = before if _handler_of(before) != _handler_of(mine) else None
+    interrupted._host = (previous, native, ours)
     try:
         yield interrupted
     finally:
+        interrupted._host = None
         signal.signal(signal.SIGINT, previous if previous is not None else signal.SIG_DFL)
+        if native is not None:
+            _set_action(native)
+
+
+# ``struct sigaction`` is read and written whole, as bytes: its layout differs between
+# platforms, but on all of POSIX its first member is the handler. More than any
+# platform's size (Linux x86-64: 152 bytes).
+_SIGACTION_BYTES = 512
+
+
+def _libc():
+    """The C library (ctypes), or None where it has no ``sigaction`` (Windows)."""
+    if os.name != "posix":
+        return None
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        return libc if hasattr(libc, "sigaction") else None
+    except OSError:
+        return None
+
+
+def _get_action():
+    """SIGINT's ``struct sigaction`` as bytes, or None where it cannot be read."""
+    libc = _libc()
+    if libc is None:
+        return None
+    buf = ctypes.create_string_buffer(_SIGACTION_BYTES)
+    if libc.sigaction(signal.SIGINT, None, buf) != 0:
+        return None
+    return buf.raw
+
+
+def _set_action(action):
+    """Make ``action`` (``_get_action``'s bytes) SIGINT's ``struct sigaction``."""
+    libc = _libc()
+    if libc is not None:
+        libc.sigaction(signal.SIGINT, ctypes.create_string_buffer(action, len(action)), None)
+
+
+def _handler_of(action):
+    """The handler's address in ``action`` (0: SIG_DFL, 1: SIG_IGN)."""
+    return ctypes.c_size_t.from_buffer_copy(action[: ctypes.sizeof(ctypes.c_size_t)]).value

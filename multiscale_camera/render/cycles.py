@@ -48,6 +48,14 @@ from .tables import ray_tables
 MIN_VERSION = (4, 5, 0)
 # Depth written where a ray hits nothing, as in the other passes (pipeline.MISS_DEPTH).
 MISS_DEPTH = 1e10
+# Cycles polls Blender's break flag (Esc, Ctrl-C) between its batches of samples, and
+# headless (`blender -b`) it schedules batches of up to 30 s of work (Cycles'
+# render_scheduler.cpp): a batch never spans more than a tile, so there the hand-off
+# renders in tiles of at most this many pixel samples (about 0.4 s a tile measured on
+# the two-camera test scene with 2 cores shared, docs/performance.md), at least
+# ``MIN_TILE`` px a side (Cycles' own least tile size).
+TILE_PIXEL_SAMPLES = 1 << 17
+MIN_TILE = 8
 
 
 @dataclass(frozen=True)
@@ -108,6 +116,14 @@ def unsupported_reason(version=None):
     return None
 
 
+def cancel_tile(samples, tile_size=None):
+    """int, pixels a side of the tiles a headless hand-off renders in: at most
+    ``TILE_PIXEL_SAMPLES`` pixel samples a tile for ``samples`` samples a pixel, never
+    below ``MIN_TILE`` nor above the scene's own ``tile_size`` (None: no tiles)."""
+    tile = max(MIN_TILE, int(np.sqrt(TILE_PIXEL_SAMPLES / max(int(samples), 1))))
+    return min(tile, int(tile_size)) if tile_size else tile
+
+
 def index_pass_name(version=None):
     """Cycles' name of the object index pass: "Object Index" from Blender 5, else "IndexOB"."""
     return "Object Index" if tuple(version or bpy.app.version) >= (5, 0, 0) else "IndexOB"
@@ -140,8 +156,8 @@ def render(engine, depsgraph, frame):
         engine.report({"WARNING"}, f"Multiscale: {reason}; rendering with Solid shading")
         return None
     report = HandoffReport()
-    # Esc, or Ctrl-C headless (the engine's ``should_stop``; Blender's own check alone
-    # never hears Ctrl-C there)
+    # Esc, or Ctrl-C headless (the engine's ``should_stop``: its SIGINT handler replaces
+    # Blender's, except during Cycles' own render)
     stop = engine.should_stop
     camera = engine.camera_override or depsgraph.scene_eval.camera
     if camera is None or camera.type != "CAMERA":
@@ -190,6 +206,11 @@ def render(engine, depsgraph, frame):
         settings = depsgraph.scene_eval.cycles
         settings.device = "CPU"  # OSL custom cameras run on the CPU (and OptiX) only
         settings.use_denoising = False
+        if bpy.app.background:  # Ctrl-C heard within a tile (``TILE_PIXEL_SAMPLES``)
+            tile = cancel_tile(
+                settings.samples, settings.tile_size if settings.use_auto_tile else None
+            )
+            settings.use_auto_tile, settings.tile_size = True, tile
         index_name = index_pass_name()
         for name, channels, chan_id in (
             ("Depth", 1, "Z"),
@@ -199,10 +220,13 @@ def render(engine, depsgraph, frame):
         ):
             engine.add_pass(name, channels, chan_id)
         lap("tables")
-        if stop():  # Cycles' own stage hears Esc alone: never start it once stopped
+        if stop():  # never start Cycles' own stage once stopped
             return report
         engine.update_stats("", "Multiscale: Cycles")
-        _run_cycles(engine, depsgraph, bpy.data)
+        # Cycles polls Blender's break flag (Esc, or Ctrl-C headless through Blender's
+        # own handler) and runs no Python until it ends: Ctrl-C goes to Blender for it
+        with engine.ctrl_c_to_blender():
+            _run_cycles(engine, depsgraph, bpy.data)
         lap("cycles")
         if stop():
             return report

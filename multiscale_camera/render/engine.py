@@ -1,6 +1,7 @@
 """The ``MULTISCALE`` render engine: a thin shell around ``pipeline``."""
 
 import time
+from contextlib import contextmanager
 
 import bpy
 import numpy as np
@@ -38,6 +39,19 @@ class MultiscaleRenderEngine(bpy.types.RenderEngine):
     def should_stop(self):
         """Esc (``test_break``), or Ctrl-C during this render."""
         return self.test_break() or self._interrupted.is_set()
+
+    @contextmanager
+    def ctrl_c_to_blender(self):
+        """For a call into Blender's C code that polls Blender's break flag and runs no
+        Python until it ends (Cycles' own render): Ctrl-C goes to Blender's own handler
+        (``Interrupt.to_host``; in `blender -b` it sets that flag), and a break heard in
+        background mode is then this render's Ctrl-C."""
+        try:
+            with self._interrupted.to_host():
+                yield
+        finally:
+            if bpy.app.background and self.test_break():
+                self._interrupted.set()
 
     def _render(self, depsgraph):
         start = time.perf_counter()

@@ -401,3 +401,16 @@ def test_handoff_says_when_its_march_workers_were_given_up(
 def _hang(*args):
     """A render worker's tile that neither ends for half a minute nor beats."""
     time.sleep(30)
+
+
+@pytest.mark.parametrize("samples", [1, 16, 128, 1024, 4096, 1 << 20])
+def test_headless_cycles_tiles_are_small_enough_to_hear_ctrl_c(samples):
+    """Headless Cycles hears Ctrl-C only between its batches, which never span a tile:
+    the hand-off's tiles hold at most TILE_PIXEL_SAMPLES pixel samples (a tile a side
+    larger would hold more), never less than MIN_TILE px a side."""
+    tile = cycles.cancel_tile(samples)
+    assert tile >= cycles.MIN_TILE
+    if tile > cycles.MIN_TILE:
+        assert tile * tile * samples <= cycles.TILE_PIXEL_SAMPLES
+    assert (tile + 1) ** 2 * samples > cycles.TILE_PIXEL_SAMPLES
+    assert cycles.cancel_tile(samples, tile_size=cycles.MIN_TILE) == cycles.MIN_TILE

@@ -60,11 +60,17 @@ RAY_COPIES = 2
 # and float64 temporaries each: per vertex of a round's rays, up to one block.
 DEVIATION_BLOCK_VERTICES = 1 << 20
 DEVIATION_BYTES_PER_VERTEX = 110
-# Per vertex (at the step limit) of a share of rays in a worker: the preserved rays'
-# float64 layout and its float32 copy, the streamlines' buffer and state, the finished
-# rays and membership and their pickled copy on the way back. The parent holds a
+# A share of rays in a worker: its preserved pixels' rays are laid out analytically on
+# every step up to the step limit (float64, with the temporaries of the layout and of
+# the membership's sampling, and the float32 copy kept), the others (transitions) are
+# streamlines trimmed to their longest ray (float32 xyz and membership). Per preserved
+# ray's vertex at the step limit: measured 65 and 72 B on the largest rounds of the
+# 25x zoom and the three-camera rig at STANDARD (bench/memory.py's ``rounds``: the
+# worker's peak less its interpreter and grid, over its share's preserved rays times
+# the step limit); per other vertex, the streamline's arrays. The parent holds a
 # share's pickled copy and its arrays while it merges it.
-WORKER_BYTES_PER_VERTEX = 45
+WORKER_BYTES_PER_PRESERVED_VERTEX = 70
+WORKER_BYTES_PER_TRACED_VERTEX = 16
 RECEIVE_BYTES_PER_VERTEX = 2 * RAY_BYTES_PER_VERTEX
 # The lattice traces in rounds (the base lattice, then the midpoints of the cells it
 # splits); the largest round holds about this fraction of every traced ray, and is
@@ -92,6 +98,13 @@ TRACED_FRACTION = 0.065 * 4
 TRACED_ACCURACY_EXPONENT = 2.0
 TRACED_RATIO_EXPONENT = 2.0
 TRACED_WIDTH_EXPONENT = 0.6
+# ... on nested grids. On one uniform grid the scale ratio does not show (the 25x zoom
+# traces about as many rays as the 3x rigs at PREVIEW and a third fewer than the 4.8x
+# three-camera rig at STANDARD, bench/memory.json): there the fraction is this at
+# 0.5 px on a 480-pixel-wide image, with its own accuracy exponent (fitted on the
+# calibration rows of bench/memory.py, the same width exponent).
+TRACED_FRACTION_UNIFORM = 0.19
+TRACED_ACCURACY_EXPONENT_UNIFORM = 2.4
 # The longest traced ray over the trace's step limit.
 VERTICES_OF_LIMIT = 0.35
 # A render, measured (bench/render_memory.py: the two-camera scene, IMAGE_BLEND, at
@@ -179,6 +192,7 @@ def build_memory(
     max_vertices=0,
     workers=1,
     level_voxels=0,
+    preserved=1.0,
 ):
     """Peak memory of building a field, from shapes.
 
@@ -200,6 +214,8 @@ def build_memory(
         worker lays preserved rays out on); ``vertices`` when 0.
     workers : int, worker processes available (1: none).
     level_voxels : int, the largest nested level's voxels (0: one uniform grid).
+    preserved : float in [0, 1], the share of the traced rays that are preserved
+        pixels' (laid out to the step limit; the rest traced to ``vertices``).
 
     Returns
     -------
@@ -228,6 +244,11 @@ def build_memory(
     n = traced_workers(rays, workers)
     largest = int(np.ceil(LARGEST_ROUND * rays))
     share = min(MAX_RAYS_PER_SHARE, -(-largest // n)) if n else largest
+    preserved = float(np.clip(preserved, 0.0, 1.0))
+    share_bytes = share * (
+        preserved * max_vertices * WORKER_BYTES_PER_PRESERVED_VERTEX
+        + (1.0 - preserved) * int(vertices) * WORKER_BYTES_PER_TRACED_VERTEX
+    )
     level = int(level_voxels) or voxels
     per_voxel = (FILL_BYTES_PER_VOXEL + cameras * FILL_BYTES_PER_CAMERA_VOXEL) * grid_factor
     fill = {"grid fill": FILL_CHUNK_BYTES + level * per_voxel}
@@ -242,18 +263,15 @@ def build_memory(
             "traced rays": kept * RAY_BYTES_PER_VERTEX * RAY_COPIES,
             "error estimate": min(largest * int(vertices), DEVIATION_BLOCK_VERTICES)
             * DEVIATION_BYTES_PER_VERTEX,
-            "shares received" if n else "share of rays": share
-            * (
-                int(vertices) * RECEIVE_BYTES_PER_VERTEX
-                if n
-                else max_vertices * WORKER_BYTES_PER_VERTEX
+            "shares received" if n else "share of rays": (
+                share * int(vertices) * RECEIVE_BYTES_PER_VERTEX if n else share_bytes
             ),
         },
     ]
     main = max(stages, key=lambda parts: sum(parts.values()))
     worker = {}
     if n or fills_in_workers:
-        work = {"share of rays": share * max_vertices * WORKER_BYTES_PER_VERTEX} if n else {}
+        work = {"share of rays": share_bytes} if n else {}
         if fills_in_workers and sum(fill.values()) > sum(work.values()):
             work = fill
         worker = {
@@ -329,20 +347,33 @@ def edge_pixels(masks):
     return int(edge.sum()) * s
 
 
-def traced_rays_of(width, height, stride, edges, accuracy_px, ratio=10.0):
+def preserved_fraction(masks):
+    """float, the share of the image's pixels some camera preserves: of the traced
+    rays, those laid out to the step limit. masks : (N, H, W) bool. Counted on every
+    s-th row and column above ``EDGE_COUNT_PIXELS`` pixels, as ``edge_pixels``."""
+    masks = np.asarray(masks, dtype=bool)
+    s = max(1, int(np.ceil(np.sqrt(masks[0].size / EDGE_COUNT_PIXELS))))
+    return float(masks[:, ::s, ::s].any(axis=0).mean())
+
+
+def traced_rays_of(width, height, stride, edges, accuracy_px, ratio=10.0, nested=True):
     """int, an estimate of the rays the adaptive lattice traces: the base lattice at
     ``stride``, a band around the ``edges`` pixels of preserved regions' edges, and the
-    fraction of every pixel the accuracy target and the rig's scale ``ratio`` (the
-    first camera's near-plane width over the smallest one's) refine to
-    (``TRACED_FRACTION``); at most every pixel."""
+    fraction of every pixel the accuracy target and, on ``nested`` grids, the rig's
+    scale ``ratio`` (the first camera's near-plane width over the smallest one's)
+    refine to (``TRACED_FRACTION``; ``TRACED_FRACTION_UNIFORM`` on one uniform grid);
+    at most every pixel."""
     lattice = (-(-width // stride) + 1) * (-(-height // stride) + 1)
-    depth = (1.0 + np.log10(max(ratio, 1.0))) / 2.0  # 1 at a tenfold ratio
-    fraction = (
-        TRACED_FRACTION
-        * (0.5 / accuracy_px) ** TRACED_ACCURACY_EXPONENT
-        * depth**TRACED_RATIO_EXPONENT
-        * (480 / max(width, 1)) ** TRACED_WIDTH_EXPONENT
-    )
+    if nested:
+        depth = (1.0 + np.log10(max(ratio, 1.0))) / 2.0  # 1 at a tenfold ratio
+        fraction = (
+            TRACED_FRACTION
+            * (0.5 / accuracy_px) ** TRACED_ACCURACY_EXPONENT
+            * depth**TRACED_RATIO_EXPONENT
+        )
+    else:
+        fraction = TRACED_FRACTION_UNIFORM * (0.5 / accuracy_px) ** TRACED_ACCURACY_EXPONENT_UNIFORM
+    fraction *= (480 / max(width, 1)) ** TRACED_WIDTH_EXPONENT
     extra = EDGE_BAND_PIXELS * edges + min(fraction, 1.0) * width * height
     return int(min(width * height, lattice + extra))
 
@@ -384,7 +415,8 @@ def estimate_memory(rig, method, settings, workers=1):
     steps = int(sum(np.ceil(np.linalg.norm(np.array(g.shape)) / cells * 2) for g in grids)) + 8
     widths = [near_plane_width(c) for c in rig.cameras]
     ratio = widths[0] / max(min(widths), 1e-30)
-    rays = traced_rays_of(w, h, stride, edge_pixels(rig.masks), settings.accuracy_px, ratio)
+    edges = edge_pixels(rig.masks)
+    rays = traced_rays_of(w, h, stride, edges, settings.accuracy_px, ratio, len(grids) > 1)
     estimate = build_memory(
         method,
         w,
@@ -396,6 +428,7 @@ def estimate_memory(rig, method, settings, workers=1):
         max_vertices=steps + 1,
         workers=workers,
         level_voxels=level,
+        preserved=preserved_fraction(rig.masks),
     )
     estimate.shapes.update(stride=stride, step_limit=steps)
     return estimate
