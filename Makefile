@@ -10,6 +10,8 @@
 #                 volume ray casting, the dolly's fields frame after frame: bench/*.json
 #   make bench-1080  the default build (AUTO, STANDARD) on every bench rig at 1920x1080,
 #                 forced SCALAR_FIELD on the 1000x and turned rigs: bench/methods_1920x1080.json
+#   make bench-preview  AUTO at PREVIEW on every bench rig at 480x270:
+#                 bench/methods_480x270_preview.json
 #   make lint     ruff and the import contracts (pyproject.toml, [tool.importlinter])
 #   make fuzz     the core on 500 random rigs (tests/unit/test_fuzz_core.py, profile "full");
 #                 make test runs its bounded profile
@@ -49,7 +51,7 @@ RUN_SAMPLES := $(BLENDER) -b --factory-startup --python-exit-code 1 \
 	--python sample_blends/make_samples.py
 
 .PHONY: venv build test test-quick samples demo demo-anim bench bench-1080 bench-render \
-	bench-anim lint clean distclean e2e-real \
+	bench-anim bench-preview lint clean distclean e2e-real \
 	e2e-timing fuzz
 
 venv: $(VENV_STAMP)
@@ -123,7 +125,7 @@ demo-anim: sample_blends/dolly.blend
 # then volume ray casting of a 256^3 phantom at 1920x1080, the memory guard's estimate
 # against measured peaks (bench/memory.json) and the live picture's delay after a
 # stroke (bench/live_picture.json, 20 strokes at 480x270).
-bench: venv bench-render bench-anim
+bench: venv bench-render bench-anim bench-preview
 	$(PY) bench/solvers.py --sizes 64 128 256 320 --diffusion-sizes 64 128 --cap 480
 	$(PY) bench/methods.py --width 480 --height 270
 	$(PY) bench/cycles.py --width 480 --height 270 --samples 64
@@ -149,6 +151,12 @@ BENCH_TIMEOUT ?= 600
 bench-1080: venv
 	nice -n 10 $(PY) bench/methods.py --plan default --width 1920 --height 1080 \
 	  --timeout $(BENCH_TIMEOUT) --out bench/methods_1920x1080.json --docs
+
+# AUTO at PREVIEW on every bench rig at 480x270, the live picture's and the viewport's
+# quality: bench/methods_480x270_preview.json and its table in docs/performance.md.
+bench-preview: venv
+	nice -n 10 $(PY) bench/methods.py --plan preview --width 480 --height 270 \
+	  --timeout $(BENCH_TIMEOUT) --out bench/methods_480x270_preview.json --docs
 
 # The renderer on a 100k-triangle scene at 1920x1080: raw BVH rate, engine cast rate,
 # render time, cancel latency: bench/render.json.
