@@ -21,11 +21,12 @@ walk's start is the last vertex of q at or before a's arc length; section k is s
 at once where that start is segment j0 = min(k, K - 2) or j0 - 1 and the walk stops
 within one step (rays of one band share their vertices' order, so this is nearly every
 section); the others walk in ``section_points``. Per-ray quantities (arc lengths,
-tangents, the vertices and segments around j0) are computed once per band and shared by
-the three roles b, c and d; coordinates are held as three (Hy, Wx, K) planes and the
-sections go in chunks of ``CHUNK_SECTIONS``, so that the arithmetic runs over
-contiguous memory in a core's cache. Sides, points and areas are the same float64
-operations in the same order as ``dot3`` and ``cross3`` on (..., 3) rows would make.
+tangents, segments) are computed once per band and shared by the three roles b, c and
+d; coordinates are held as three (Hy, Wx, K) planes, the vertices around j0 are read
+through slices, and the sections go in chunks of ``CHUNK_SECTIONS``, so that the
+arithmetic runs over contiguous memory in a core's cache. Sides, points and areas are
+the same float64 operations in the same order as ``dot3`` and ``cross3`` on (..., 3)
+rows would make.
 """
 
 import numpy as np
@@ -129,11 +130,12 @@ def quad_folds(vertices, active):
 
 class _Rays:
     """Per-ray arrays of a lattice band, computed once for a and the three roles b, c and
-    d (about 25 float64 (Hy, Wx, K) planes in all): coordinates as planes (3, Hy, Wx, K)
-    at every vertex and at the vertices around each section's first segment j0 (segment
-    k, the last one for the last vertex): jm = j0 - 1, j0, j0 + 1; the segments jm and
-    j0 (as ``np.diff`` makes them); arc lengths at those vertices (inf where no such
-    start is possible); activity at jm and j0; a's section normals (3, Hy-1, Wx-1, K)."""
+    d (about 13 float64 (Hy, Wx, K) planes in all): coordinates and segments (as
+    ``np.diff`` makes them) as planes (3, Hy, Wx, K) and (3, Hy, Wx, K - 1); the runs
+    that gather, for each section k, the vertices around its first segment j0 (segment
+    k, the last one for the last vertex): jm = j0 - 1, j0, j0 + 1; arc lengths at every
+    vertex and at those (inf where no such start is possible); activity at every vertex
+    and at jm and j0; a's section normals (3, Hy - 1, Wx - 1, K)."""
 
     def __init__(self, v, active):
         k = v.shape[2]
@@ -144,9 +146,8 @@ class _Rays:
         # whether a walk may go on from segment j0 back, from it on, from j0 - 1 back
         self.inner = (j0 > 0, j0 < k - 2, j0 > 1)
         self.vertex = vertex = np.moveaxis(v, -1, 0).astype(np.float64, order="C")
-        self.at_m, self.at_0, self.at_1 = (np.take(vertex, j, axis=-1) for j in (jm, j0, j0 + 1))
-        steps = np.diff(vertex, axis=-1)  # the bits of np.diff(v, axis=-2)
-        self.step_m, self.step_0 = np.take(steps, jm, axis=-1), np.take(steps, j0, axis=-1)
+        self.runs = [_runs(j) for j in (jm, j0, j0 + 1)]
+        self.steps = steps = np.diff(vertex, axis=-1)  # the bits of np.diff(v, axis=-2)
         # _arc_lengths and _unit_tangents, bit for bit, on the planes
         cum = np.zeros(vertex.shape[1:])
         np.cumsum(np.sqrt(dot_planes(steps, steps)), axis=-1, out=cum[..., 1:])
@@ -194,11 +195,11 @@ def _sections(rays, q, a, normal, ref):
     ``section_points``' walk, from the segment at a's arc length, settled at once where
     it takes at most one step from segment j0 or j0 - 1; the other sections walk there."""
     inner0, inner1, inner_m = rays.inner
-    d_m = [rays.at_m[i][q] - a[i] for i in range(3)]
-    d_0 = [rays.at_0[i][q] - a[i] for i in range(3)]
+    vq = rays.vertex[:, q[0], q[1]]
+    d_m, d_0, d_1 = ([_minus(vq[i], a[i], runs) for i in range(3)] for runs in rays.runs)
     s_m = dot_planes(d_m, normal)
     s_0 = dot_planes(d_0, normal)
-    s_1 = dot_planes([rays.at_1[i][q] - a[i] for i in range(3)], normal)
+    s_1 = dot_planes(d_1, normal)
     want = np.clip(ref, 0.0, rays.end[q])
     start_0 = (rays.cum_0[q] <= want) & (want < rays.cum_1[q])
     start_m = (rays.cum_m[q] <= want) & (want < rays.cum_0[q])
@@ -211,8 +212,11 @@ def _sections(rays, q, a, normal, ref):
     s_a = np.where(back, s_m, s_0)
     den = s_a - np.where(back, s_0, s_1)
     w = np.where(den != 0, s_a / np.where(den != 0, den, 1.0), 0.0)
+    sq = rays.steps[:, q[0], q[1]]
+    runs_m, runs_0 = rays.runs[:2]
     point = [
-        np.where(back, d_m[i], d_0[i]) + np.where(back, rays.step_m[i][q], rays.step_0[i][q]) * w
+        np.where(back, d_m[i], d_0[i])
+        + np.where(back, _gather(sq[i], runs_m, w.shape), _gather(sq[i], runs_0, w.shape)) * w
         for i in range(3)
     ]
     alive = np.where(back, rays.active_m[q], rays.active_0[q])
@@ -220,6 +224,33 @@ def _sections(rays, q, a, normal, ref):
     if len(slow[0]):
         _walk(rays, q, (a, normal, ref), slow, point, alive)
     return point, alive
+
+
+def _runs(index):
+    """The runs of an index array (K,) that steps by one: (destination, source) slice
+    pairs, so that ``x[..., index]`` is gathered without a copy of ``x``."""
+    cut = np.flatnonzero(np.diff(index) != 1) + 1
+    bounds = [0, *cut.tolist(), len(index)]
+    return [
+        (slice(b0, b1), slice(int(index[b0]), int(index[b0]) + b1 - b0))
+        for b0, b1 in zip(bounds[:-1], bounds[1:])
+    ]
+
+
+def _minus(q, a, runs):
+    """``q[..., index] - a`` for the index array whose ``runs`` are given."""
+    out = np.empty(a.shape)
+    for dst, src in runs:
+        np.subtract(q[..., src], a[..., dst], out=out[..., dst])
+    return out
+
+
+def _gather(x, runs, shape):
+    """``x[..., index]`` (of ``shape``) for the index array whose ``runs`` are given."""
+    out = np.empty(shape)
+    for dst, src in runs:
+        out[..., dst] = x[..., src]
+    return out
 
 
 def _walk(rays, q, plane, where, point, alive):

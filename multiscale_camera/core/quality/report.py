@@ -16,8 +16,9 @@ from .metrics import ERODE_PX, bending_active, measured_pixels, preserved_error
 VERSION = 2
 
 
-# Ray vertices per chunk when counting folds: bounds memory (quad_folds holds about
-# 25 float64 planes of one value per vertex: about 200 MB at this size, whatever K is).
+# Ray vertices per chunk when counting folds: bounds memory (quad_folds holds about a
+# dozen float64 planes of one value per vertex: about 100 MB at this size, whatever K
+# is; the band's rays and their bending stretch as much again).
 FOLD_CHUNK_VERTICES = 1 << 20
 # Fewer bands than this per worker are counted in this process: a worker's start and
 # the field's trip through shared memory cost more than they save.
