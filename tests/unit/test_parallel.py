@@ -123,10 +123,10 @@ def test_folds_counted_in_two_processes_equal_those_counted_in_one(monkeypatch):
     # bands of 4 lattice rows: 16 of them at 64x48, shared between two workers
     monkeypatch.setattr(report_module, "FOLD_CHUNK_VERTICES", 64 * vertices_per_ray(fld) * 4)
     with runtime().journal() as alone_runs:
-        one = fold_map(fld, processes=1)
-    assert alone_runs == []
+        one, stride = fold_map(fld, processes=1)
+    assert alone_runs == [] and stride == 1
     with runtime().journal() as runs:
-        two = fold_map(fld, processes=2)
+        two, _ = fold_map(fld, processes=2)
     assert runs and all(r.in_workers == len(r.where) == 2 for r in runs)
     expected = brute_force_fold_map(fld)
     assert expected.any()  # the turned rig's IMAGE_BLEND folds: the maps say where

@@ -38,8 +38,9 @@ def fold_map(fld, processes=1, should_stop=None):
 
     Returns
     -------
-    (H - 1, W - 1) bool: the quad of pixels (y, x), (y, x + 1), (y + 1, x + 1),
-    (y + 1, x) folds (``quad_folds``).
+    folds : (H - 1, W - 1) bool: the quad of pixels (y, x), (y, x + 1), (y + 1, x + 1),
+    (y + 1, x) folds (``quad_folds``). stride : int, the lattice's step in pixels: 1,
+    every quad at every size.
     """
     w, h = fld.rig.size
     xs, ys = np.arange(w), np.arange(h)
@@ -63,7 +64,7 @@ def fold_map(fld, processes=1, should_stop=None):
     for run, bands in zip(runs, shares):
         for r0, band in zip(run, bands):
             out[r0 : r0 + len(band)] = band
-    return out
+    return out, 1
 
 
 def _fold_bands(fld, xs, ys, rows, starts, context):
@@ -114,7 +115,8 @@ def measure(fld, processes=1, should_stop=None):
         if missed:
             entry["unmeasured"] = NEVER_CROSS.format(missed=missed, pixels=pres.pixels)
         cameras.append(entry)
-    return cameras, int(fold_map(fld, processes, should_stop).sum())
+    folds, _stride = fold_map(fld, processes, should_stop)
+    return cameras, int(folds.sum())
 
 
 # Why a camera's figures are null (schema key "unmeasured" of a camera).
