@@ -10,10 +10,12 @@ from fixtures.rigs import three_camera_rig, turned_rig
 from multiscale_camera.core.field import tracer as field_module
 from multiscale_camera.core.geometry import Rig
 from multiscale_camera.core.methods import prepare, settings_for
-from multiscale_camera.core.quality import bending_active, build_report, fold_map, quad_folds
+from multiscale_camera.core.quality import bending_active, build_report, fold_map
 from multiscale_camera.core.quality import report as report_module
 from multiscale_camera.core.runtime import runtime
 from multiscale_camera.core.runtime.worker import probe
+
+from .fold_reference import reference_quad_folds
 
 
 @pytest.mark.slow
@@ -95,8 +97,8 @@ def test_field_workers_import_the_core_and_no_bpy(monkeypatch):
 
 
 def brute_force_fold_map(fld):
-    """Every quad of the lattice counted on its own (four rays, one quad_folds call):
-    the map no banding or sharing can change."""
+    """Every quad of the lattice counted on its own by the slow reference counter
+    (``fold_reference``): the map no banding or sharing can change."""
     w, h = fld.rig.size
     out = np.zeros((h - 1, w - 1), dtype=bool)
     cams = fld.rig.cameras
@@ -104,16 +106,22 @@ def brute_force_fold_map(fld):
         iy, ix = np.meshgrid([y, y + 1], np.arange(w), indexing="ij")
         bundle = fld.rays(ix.ravel(), iy.ravel())
         verts = bundle.vertices.reshape(2, w, -1, 3)
-        out[y] = quad_folds(verts, bending_active(verts, cams[-1], None, cams[:-1]))[0]
+        out[y] = reference_quad_folds(verts, bending_active(verts, cams[-1], None, cams[:-1]))[0]
     return out
+
+
+def vertices_per_ray(fld):
+    """K: the vertices of each of the field's rays (fold_map's bands hold
+    ``FOLD_CHUNK_VERTICES`` of them)."""
+    return fld.rays(np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64)).vertices.shape[1]
 
 
 @pytest.mark.slow
 def test_folds_counted_in_two_processes_equal_those_counted_in_one(monkeypatch):
-    # bands of 4 lattice rows: 15 of them at 64x48, shared between two workers
-    monkeypatch.setattr(report_module, "FOLD_CHUNK_VERTICES", 64 * 64 * 4)
     cams, masks = turned_rig(64, 48)
     fld = prepare(Rig(cams, masks), "IMAGE_BLEND", settings_for("STANDARD"))
+    # bands of 4 lattice rows: 16 of them at 64x48, shared between two workers
+    monkeypatch.setattr(report_module, "FOLD_CHUNK_VERTICES", 64 * vertices_per_ray(fld) * 4)
     with runtime().journal() as alone_runs:
         one, stride = fold_map(fld, processes=1)
     assert alone_runs == [] and stride == 1
@@ -131,9 +139,9 @@ def test_build_report_keeps_the_fold_count_in_one_process_when_threads_say_one(m
     """The report's fold count ignored the build's worker count (Blender's Threads):
     ``build_report`` called ``fold_map`` with its default, one worker per core, even
     where the build was asked to stay in one process (a farm node at Fixed 1)."""
-    monkeypatch.setattr(report_module, "FOLD_CHUNK_VERTICES", 64 * 64 * 4)
     cams, masks = turned_rig(64, 48)
     fld = prepare(Rig(cams, masks), "IMAGE_BLEND", settings_for("STANDARD"))
+    monkeypatch.setattr(report_module, "FOLD_CHUNK_VERTICES", 64 * vertices_per_ray(fld) * 4)
     with runtime().journal() as runs:
         alone = build_report(fld, "STANDARD", processes=1)
     assert runs == []

@@ -15,44 +15,39 @@ among the four rays seen at a vertex of a is counted; the four triangles keep th
 orientation exactly while the four points stay the corners of a convex quadrilateral
 turned as the pixels are. Equal arc length is no section: rays of different speeds
 compared there flag crossings that do not exist.
+
+Every quad of the lattice is checked, at every image size, in float64 throughout. The
+walk's start is the last vertex of q at or before a's arc length; section k is settled
+at once where that start is segment j0 = min(k, K - 2) or j0 - 1 and the walk stops
+within one step (rays of one band share their vertices' order, so this is nearly every
+section); the others walk in ``section_points``. Per-ray quantities (arc lengths,
+tangents, segments) are computed once per band and shared by the three roles b, c and
+d; coordinates are held as three (Hy, Wx, K) planes, the vertices around j0 are read
+through slices, and the sections go in chunks of ``CHUNK_SECTIONS``, so that the
+arithmetic runs over contiguous memory in a core's cache. Sides, points and areas are
+the same float64 operations in the same order as ``dot3`` and ``cross3`` on (..., 3)
+rows would make.
 """
 
 import numpy as np
 
-from ..geometry import cross3, dot3
-
-# Corner triangles of a quad a, b, c, d (indices into its four section points).
-TRIANGLES = ((0, 1, 2), (1, 2, 3), (2, 3, 0), (3, 0, 1))
+from ..geometry import dot3
 
 
-def _unit_tangents(a):
-    """(..., K, 3) float64 unit directions of polylines ``a`` at their vertices: central
-    differences, one-sided at the ends (zero where a polyline stands still)."""
-    t = np.empty_like(a)
-    t[..., 1:-1, :] = a[..., 2:, :] - a[..., :-2, :]
-    t[..., 0, :] = a[..., 1, :] - a[..., 0, :]
-    t[..., -1, :] = a[..., -1, :] - a[..., -2, :]
-    n = np.sqrt(dot3(t, t))
-    return t / np.where(n > 0, n, 1.0)[..., None]
-
-
-def _arc_lengths(v):
-    """(..., K) float64: arc length along polylines ``v`` (..., K, 3) at their vertices."""
-    d = np.diff(v, axis=-2)
-    seg = np.sqrt(dot3(d, d))
-    return np.concatenate([np.zeros(seg.shape[:-1] + (1,)), np.cumsum(seg, axis=-1)], axis=-1)
+def dot_planes(a, b):
+    """Dot product of vectors held as three coordinate planes (``a``, ``b``: sequences of
+    three arrays of one shape), summed in the order ``dot3`` sums contiguous rows
+    (x, then z, then y: numpy's einsum), so that both give the same float64 bits."""
+    return (a[0] * b[0] + a[2] * b[2]) + a[1] * b[1]
 
 
 def _segment_at(cum, length):
     """(P, M) int: for polylines of arc lengths ``cum`` (P, K), the segment holding each
-    of the arc lengths ``length`` (P, M) (clamped to the polyline), one searchsorted for
-    all: every polyline's lengths are offset to follow the one before."""
-    p, k = cum.shape
-    span = float(max(cum[:, -1].max(initial=0.0), length.max(initial=0.0))) + 1.0
-    offset = span * np.arange(p)[:, None]
-    want = np.clip(length, 0.0, cum[:, -1:]) + offset
-    idx = np.searchsorted((cum + offset).ravel(), want.ravel(), side="right").reshape(want.shape)
-    return np.clip(idx - 1 - np.arange(p)[:, None] * k, 0, k - 2)
+    of the arc lengths ``length`` (P, M), clamped to the polyline: the last vertex at or
+    before it (the last segment from the last two vertices on)."""
+    want = np.clip(length, 0.0, cum[:, -1:])
+    count = (cum[:, None, :] <= want[..., None]).sum(axis=-1)
+    return np.clip(count - 1, 0, cum.shape[1] - 2)
 
 
 def section_points(q, origin, normal, start):
@@ -120,37 +115,177 @@ def quad_folds(vertices, active):
     inside the bending stretch differs from its orientation in the first section.
     """
     hy, wx, k = vertices.shape[:3]
+    out = np.zeros((max(hy - 1, 0), max(wx - 1, 0)), dtype=bool)
     if hy < 2 or wx < 2:
-        return np.zeros((max(hy - 1, 0), max(wx - 1, 0)), dtype=bool)
-    v = vertices.astype(np.float64)
-    cum = _arc_lengths(v)
-    corners = (
-        (slice(None, -1), slice(None, -1)),
-        (slice(None, -1), slice(1, None)),
-        (slice(1, None), slice(1, None)),
-        (slice(1, None), slice(None, -1)),
-    )
-    p = (hy - 1) * (wx - 1)
-    a = v[corners[0]].reshape(p, k, 3)
-    normal = _unit_tangents(a)
-    ref = cum[corners[0]].reshape(p, k)
-    points = [np.zeros_like(a)]
-    live = active[corners[0]].reshape(p, k).copy()
-    for sl in corners[1:]:
-        q = v[sl].reshape(p, k, 3)
-        qc = cum[sl].reshape(p, k)
-        # the search starts at the segment of q at a's arc length
-        start = _segment_at(qc, ref)
-        pt, j = section_points(q, a, normal, start)
+        return out
+    rays = _Rays(vertices, np.asarray(active, dtype=bool))
+    cols = min(wx - 1, max(1, CHUNK_SECTIONS // k))
+    rows = max(1, CHUNK_SECTIONS // (k * (wx - 1)))
+    for r0 in range(0, hy - 1, rows):
+        for c0 in range(0, wx - 1, cols):
+            window = (slice(r0, min(r0 + rows, hy - 1)), slice(c0, min(c0 + cols, wx - 1)))
+            out[window] = _chunk_folds(rays, window)
+    return out
+
+
+class _Rays:
+    """Per-ray arrays of a lattice band, computed once for a and the three roles b, c and
+    d (about 13 float64 (Hy, Wx, K) planes in all): coordinates and segments (as
+    ``np.diff`` makes them) as planes (3, Hy, Wx, K) and (3, Hy, Wx, K - 1); the runs
+    that gather, for each section k, the vertices around its first segment j0 (segment
+    k, the last one for the last vertex): jm = j0 - 1, j0, j0 + 1; arc lengths at every
+    vertex and at those (inf where no such start is possible); activity at every vertex
+    and at jm and j0; a's section normals (3, Hy - 1, Wx - 1, K)."""
+
+    def __init__(self, v, active):
+        k = v.shape[2]
+        self.source = v
+        j0 = np.minimum(np.arange(k), k - 2)
+        jm = np.maximum(j0 - 1, 0)
+        self.k = k
+        # whether a walk may go on from segment j0 back, from it on, from j0 - 1 back
+        self.inner = (j0 > 0, j0 < k - 2, j0 > 1)
+        self.vertex = vertex = np.moveaxis(v, -1, 0).astype(np.float64, order="C")
+        self.runs = [_runs(j) for j in (jm, j0, j0 + 1)]
+        self.steps = steps = np.diff(vertex, axis=-1)  # the bits of np.diff(v, axis=-2)
+        # _arc_lengths and _unit_tangents, bit for bit, on the planes
+        cum = np.zeros(vertex.shape[1:])
+        np.cumsum(np.sqrt(dot_planes(steps, steps)), axis=-1, out=cum[..., 1:])
+        self.cum, self.end = cum, cum[..., -1:]
+        self.cum_m, self.cum_0, self.cum_1 = (np.take(cum, j, axis=-1) for j in (jm, j0, j0 + 1))
+        self.cum_m[..., j0 == 0] = np.inf  # no segment before the first
+        self.cum_1[..., j0 == k - 2] = np.inf  # a's arc length past vertex K - 2
+        self.active = active
+        self.active_m, self.active_0 = np.take(active, jm, axis=-1), np.take(active, j0, axis=-1)
+        a = vertex[:, :-1, :-1]
+        t = np.empty(a.shape)
+        t[..., 1:-1] = a[..., 2:] - a[..., :-2]
+        t[..., 0] = a[..., 1] - a[..., 0]
+        t[..., -1] = a[..., -1] - a[..., -2]
+        n = np.sqrt(dot_planes(t, t))
+        self.normal = t / np.where(n > 0, n, 1.0)
+
+
+# Sections per chunk of the per-section arithmetic: its two dozen float64 temporaries
+# then stay in a core's cache.
+CHUNK_SECTIONS = 1 << 14
+# Roles b, c, d: their (row, column) offsets from a on the lattice.
+ROLES = ((0, 1), (1, 1), (1, 0))
+
+
+def _chunk_folds(rays, window):
+    """(rows, cols) bool: the folds of the quads ``window`` (row, column slices)."""
+    ys, xs = window
+    a = rays.vertex[:, ys, xs]
+    normal = rays.normal[:, ys, xs]
+    ref = rays.cum[ys, xs]
+    live = rays.active[ys, xs].copy()
+    points = []
+    for dy, dx in ROLES:
+        q = (slice(ys.start + dy, ys.stop + dy), slice(xs.start + dx, xs.stop + dx))
+        pt, alive = _sections(rays, q, a, normal, ref)
         points.append(pt)
-        live &= np.take_along_axis(active[sl].reshape(p, k), j, axis=1)
-    orient = np.stack(
-        [
-            np.sign(dot3(cross3(points[y] - points[x], points[z] - points[x]), normal))
-            for x, y, z in TRIANGLES
-        ],
-        axis=-1,
-    )
-    first = orient[:, :1]
-    flipped = (orient != first) & (orient != 0) & (first != 0) & live[..., None]
-    return flipped.any(axis=(1, 2)).reshape(hy - 1, wx - 1)
+        live &= alive
+    return _flipped(points, normal, live)
+
+
+def _sections(rays, q, a, normal, ref):
+    """Where role ``q``'s rays (row, column slices) cross a's sections: the points
+    relative to a's vertices (three planes) and whether each point's segment is active.
+    ``section_points``' walk, from the segment at a's arc length, settled at once where
+    it takes at most one step from segment j0 or j0 - 1; the other sections walk there."""
+    inner0, inner1, inner_m = rays.inner
+    vq = rays.vertex[:, q[0], q[1]]
+    d_m, d_0, d_1 = ([_minus(vq[i], a[i], runs) for i in range(3)] for runs in rays.runs)
+    s_m = dot_planes(d_m, normal)
+    s_0 = dot_planes(d_0, normal)
+    s_1 = dot_planes(d_1, normal)
+    want = np.clip(ref, 0.0, rays.end[q])
+    start_0 = (rays.cum_0[q] <= want) & (want < rays.cum_1[q])
+    start_m = (rays.cum_m[q] <= want) & (want < rays.cum_0[q])
+    pos, neg = s_0 > 0, s_0 < 0
+    # segments j0 and j0 - 1 hold the plane (a walk stops there)
+    stop_0 = ~((pos & (s_1 > 0) & inner0) | (neg & (s_1 < 0) & inner1))
+    stop_m = ~((pos & (s_m > 0) & inner_m) | (neg & (s_m < 0)))
+    back = stop_m & (start_m | (start_0 & pos & ~stop_0))
+    here = stop_0 & (start_0 | (start_m & ~stop_m & (s_m < 0)))
+    s_a = np.where(back, s_m, s_0)
+    den = s_a - np.where(back, s_0, s_1)
+    w = np.where(den != 0, s_a / np.where(den != 0, den, 1.0), 0.0)
+    sq = rays.steps[:, q[0], q[1]]
+    runs_m, runs_0 = rays.runs[:2]
+    point = [
+        np.where(back, d_m[i], d_0[i])
+        + np.where(back, _gather(sq[i], runs_m, w.shape), _gather(sq[i], runs_0, w.shape)) * w
+        for i in range(3)
+    ]
+    alive = np.where(back, rays.active_m[q], rays.active_0[q])
+    slow = np.nonzero(~(back | here))
+    if len(slow[0]):
+        _walk(rays, q, (a, normal, ref), slow, point, alive)
+    return point, alive
+
+
+def _runs(index):
+    """The runs of an index array (K,) that steps by one: (destination, source) slice
+    pairs, so that ``x[..., index]`` is gathered without a copy of ``x``."""
+    cut = np.flatnonzero(np.diff(index) != 1) + 1
+    bounds = [0, *cut.tolist(), len(index)]
+    return [
+        (slice(b0, b1), slice(int(index[b0]), int(index[b0]) + b1 - b0))
+        for b0, b1 in zip(bounds[:-1], bounds[1:])
+    ]
+
+
+def _minus(q, a, runs):
+    """``q[..., index] - a`` for the index array whose ``runs`` are given."""
+    out = np.empty(a.shape)
+    for dst, src in runs:
+        np.subtract(q[..., src], a[..., dst], out=out[..., dst])
+    return out
+
+
+def _gather(x, runs, shape):
+    """``x[..., index]`` (of ``shape``) for the index array whose ``runs`` are given."""
+    out = np.empty(shape)
+    for dst, src in runs:
+        out[..., dst] = x[..., src]
+    return out
+
+
+def _walk(rays, q, plane, where, point, alive):
+    """The sections ``where`` (index arrays into the chunk's (rows, cols, K)) not settled
+    at once: walked by ``section_points`` from the segment at a's arc length; their
+    points (three planes) and ``alive`` updated in place. ``plane``: a's vertices and
+    the normals (three planes each), a's arc lengths."""
+    a, normal, ref = plane
+    iy, ix, _k = where
+    polylines = np.asarray(rays.source[q][iy, ix], dtype=np.float64)
+    start = _segment_at(rays.cum[q][iy, ix], ref[where][:, None])
+    origin = np.stack([c[where] for c in a], axis=-1)[:, None]
+    nrm = np.stack([c[where] for c in normal], axis=-1)[:, None]
+    pt, j = section_points(polylines, origin, nrm, start)
+    for i in range(3):
+        point[i][where] = pt[:, 0, i]
+    alive[where] = rays.active[q][iy, ix, j[:, 0]]
+
+
+def _flipped(points, normal, live):
+    """(rows, cols) bool: quads one of whose corner triangles, in a live section, is
+    turned against the first section. ``points``: b's, c's and d's section points
+    relative to a's vertex (three planes each). The areas are those ``cross3`` and
+    ``dot3`` make of the triangles' edges, bit for bit, up to a triangle's sign (an
+    edge from a is a point, or a point negated; an area negated keeps its flips)."""
+    p1, p2, p3 = points
+    e21 = [p2[i] - p1[i] for i in range(3)]
+    e31 = [p3[i] - p1[i] for i in range(3)]
+    e32 = [p3[i] - p2[i] for i in range(3)]
+    # a b c: (P1, P2); b c d: (P2 - P1, P3 - P1); c d a: (P3 - P2, -P2); d a b: (-P3, P1 - P3)
+    flips = np.zeros(live.shape, dtype=bool)
+    for e, f in ((p1, p2), (e21, e31), (e32, p2), (p3, e31)):
+        cross = (e[1] * f[2] - e[2] * f[1], e[2] * f[0] - e[0] * f[2], e[0] * f[1] - e[1] * f[0])
+        orient = np.sign(dot_planes(cross, normal))
+        first = orient[..., :1]
+        flips |= (orient != first) & (orient != 0) & (first != 0)
+    flips &= live
+    return flips.any(axis=-1)

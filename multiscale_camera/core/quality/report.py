@@ -17,20 +17,18 @@ VERSION = 2
 
 
 # Ray vertices per chunk when counting folds: bounds memory (quad_folds holds about a
-# dozen float64 (rays, K, 3) arrays: about half a GB at this size, whatever K is).
+# dozen float64 planes of one value per vertex: about 100 MB at this size, whatever K
+# is; the band's rays and their bending stretch as much again).
 FOLD_CHUNK_VERTICES = 1 << 20
-# Images up to this many pixels are checked quad by quad; larger ones on every other
-# pixel in each direction (a fold narrower than two pixels is then missed).
-FULL_FOLD_PIXELS = 1 << 20
 # Fewer bands than this per worker are counted in this process: a worker's start and
 # the field's trip through shared memory cost more than they save.
 MIN_SHARED_BANDS = 4
 
 
 def fold_map(fld, processes=1, should_stop=None):
-    """Folds among the rendered rays, quad by quad.
+    """Folds among the rendered rays: every quad of neighbouring pixels, at every size.
 
-    The lattice's rows go in bands of at most ``FOLD_CHUNK_VERTICES`` vertices (each
+    The image's rows go in bands of at most ``FOLD_CHUNK_VERTICES`` vertices (each
     band's last row is the next one's first); with more than ``MIN_SHARED_BANDS`` bands
     they are shared among worker processes (``processes``: ``runtime.worker_count``'s
     request: 0 one per core, 1 keeps them here), each taking a run of consecutive
@@ -40,14 +38,17 @@ def fold_map(fld, processes=1, should_stop=None):
 
     Returns
     -------
-    folds : (Hy - 1, Wx - 1) bool on the pixel lattice of ``stride``. stride : int.
+    folds : (H - 1, W - 1) bool: the quad of pixels (y, x), (y, x + 1), (y + 1, x + 1),
+    (y + 1, x) folds (``quad_folds``). stride : int, the lattice's step in pixels: 1,
+    every quad at every size.
     """
     w, h = fld.rig.size
-    stride = 1 if w * h <= FULL_FOLD_PIXELS else 2
-    xs = np.unique(np.append(np.arange(0, w, stride), w - 1))
-    ys = np.unique(np.append(np.arange(0, h, stride), h - 1))
+    xs, ys = np.arange(w), np.arange(h)
     traced = getattr(fld, "traced", None)
-    k = traced.vertices.shape[1] if traced is not None else 64
+    if traced is not None:
+        k = traced.vertices.shape[1]
+    else:  # one ray says how many vertices each has
+        k = fld.rays(np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64)).vertices.shape[1]
     rows = max(2, FOLD_CHUNK_VERTICES // (len(xs) * k))
     out = np.zeros((max(len(ys) - 1, 0), max(len(xs) - 1, 0)), dtype=bool)
     starts = list(range(0, len(ys) - 1, rows - 1))
@@ -63,7 +64,7 @@ def fold_map(fld, processes=1, should_stop=None):
     for run, bands in zip(runs, shares):
         for r0, band in zip(run, bands):
             out[r0 : r0 + len(band)] = band
-    return out, stride
+    return out, 1
 
 
 def _fold_bands(fld, xs, ys, rows, starts, context):
