@@ -181,13 +181,16 @@ class LiveJob:
             result = SERVICE.get(self.request, diag)
         self.built = result.built
         with diag.stage("simplify"):
+            # in this thread: the field's 32k rays cost less here than the round trip
+            # to the worker processes (on the demo, 0.24 s against 0.31 s, median of 6
+            # strokes, two cores at load 3)
             sampler = pipeline.sampler_for(
                 result.field,
                 p["tol"],
                 p["bounds"],
                 diag.should_stop,
                 p["occupancy"],
-                p["processes"],
+                1,
                 pixel_rays=True,
             )
         frame = pipeline.Frame(
