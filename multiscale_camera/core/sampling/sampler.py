@@ -6,7 +6,9 @@ polylines of the four neighbouring pixels, vertex by vertex (vertex k of every r
 at the same arc length, so this is what the field itself does between lattice rays).
 For a traced field the interpolation goes straight to the traced lattice rays (a pixel's
 ray is itself bilinear in them), and each traced ray is simplified once per field, so a
-sample never materialises its full polyline.
+sample never materialises its full polyline. A field without a traced lattice can have
+every pixel's ray taken and simplified once, as a lattice of unit squares
+(``PixelRays``), for pictures that sample it between its pixels.
 
 Pure numpy.
 """
