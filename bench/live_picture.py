@@ -62,15 +62,19 @@ def stroke(image, cx, cy, radius=5.0):
 
 
 def wait_for_picture(live, updates, timeout=60.0):
-    """Call the timer as Blender does until ``live.updates`` exceeds ``updates``."""
+    """Call the timer as Blender does until ``live.updates`` exceeds ``updates``; the
+    seconds until the call that showed the picture returned (not the interval it then
+    asks for)."""
     t0 = time.perf_counter()
-    while live.updates <= updates:
+    while True:
+        delay = live.tick()
+        if live.updates > updates:
+            return time.perf_counter() - t0
         if live.message:
             raise RuntimeError(live.message)
         if time.perf_counter() - t0 > timeout:
             raise RuntimeError("no live picture within the timeout")
-        time.sleep(live.tick())
-    return time.perf_counter() - t0
+        time.sleep(delay)
 
 
 def main():

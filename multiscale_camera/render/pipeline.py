@@ -296,21 +296,32 @@ def scene_tree_built(geometry):
     return trees[key], built
 
 
-def sampler_for(ray_field, tol_px, bounds, should_stop=None, occupancy=None, processes=1):
+def sampler_for(
+    ray_field, tol_px, bounds, should_stop=None, occupancy=None, processes=1, pixel_rays=False
+):
     """The field's RaySampler at ``tol_px`` pixels for geometry inside ``bounds`` (and in
     the occupied cells of ``occupancy``, when given), built once per field, tolerance and
     geometry layout; its simplification in ``processes`` worker processes (0: one per
-    core)."""
+    core). ``pixel_rays``: a field without a traced lattice has every pixel's ray taken
+    and simplified once (``core.sampling.PixelRays``), for pictures sampled between its
+    pixels."""
     cache = ray_field.__dict__.setdefault("_samplers", {})
     box = None if bounds is None else tuple(np.round(np.concatenate(bounds), 9).tolist())
     cells = None if occupancy is None else occupancy.digest()
-    key = (round(float(tol_px), 6), box, cells)
+    key = (round(float(tol_px), 6), box, cells, bool(pixel_rays))
     if key not in cache:
         cache.clear()
         clearance = None if occupancy is None else occupancy.clearance
         occupied = None if occupancy is None else occupancy.any_between
         cache[key] = RaySampler(
-            ray_field, key[0], bounds, should_stop, clearance, occupied, worker_count(processes)
+            ray_field,
+            key[0],
+            bounds,
+            should_stop,
+            clearance,
+            occupied,
+            worker_count(processes),
+            pixel_rays=key[3],
         )
     return cache[key]
 

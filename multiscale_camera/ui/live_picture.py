@@ -11,7 +11,11 @@ that reading them takes at most 1/``READ_SHARE`` of the time, the others one per
 each every ``OTHERS_SECONDS`` or more, within the same share). A change cancels the job
 under way; once nothing has changed for ``SETTLE_SECONDS`` and the shown masks have been
 read again since (the stroke has ended) and the cancelled job has ended, a new one
-starts with the pixels just read, so no two run at once.
+starts with the pixels just read, so no two run at once. After a change the timer
+comes back when the settling ends and the shown masks are due to be read again
+(``LivePicture.settle_wait``), not a whole look later; while a job runs it asks every
+``POLL_SECONDS`` whether the job has ended (looking at the masks every
+``TICK_SECONDS`` still), so the picture shows within that long of its end.
 The work runs on the job's thread and the field service's worker processes, but the
 looks hold the main thread: with the demo's three masks at 1920x1080 (two cores, load
 about 7) reading one mask takes about 35 ms, a look 0.3 ms (median) to 0.13 s (95th
@@ -47,8 +51,13 @@ IMAGE_NAME = "Multiscale Live"
 # How often the timer looks for changes while the picture is wanted, and otherwise.
 TICK_SECONDS = 0.1
 IDLE_SECONDS = 0.5
+# While a job runs, how often the timer asks whether it has ended (no look at the
+# masks in between): its picture is shown within this long of its end.
+POLL_SECONDS = 0.02
 # A change must have settled this long before a job starts (a stroke has ended).
 SETTLE_SECONDS = 0.15
+# The shortest interval the timer asks for when it waits for the settling to end.
+MIN_WAIT_SECONDS = 0.005
 # Masks an Image Editor shows are read again at most this often, and no more often than
 # takes 1/READ_SHARE of the time (a 1920x1080 mask takes tens of milliseconds); the
 # others at most every OTHERS_SECONDS.
@@ -123,6 +132,8 @@ class LivePicture:
         self.buffers = {}  # image name -> float32 buffer its pixels are read into
         self.others_read = 0
         self.read_at = 0.0  # when the shown masks were last all read
+        self.due_at = 0.0  # when the shown masks will all have been read again
+        self.looked = 0.0  # when the masks were last looked at (``key_of``)
         self.display = None  # (h, w, 4) sRGB of the picture, for the corner
         self.texture = None
         self.handler = None
@@ -148,24 +159,40 @@ class LivePicture:
         if not scene.multiscale.live_picture or bpy.app.is_job_running("RENDER"):
             self.cancel()
             return IDLE_SECONDS
+        now = time.perf_counter()
+        if self.job is not None and now - self.looked < TICK_SECONDS:
+            return POLL_SECONDS  # a job runs: its end is looked for, not yet the masks
         shown = shown_images(context.window_manager)
         if not bpy.app.background and not self.wanted(scene, shown):
             return IDLE_SECONDS
-        now = time.perf_counter()
         key = self.key_of(scene, shown, now)
+        self.looked = now
         if key != self.key:
             self.key, self.changed = key, now
             if self.job is not None and self.job.key != key:
                 self.job.cancel()
-            return TICK_SECONDS
-        if key == self.shown_key or now - self.changed < SETTLE_SECONDS:
-            return TICK_SECONDS
-        if self.read_at <= self.changed:  # no mask read since: a stroke may go on
-            return TICK_SECONDS
+            return self.settle_wait(now)
+        if key == self.shown_key:
+            return self.interval()
+        if now - self.changed < SETTLE_SECONDS or self.read_at <= self.changed:
+            # not settled, or no mask read since the change: a stroke may go on
+            return self.settle_wait(now)
         if self.job is not None or SERVICE.running() is not None:
-            return TICK_SECONDS  # ours winds down, or another build runs
+            return self.interval()  # ours winds down, or another build runs
         self.start(context, key)
-        return TICK_SECONDS
+        return self.interval()
+
+    def interval(self):
+        """The next look's interval: ``POLL_SECONDS`` while a job runs (its end is
+        looked for), else ``TICK_SECONDS``."""
+        return POLL_SECONDS if self.job is not None else TICK_SECONDS
+
+    def settle_wait(self, now):
+        """Seconds until a change seen at ``self.changed`` may start a job: until it has
+        settled (``SETTLE_SECONDS``) and every shown mask is due to be read again
+        (``due_at``), at most ``interval()`` (a job winding down, a later change)."""
+        wait = max(self.changed + SETTLE_SECONDS, self.due_at) - now
+        return min(self.interval(), max(wait, MIN_WAIT_SECONDS))
 
     def wanted(self, scene, shown):
         """Whether anything shows the picture: an Image Editor with a listed mask or the
@@ -180,6 +207,7 @@ class LivePicture:
         ``OTHERS_SECONDS``; in background Blender every mask each time."""
         s, r = scene.multiscale, scene.render
         self.read_at = now  # the oldest read of a shown mask, below
+        self.due_at = now  # the latest next read of a shown mask, below
         self.others_read = 0  # masks not shown read in this look: one at most
         cameras = []
         for item in s.cameras:
@@ -209,6 +237,8 @@ class LivePicture:
             kept = self.mask_sums[image.name] = (checksum, now, time.perf_counter() - t0)
         if image.name in shown:
             self.read_at = min(self.read_at, kept[1])
+            again = 0.0 if bpy.app.background else max(SHOWN_SECONDS, READ_SHARE * kept[2])
+            self.due_at = max(self.due_at, kept[1] + again)
         return (image.name, tuple(image.size), image.source, kept[0])
 
     def start(self, context, key):

@@ -12,6 +12,7 @@ import pytest
 
 from fixtures.blender.scenes import two_camera_scene
 from multiscale_camera.adapters.scene import rig_from_scene
+from multiscale_camera.core.sampling import PixelRays
 from multiscale_camera.render import pipeline
 from multiscale_camera.render.fields import SERVICE
 from multiscale_camera.render.live import LiveJob, live_size, small_rig
@@ -106,7 +107,9 @@ def test_a_second_stroke_cancels_the_first_ones_job(scene):
     tick_until(live, lambda: live.job is not None)
     first = live.job
     stroke(mask, 48, 36, 20, 0.0)
-    live.tick()  # sees the change at once: the first job is told to stop
+    # the next look at the masks (within TICK_SECONDS: the looks between only ask
+    # whether the job has ended) sees the change: the first job is told to stop
+    tick_until(live, first.stopped)
     first.join(30)
     assert first.cancelled and first.rgba is None
     seen = []
@@ -118,6 +121,48 @@ def test_a_second_stroke_cancels_the_first_ones_job(scene):
     )
 
 
+def test_the_job_starts_as_the_change_settles_not_a_look_later(scene):
+    """After a change the timer used to come back a whole look (TICK_SECONDS) at a
+    time, so a job started up to a look after the settling ended (0.2 s after the
+    change, not 0.15 s); now it comes back when the settling ends."""
+    live = SERVICE.live
+    tick_until(live, lambda: live.updates >= 1)
+    stroke(scene.multiscale.cameras[1].mask, 48, 36, 26)
+    waits = [live.tick()]  # sees the change
+    changed = live.changed
+    while live.job is None:
+        time.sleep(waits[-1])
+        waits.append(live.tick())
+    assert live.job.started == changed
+    assert waits[0] == live_picture.TICK_SECONDS
+    assert sum(waits[:-1]) <= live_picture.SETTLE_SECONDS + 1e-9
+
+
+def test_a_finished_job_is_shown_within_a_poll_not_a_look(scene, monkeypatch):
+    """While a job runs the timer asks every POLL_SECONDS whether it has ended (it used
+    to ask every look, TICK_SECONDS, so a picture waited 50 ms on average after its
+    job), and looks at the masks every TICK_SECONDS still."""
+    live = SERVICE.live
+    tick_until(live, lambda: live.updates >= 1)
+    looks = []
+    key_of = live.key_of
+    monkeypatch.setattr(live, "key_of", lambda *a: looks.append(a[-1]) or key_of(*a))
+    stroke(scene.multiscale.cameras[1].mask, 48, 36, 26)
+    tick_until(live, lambda: live.job is not None)
+    job, looks[:], waits = live.job, [], []
+    t0 = time.perf_counter()
+    while live.updates < 2:
+        waits.append(live.tick())
+        time.sleep(waits[-1])
+    assert job.rgba is not None and not job.alive()
+    assert set(waits[:-1]) == {live_picture.POLL_SECONDS}  # while the job ran
+    assert waits[-1] == live_picture.TICK_SECONDS  # shown: no job, looks as before
+    # the masks were looked at a look apart while it ran; the last look is the one
+    # that showed the picture (no job any more)
+    assert len(looks) >= 3 and looks[0] >= t0
+    assert np.diff(looks[:-1]).min() >= live_picture.TICK_SECONDS - 1e-9
+
+
 def test_the_picture_of_a_large_render_comes_from_a_smaller_field(scene):
     scene.render.resolution_x, scene.render.resolution_y = 1920, 1080
     depsgraph = bpy.context.evaluated_depsgraph_get()
@@ -127,6 +172,32 @@ def test_the_picture_of_a_large_render_comes_from_a_smaller_field(scene):
     assert job.request.quality == "PREVIEW"
     assert live_size(640, 360) == (480, 270)
     assert live_size(96, 72) == (96, 72)
+
+
+def test_an_image_blend_picture_from_rays_simplified_once_is_the_same(scene, monkeypatch):
+    """The picture samples its field between the field's pixels. An IMAGE_BLEND field
+    has no traced lattice, and each sample used to be blended from its four pixels' rays
+    and simplified on its own (most of the render's time on the demo); now every pixel's
+    ray is simplified once (``core.sampling.PixelRays``). The picture stays the same
+    within the simplification's tolerance (0.25 px): at most 1% of its pixels (an edge
+    met by a chord a fraction of a pixel away) differ by more than 1/255."""
+    scene.multiscale.method = "IMAGE_BLEND"
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    job = LiveJob.of(depsgraph.scene, depsgraph, max_width=96, field_width=48)
+    assert (job.size, job.field_size) == ((96, 72), (48, 36))
+    once = job.render()
+    samplers = SERVICE.get(job.request).field.__dict__["_samplers"]
+    assert [isinstance(s.source, PixelRays) and s.lattice for s in samplers.values()] == [True]
+    one_by_one = pipeline.sampler_for
+    monkeypatch.setattr(
+        pipeline, "sampler_for", lambda *a, pixel_rays=False, **k: one_by_one(*a, **k)
+    )
+    each = LiveJob.of(depsgraph.scene, depsgraph, max_width=96, field_width=48).render()
+    assert not any(s.lattice for s in samplers.values())
+    diff = np.abs(once - each).max(axis=-1)
+    print(f"differ by more than 1/255: {(diff > 1 / 255).sum()} of {diff.size} pixels")
+    assert (diff > 1 / 255).mean() <= 0.01
+    assert np.abs(once - each).mean() < 1e-3
 
 
 def test_a_small_rig_keeps_each_cameras_pixels(scene):

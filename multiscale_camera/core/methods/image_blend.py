@@ -1,7 +1,9 @@
 """IMAGE_BLEND: each pixel's ray is its curves R_i blended by eased harmonic mask weights."""
 
+import hashlib
+import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 
@@ -9,6 +11,49 @@ from ..field import mask_weights
 from ..geometry import DEFAULT_SEGMENTS, build_guides, curved_rays
 from ..quality import check_rig
 from .base import RayField, guard_warnings, record_seconds
+
+# Every pixel's curves are kept for the last rig at most this large (float64 bytes): a
+# stroke on a mask changes the weights alone, so the next field of the same cameras
+# (the live picture's, 240x135 with three cameras: 42 MB) gathers its curves.
+CURVES_KEPT_BYTES = 64 << 20
+_KEPT = {}  # cameras_key -> (N, H*W, K, 3) float64, the last rig's only
+_KEEPING = threading.Lock()
+
+
+def cameras_key(cameras, beta, segments):
+    """A digest of everything the curves R_i of ``cameras`` depend on (str)."""
+    digest = hashlib.blake2b(repr((float(beta), int(segments))).encode())
+    for cam in cameras:
+        for f in fields(cam):
+            value = getattr(cam, f.name)
+            if isinstance(value, np.ndarray):
+                digest.update(np.ascontiguousarray(value, dtype=np.float64).tobytes())
+            else:
+                digest.update(repr(value).encode())
+    return digest.hexdigest()
+
+
+def pixel_curves(cameras, ix, iy, beta, segments=DEFAULT_SEGMENTS):
+    """(N, P, K, 3) float64: the curves R_1..R_N of pixels (ix, iy), as
+    ``curved_rays(build_guides(...))`` gives them. For cameras whose curves over the
+    whole image fit in ``CURVES_KEPT_BYTES``, those are made once and kept (the last
+    rig's only), and the pixels' are gathered from them."""
+    w, h = cameras[0].width, cameras[0].height
+    k = 1 + (len(cameras) - 1) * segments + 1
+    if len(cameras) * w * h * k * 3 * 8 > CURVES_KEPT_BYTES:
+        return curved_rays(build_guides(cameras, ix + 0.5, iy + 0.5, beta=beta), segments)
+    key = cameras_key(cameras, beta, segments)
+    kept = _KEPT.get(key)
+    if kept is None:
+        with _KEEPING:
+            kept = _KEPT.get(key)
+            if kept is None:
+                y, x = np.divmod(np.arange(w * h), w)
+                g = build_guides(cameras, x + 0.5, y + 0.5, beta=beta)
+                kept = curved_rays(g, segments)
+                _KEPT.clear()
+                _KEPT[key] = kept
+    return kept[:, np.asarray(iy) * w + np.asarray(ix)]
 
 
 @dataclass
@@ -24,8 +69,7 @@ class CurveBlendField(RayField):
     def rays(self, ix, iy):
         ix, iy = np.asarray(ix), np.asarray(iy)
         cams = self.rig.cameras
-        g = build_guides(cams, ix + 0.5, iy + 0.5, beta=self.rig.beta)
-        curves = curved_rays(g, self.segments)
+        curves = pixel_curves(cams, ix, iy, self.rig.beta, self.segments)
         w = self.weights[:, iy, ix].astype(np.float64)
         verts = np.einsum("np,npkc->pkc", w, curves)
         m = np.arange(1, len(cams) + 1, dtype=np.float64) @ w

@@ -8,7 +8,7 @@ rays.
 
 from .clipping import clip_far, far_planes, last_segments, ray_ends, reach_to_far_planes
 from .occupancy import Occupancy
-from .sampler import RaySampler, blackman_harris_inverse, sample_offsets
+from .sampler import PixelRays, RaySampler, blackman_harris_inverse, sample_offsets
 from .simplification import (
     DEFAULT_TOLERANCE_PX,
     Segments,
@@ -25,6 +25,7 @@ from .simplification import (
 __all__ = [
     "DEFAULT_TOLERANCE_PX",
     "Occupancy",
+    "PixelRays",
     "RaySampler",
     "Segments",
     "blackman_harris_inverse",

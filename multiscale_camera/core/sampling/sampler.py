@@ -6,7 +6,9 @@ polylines of the four neighbouring pixels, vertex by vertex (vertex k of every r
 at the same arc length, so this is what the field itself does between lattice rays).
 For a traced field the interpolation goes straight to the traced lattice rays (a pixel's
 ray is itself bilinear in them), and each traced ray is simplified once per field, so a
-sample never materialises its full polyline.
+sample never materialises its full polyline. A field without a traced lattice can have
+every pixel's ray taken and simplified once, as a lattice of unit squares
+(``PixelRays``), for pictures that sample it between its pixels.
 
 Pure numpy.
 """
@@ -16,9 +18,11 @@ from functools import partial
 
 import numpy as np
 
+from ..diagnostics import check_stop
 from ..geometry import dot3
 from .clipping import clip_far, reach_to_far_planes
 from .simplification import (
+    CHUNK,
     DEFAULT_TOLERANCE_PX,
     _is_shared,
     _keep_leaves,
@@ -117,6 +121,60 @@ def _bilinear_corners(sx, sy, width, height):
     )
 
 
+class PixelRays:
+    """Every pixel's ray of a field without a traced lattice (IMAGE_BLEND, LINEAR), laid
+    out as a traced field's lattice (``TracedField``): each pixel a lattice ray, each
+    unit square between four pixel centres a leaf. A ray between pixel centres is the
+    bilinear blend of its square's four corner rays, as the generic path blends them,
+    so ``RaySampler`` can simplify these rays once per field (a schedule per square)
+    instead of simplifying every sample's own blend.
+
+    Attributes (those of ``TracedField`` that ``RaySampler`` reads)
+    ----------
+    traced : self. vertices : (H*W, K, 3) float32, world units, pixel (x, y) at row
+        y*W + x. membership : (H*W, K) float32. counts : (H*W,) int64, all K (no ray
+        leaves a modelled volume early).
+    index : (H, W) int64, each pixel's row. leaves : (L, 4) int32 (x0, y0, x1, y1),
+        L = (H-1)(W-1), square (x, y) at leaf y*(W-1) + x. leaf_of : (H, W) int64, the
+        square a pixel centre takes (the last row and column take the squares before
+        them). cell_of : (H-1, W-1) int64, the leaf of each square.
+    """
+
+    def __init__(self, field, should_stop=None):
+        w, h = field.rig.size
+        n = w * h
+        iy, ix = np.divmod(np.arange(n, dtype=np.int64), w)
+        for a in range(0, n, CHUNK):
+            check_stop(should_stop)
+            b = min(a + CHUNK, n)
+            bundle = field.rays(ix[a:b], iy[a:b])
+            if a == 0:
+                k = bundle.vertices.shape[1]
+                self.vertices = np.empty((n, k, 3), dtype=np.float32)
+                self.membership = np.empty((n, k), dtype=np.float32)
+            self.vertices[a:b] = bundle.vertices
+            self.membership[a:b] = bundle.membership
+        self.counts = np.full(n, self.vertices.shape[1], dtype=np.int64)
+        self.traced = self
+        self.index = np.arange(n, dtype=np.int64).reshape(h, w)
+        sy, sx = np.divmod(np.arange((h - 1) * (w - 1), dtype=np.int64), w - 1)
+        self.leaves = np.stack([sx, sy, sx + 1, sy + 1], axis=1).astype(np.int32)
+        self.cell_of = np.arange(len(sx), dtype=np.int64).reshape(h - 1, w - 1)
+        cy = np.minimum(np.arange(h), h - 2)[:, None]
+        cx = np.minimum(np.arange(w), w - 2)[None, :]
+        self.leaf_of = cy * (w - 1) + cx
+
+    @staticmethod
+    def suits(field):
+        """Whether ``field``'s rays can be laid out so: no traced lattice of its own, at
+        least 2 x 2 pixels, and no ray that leaves a modelled volume early
+        (``exit_index`` None), so that every ray keeps all its vertices."""
+        w, h = field.rig.size
+        if getattr(field, "traced", None) is not None or w < 2 or h < 2:
+            return False
+        return field.exit_index(np.zeros(1, np.int64), np.zeros(1, np.int64)) is None
+
+
 class RaySampler:
     """Simplified rays of a ``RayField`` at continuous image positions.
 
@@ -133,6 +191,11 @@ class RaySampler:
         space for a whole lattice leaf come out with ``Segments.castable`` False.
     processes : int, worker processes that share the lattice's simplification (the same
         result in any number).
+    pixel_rays : bool, for a field without a traced lattice: take every pixel's ray once
+        (``PixelRays``, H*W*K*12 bytes) and simplify them once, so that samples between
+        pixel centres gather their kept vertices (within the same tolerance) rather
+        than being blended and simplified one by one. For a small picture that samples
+        between a field's pixels (the live picture), not for a full render's.
     """
 
     def __init__(
@@ -144,6 +207,7 @@ class RaySampler:
         clearance=None,
         occupied=None,
         processes=1,
+        pixel_rays=False,
     ):
         self.field = field
         self.tol = float(tol_px)
@@ -156,13 +220,18 @@ class RaySampler:
         self.reach = reach_to_far_planes(self.cameras)
         traced = getattr(field, "traced", None)
         w, h = self.size
-        self.lattice = traced is not None and getattr(field, "leaves", None) is not None
+        # the lattice the samples gather from: the field's own, or every pixel's ray
+        self.source = field
+        if pixel_rays and PixelRays.suits(field):
+            self.source = PixelRays(field, should_stop)
+        traced = self.source.traced if self.source is not field else traced
+        self.lattice = traced is not None and getattr(self.source, "leaves", None) is not None
         self.lattice = self.lattice and w >= 2 and h >= 2
         if self.lattice:
             self._prepare_lattice(should_stop, processes)
 
     def _prepare_lattice(self, should_stop=None, processes=1):
-        fld = self.field
+        fld = self.source
         traced = fld.traced
         counts = traced.counts.astype(np.int64)
         k = traced.vertices.shape[1]
@@ -204,9 +273,11 @@ class RaySampler:
         self.slot_castable = self._slot_castable((v00, v01, v10, v11))
         w, h = self.size
         # the lattice leaf holding each unit square between four pixel centres
-        cell_of = np.zeros((h - 1, w - 1), dtype=np.int32)
-        for n, (a, b, c, d) in enumerate(fld.leaves.tolist()):
-            cell_of[b : max(d, b + 1), a : max(c, a + 1)] = n
+        cell_of = getattr(fld, "cell_of", None)
+        if cell_of is None:
+            cell_of = np.zeros((h - 1, w - 1), dtype=np.int32)
+            for n, (a, b, c, d) in enumerate(fld.leaves.tolist()):
+                cell_of[b : max(d, b + 1), a : max(c, a + 1)] = n
         self.cell_of = cell_of
 
     def _slot_castable(self, corners):
@@ -252,7 +323,7 @@ class RaySampler:
         return clip_far(seg, self.cameras) if clip else seg
 
     def _lattice_segments(self, sx, sy):
-        fld, traced = self.field, self.field.traced
+        fld, traced = self.source, self.source.traced
         w, h = self.size
         px, py = sx - 0.5, sy - 0.5
         cx = np.clip(np.floor(px), 0, w - 2).astype(np.int64)
