@@ -25,6 +25,7 @@ from multiscale_camera.adapters.movies import movie_frame
 from multiscale_camera.adapters.scene import rig_from_scene
 from multiscale_camera.render.fields import SERVICE
 from multiscale_camera.ui.panels import animated_mask_wording, draw_camera_settings
+from tests.blender.test_animation import REGISTER
 from tests.exr import read_passes
 
 W, H = 48, 36
@@ -210,6 +211,37 @@ class Recorder:
 
     def __getattr__(self, _name):  # row, column, template_ID ...
         return lambda *_a, **_kw: Recorder(self.calls)
+
+
+@pytest.mark.slow
+@pytest.mark.e2e
+def test_command_line_animation_reads_the_movie_mask_of_each_frame(scene, tmp_path, run_blender):
+    """``blender -b file.blend -s 1 -e 3 -a``, as render farms run it, with the movie
+    next to the .blend (a relative path, as on shared storage): each frame equals a
+    still render whose camera 2 mask is a still image of that frame's disc."""
+    movie = write_movie(tmp_path, "discs.mov")
+    scene.multiscale.cameras[1].mask = bpy.data.images.load(str(movie))
+    scene.render.image_settings.media_type = "MULTI_LAYER_IMAGE"
+    blend = tmp_path / "movie_mask.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(blend), relative_remap=True)
+    assert scene.multiscale.cameras[1].mask.filepath == "//discs.mov"
+    out = tmp_path / "out"
+    proc = run_blender(
+        ["-b", blend, "--python-exit-code", "1", "--python-expr", REGISTER]
+        + ["-o", out / "frame_####", "-s", "1", "-e", "3", "-a"]
+    )
+    assert "cannot read" not in proc.stdout and "not loaded" not in proc.stdout
+    item = scene.multiscale.cameras[1]
+    for frame in (1, 2, 3):
+        passes = read_passes(out / f"frame_{frame:04d}.exr")
+        item.mask = mask_image(f"disc {frame}", disc(frame))
+        scene.frame_set(frame)
+        scene.render.filepath = str(tmp_path / f"still_{frame}.exr")
+        bpy.ops.render.render(write_still=True)
+        still = read_passes(tmp_path / f"still_{frame}.exr")
+        for name in ("Combined", "Membership", "IndexOB"):
+            gap = np.abs(passes[name] - still[name]).max()
+            assert gap <= 1e-3, (frame, name, gap)
 
 
 def test_the_camera_settings_show_the_movies_frames_and_mapping(scene):
