@@ -1,14 +1,15 @@
 """Blender images -> boolean masks at the render size (row 0 at the top).
 
-A mask that is an image sequence is read at a frame: the number Blender's own image
-user gives for the scene's frame (``sequence_frame``: frames, start, offset, cyclic,
-kept on the camera's list item), whose file (``frame_path``) is loaded for its pixels.
-Each frame file is loaded once, on the main thread, into a temporary Blender image
-removed at once (loading changes Blender's data, which redraws every view and may not
-happen on a render thread); its pixels are kept (``MaskFrames``, one owned by the field
-service, keyed by the file's absolute path, modification time and colour space), so
-reading the rig again, as the Rendered viewport does while it draws, changes nothing in
-Blender's data.
+A mask that is an image sequence or a movie is read at a frame: the number Blender's
+own image user gives for the scene's frame (``sequence_frame``: frames, start, offset,
+cyclic, kept on the camera's list item). A sequence's frame is the file ``frame_path``
+names, loaded for its pixels; a movie's is decoded by Blender's own FFmpeg
+(``adapters.movies.movie_frame``). Each frame is read once, on the main thread, through
+temporary Blender data removed at once (loading changes Blender's data, which redraws
+every view and may not happen on a render thread); its pixels are kept (``MaskFrames``,
+one owned by the field service, keyed by the file's absolute path, modification time,
+colour space and, for a movie, the frame number), so reading the rig again, as the
+Rendered viewport does while it draws, changes nothing in Blender's data.
 """
 
 import os
@@ -20,6 +21,7 @@ import bpy
 import numpy as np
 
 from ..core.errors import RigError
+from .movies import movie_frame
 
 # Rec. 709 luminance weights: white (preserved) is luminance >= 0.5.
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
@@ -27,9 +29,7 @@ THRESHOLD = 0.5
 # Image sources whose pixels change with the frame.
 ANIMATED_SOURCES = {"SEQUENCE": "an image sequence", "MOVIE": "a movie"}
 ANIMATED_MASK = (
-    "Mask '{name}' is {kind}: animated masks are not read yet, so the camera is treated "
-    "as preserving nothing; give it a still image (Image Editor > Image > Source: "
-    "Single Image) or key the camera instead"
+    "Mask '{name}' is {kind}, read here without a frame number; treated as preserving nothing"
 )
 # A frame of a mask sequence whose file cannot be read.
 MISSING_FRAME = (
@@ -37,13 +37,19 @@ MISSING_FRAME = (
     "empty at this frame: check the sequence's files, or the camera's mask Frames, "
     "Start and Offset"
 )
-# A frame of a mask sequence first needed off the main thread (a render's thread).
+# A movie mask whose file Blender cannot play.
+MOVIE_UNREADABLE = (
+    "Mask '{name}' is a movie Blender cannot read ('{path}' is missing, or not a video "
+    "its FFmpeg decodes); treated as empty: check the file, or pick it again in the "
+    "Image Editor (Image > Replace)"
+)
+# A frame of a mask sequence or movie first needed off the main thread (a render's thread).
 FRAME_NOT_LOADED = (
     "Mask '{name}' frame {number} ('{path}') was not loaded before the render started "
     "and cannot be loaded during it; treated as empty at this frame: show that frame "
     "in the viewport once, or render again"
 )
-# Decoded frames of mask sequences kept by a ``MaskFrames``.
+# Decoded frames of mask sequences and movies kept by a ``MaskFrames``.
 FRAMES_KEPT = 8
 
 
@@ -87,10 +93,11 @@ def frame_path(filepath, number):
 
 
 class MaskFrames:
-    """Decoded frames of mask image sequences: (absolute path, mtime, colour space) ->
-    (H, W, 4) float32 RGBA, the ``kept`` most recent; one is owned by the field service
-    (``render.fields.SERVICE.mask_frames``) and passed to ``rig_from_scene``. A file is
-    loaded on the main thread only; the files first wanted off it are remembered."""
+    """Decoded frames of mask image sequences and movies: (absolute path, mtime, colour
+    space, movie frame number or None) -> (H, W, 4) float32 RGBA, the ``kept`` most
+    recent; one is owned by the field service (``render.fields.SERVICE.mask_frames``)
+    and passed to ``rig_from_scene``. A frame is read on the main thread only; the files
+    first wanted off it are remembered."""
 
     def __init__(self, kept=FRAMES_KEPT):
         self.kept = kept
@@ -109,16 +116,20 @@ class MaskFrames:
 
     def pixels(self, image, number):
         """(H, W, 4) float32 RGBA (row 0 at the top, read-only) of frame ``number`` of
-        the image sequence ``image``, and the frame's absolute path; (None, path) when
-        it cannot be read. A file is loaded once (main thread only) and then read from
-        here; first wanted off the main thread, it is not loaded: (None, path), with
+        the image sequence or movie ``image``, and the absolute path of the file read
+        (the frame's file for a sequence, the movie's); (None, path) when it cannot be
+        read. A frame is read once (main thread only) and then taken from here; first
+        wanted off the main thread, it is not read: (None, path), with
         ``wanted_off_main_thread(path)`` true."""
-        path = bpy.path.abspath(frame_path(image.filepath, number), library=image.library)
+        movie = image.source == "MOVIE"
+        name = image.filepath if movie else frame_path(image.filepath, number)
+        path = bpy.path.abspath(name, library=image.library)
         try:
             mtime = os.stat(path).st_mtime_ns
         except OSError:
             return None, path
-        key = (os.path.normpath(path), mtime, image.colorspace_settings.name)
+        colorspace = image.colorspace_settings.name
+        key = (os.path.normpath(path), mtime, colorspace, number if movie else None)
         with self.lock:
             rgba = self.decoded.get(key)
             if rgba is not None:
@@ -127,15 +138,7 @@ class MaskFrames:
             if threading.current_thread() is not threading.main_thread():
                 self.not_loaded.add(path)
                 return None, path
-        try:
-            still = bpy.data.images.load(path, check_existing=False)
-        except RuntimeError:
-            return None, path
-        try:
-            still.colorspace_settings.name = image.colorspace_settings.name
-            rgba = image_pixels(still)
-        finally:
-            bpy.data.images.remove(still)
+        rgba = movie_frame(path, number) if movie else still_frame(path, colorspace)
         if rgba is None:
             return None, path
         rgba = np.ascontiguousarray(rgba)
@@ -146,6 +149,21 @@ class MaskFrames:
             while len(self.decoded) > self.kept:
                 self.decoded.popitem(last=False)
         return rgba, path
+
+
+def still_frame(path, colorspace):
+    """(H, W, 4) float32 RGBA (row 0 at the top) of the image file ``path`` read in
+    ``colorspace``, through a temporary Blender image removed at once (main thread
+    only); None when Blender cannot read it."""
+    try:
+        still = bpy.data.images.load(path, check_existing=False)
+    except RuntimeError:
+        return None
+    try:
+        still.colorspace_settings.name = colorspace
+        return image_pixels(still)
+    finally:
+        bpy.data.images.remove(still)
 
 
 def image_pixels(image, buf=None):
@@ -179,11 +197,11 @@ def resample_nearest(mask, width, height):
 def mask_from_image(image, width, height, frame=None, buf=None, frames=None):
     """A bool (height, width) mask from a Blender image, and notices about it.
 
-    ``frame`` : int, the frame number to read when ``image`` is an image sequence
-    (``sequence_frame``); without it a sequence reads as not yet readable, as a movie
-    does. ``buf`` : a still image's pixels already read (``image_pixels``).
-    ``frames`` : the ``MaskFrames`` that keeps decoded sequence frames (without it, a
-    sequence's frame file is loaded for this call alone).
+    ``frame`` : int, the frame number to read when ``image`` is an image sequence or
+    a movie (``sequence_frame``); without it such a mask reads as empty, with a notice.
+    ``buf`` : a still image's pixels already read (``image_pixels``).
+    ``frames`` : the ``MaskFrames`` that keeps decoded frames (without it, a frame is
+    read for this call alone).
 
     Returns
     -------
@@ -193,15 +211,17 @@ def mask_from_image(image, width, height, frame=None, buf=None, frames=None):
     if image is None:
         return np.zeros((height, width), dtype=bool), []
     kind = animated_kind(image)
-    if kind is not None and (image.source != "SEQUENCE" or frame is None):
+    if kind is not None and frame is None:
         notice = ANIMATED_MASK.format(name=image.name, kind=kind)
         return np.zeros((height, width), dtype=bool), [notice]
     if kind is not None:
         frames = frames if frames is not None else MaskFrames()
         rgba, path = frames.pixels(image, frame)
         if rgba is None:
-            wanted = frames.wanted_off_main_thread(path)
-            message = FRAME_NOT_LOADED if wanted else MISSING_FRAME
+            if frames.wanted_off_main_thread(path):
+                message = FRAME_NOT_LOADED
+            else:
+                message = MOVIE_UNREADABLE if image.source == "MOVIE" else MISSING_FRAME
             notice = message.format(name=image.name, number=frame, path=path)
             return np.zeros((height, width), dtype=bool), [notice]
     else:

@@ -10,7 +10,7 @@ from ..core.errors import RigError
 from ..core.geometry import Rig, resolve_conflicts
 from ..core.methods import settings_for
 from .cameras import pinhole_from_object, render_size
-from .masks import mask_from_image, sequence_frame
+from .masks import animated_kind, mask_from_image, sequence_frame
 
 EMPTY_LIST = (
     "The camera list is empty: add cameras in the 3D viewport's sidebar "
@@ -131,11 +131,10 @@ def rig_from_scene(scene, depsgraph=None, pixels=None, frames=None):
 
 
 def mask_frame(item, scene):
-    """The frame number of ``item``'s mask sequence at ``scene``'s frame (the item
-    keeps frames, start, offset and cyclic as an image user does); None when the mask
-    is not an image sequence."""
-    image = item.mask
-    if image is None or image.source != "SEQUENCE":
+    """The frame number of ``item``'s mask sequence or movie at ``scene``'s frame (the
+    item keeps frames, start, offset and cyclic as an image user does); None when the
+    mask is still."""
+    if animated_kind(item.mask) is None:
         return None
     return sequence_frame(
         scene.frame_current,

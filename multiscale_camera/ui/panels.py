@@ -168,21 +168,21 @@ def draw_camera_settings(layout, context, item):
             col.label(text="Too close to the eye for the guides:", icon="ERROR")
             col.label(text="raise Near Distance (or lower Beta)")
     layout.template_ID(item, "mask", new="multiscale.mask_new", open="image.open")
-    kind = animated_kind(item.mask)
-    if kind is not None and item.mask.source == "SEQUENCE":
+    said = animated_mask_wording(item)
+    if said is not None:
         col = layout.column(align=True)
-        col.label(text="Mask sequence, read at each frame:", icon="SEQUENCE")
+        icon = "SEQUENCE" if item.mask.source == "SEQUENCE" else "FILE_MOVIE"
+        col.label(text=said[0], icon=icon)
+        if said[1]:
+            note = col.row()
+            note.alert = item.mask.size[0] == 0
+            note.label(text=said[1], icon="ERROR" if note.alert else "INFO")
         row = col.row(align=True)
         row.prop(item, "mask_frames")
         row.prop(item, "mask_frame_start")
         row = col.row(align=True)
         row.prop(item, "mask_frame_offset")
         row.prop(item, "mask_cyclic", toggle=True)
-    elif kind is not None:
-        col = layout.column(align=True)
-        col.alert = True
-        col.label(text=f"Animated mask ({kind.split(' ', 1)[1]}):", icon="ERROR")
-        col.label(text="not read yet; use a still image")
     row = layout.row(align=True)
     row.operator("multiscale.mask_new", icon="FILE_NEW")
     row.operator("multiscale.mask_paint", icon="BRUSH_DATA")
@@ -195,6 +195,25 @@ def draw_camera_settings(layout, context, item):
         col.label(text=f"Kept: {item.previous_mask.name}", icon="FILE_BACKUP")
         col.operator("multiscale.mask_restore", icon="LOOP_BACK")
     draw_transfer_function(layout, item)
+
+
+def animated_mask_wording(item):
+    """What the camera's settings say of an animated mask: (heading, note or ""), or
+    None for a still mask. The note says when the item plays another number of frames
+    than the movie has (past the movie's end its last frame holds), or when Blender
+    cannot play the movie."""
+    kind = animated_kind(item.mask)
+    if kind is None:
+        return None
+    if item.mask.source == "SEQUENCE":
+        return "Mask sequence, read at each frame:", ""
+    if item.mask.size[0] == 0:
+        return "Mask movie Blender cannot play:", "file missing or not a video; reads empty"
+    length = item.mask.frame_duration
+    note = ""
+    if length != item.mask_frames:
+        note = f"The movie has {length} frames; Frames plays {item.mask_frames}"
+    return f"Mask movie ({length} frames), read at each frame:", note
 
 
 def draw_guide_state(layout, context, item):

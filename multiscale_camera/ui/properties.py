@@ -52,8 +52,11 @@ def _preview_toggled(self, context):
 
 def _pack_mask(self, _context):
     """Keep a mask loaded from a file (PNG, EXR, ... from another tool) inside the .blend,
-    so the render does not depend on the file staying where it was."""
+    so the render does not depend on the file staying where it was. A movie (never
+    packed) plays its own length, as Blender's image users set it when one is opened."""
     image = self.mask
+    if image is not None and image.source == "MOVIE" and image.frame_duration > 0:
+        self.mask_frames = image.frame_duration
     if image is not None and image.packed_file is None and image.source == "FILE":
         try:
             image.pack()
@@ -99,28 +102,29 @@ class MultiscaleCameraItem(bpy.types.PropertyGroup):
         type=bpy.types.Image,
         description="The mask New Mask replaced, kept to be put back",
     )
-    # An image sequence as the mask plays as Blender's image users play it.
+    # An image sequence or movie as the mask plays as Blender's image users play it.
     mask_frames: IntProperty(
         name="Frames",
         default=100,
         min=0,
-        description="Frames of the mask's image sequence to play (as an image user's Frames)",
+        description="Frames of the mask's image sequence or movie to play (as an image "
+        "user's Frames)",
     )
     mask_frame_start: IntProperty(
         name="Start",
         default=1,
-        description="Scene frame at which the mask's image sequence starts playing",
+        description="Scene frame at which the mask's image sequence or movie starts playing",
     )
     mask_frame_offset: IntProperty(
         name="Offset",
         default=0,
-        description="Added to the sequence's frame number (the file read is numbered "
-        "1 + offset at the start frame)",
+        description="Added to the sequence's or movie's frame number (the file or movie "
+        "frame read is numbered 1 + offset at the start frame)",
     )
     mask_cyclic: BoolProperty(
         name="Cyclic",
         default=False,
-        description="Play the mask's image sequence again after its last frame",
+        description="Play the mask's image sequence or movie again after its last frame",
     )
 
 

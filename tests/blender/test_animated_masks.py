@@ -15,6 +15,7 @@ from multiscale_camera.adapters.masks import (
     MISSING_FRAME,
     MaskFrames,
     frame_path,
+    mask_from_image,
     sequence_frame,
 )
 from multiscale_camera.adapters.scene import rig_from_scene
@@ -169,12 +170,13 @@ def test_a_missing_frame_is_said_and_reads_empty(scene):
     assert said in rig.notices
 
 
-def test_a_movie_mask_is_still_said_not_read(scene, tmp_path):
-    item = scene.multiscale.cameras[0]
-    item.mask.source = "MOVIE"
-    rig, _key = read_at(scene, 1)
-    assert ANIMATED_MASK.format(name=item.mask.name, kind="a movie") in rig.notices
-    assert not rig.masks[0].any()
+def test_a_sequence_read_without_a_frame_number_says_so(scene):
+    """Movies are read now (tests/blender/test_movie_masks.py); an animated mask read
+    without a frame number still says so."""
+    image = scene.multiscale.cameras[0].mask
+    mask, notices = mask_from_image(image, W, H)
+    assert notices == [ANIMATED_MASK.format(name=image.name, kind="an image sequence")]
+    assert not mask.any()
 
 
 def test_reading_a_sequence_mask_again_changes_no_blender_data(scene):
