@@ -114,16 +114,18 @@ def curved_rays(guides, segments=DEFAULT_SEGMENTS):
         chord = np.linalg.norm(pts[j + 1] - pts[j], axis=-1)
         sl = slice(1 + j * segments, 1 + (j + 1) * segments)
         start = rays[:, :, j * segments]
+        # the curves still bending follow guide B_j (they stand at p_j here): one
+        # evaluation serves them all
+        guide = bezier(
+            pts[j],
+            pts[j] + dirs[j] * guides.handles_out[j][:, None],
+            pts[j + 1] - dirs[j + 1] * guides.handles_in[j][:, None],
+            pts[j + 1],
+            t,
+        )
         for i in range(n):
             if i > j:
-                # still bending: follow guide B_j (the curve stands at p_j here)
-                rays[i, :, sl] = bezier(
-                    pts[j],
-                    pts[j] + dirs[j] * guides.handles_out[j][:, None],
-                    pts[j + 1] - dirs[j + 1] * guides.handles_in[j][:, None],
-                    pts[j + 1],
-                    t,
-                )
+                rays[i, :, sl] = guide
             else:
                 rays[i, :, sl] = start[i][:, None] + dirs[i][:, None] * (
                     chord[:, None, None] * t[None, :, None]
