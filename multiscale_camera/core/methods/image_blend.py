@@ -2,6 +2,7 @@
 
 import time
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 
@@ -16,10 +17,21 @@ class CurveBlendField(RayField):
     """Rays that blend each pixel's own curves R_i by per-pixel camera weights.
 
     weights : (N, H, W) float32, summing to one per pixel.
+
+    Kept rays are exact (``exact_kept``): inside camera i's mask the weights are one-hot
+    (1 for i, 0 for the others, exactly: ``harmonic.mask_weights`` fixes them there and
+    ``eased`` keeps 0 and 1), so the blend ``1 * R_i + 0 * R_j`` is R_i bit for bit.
     """
 
     weights: np.ndarray = None
     segments: int = DEFAULT_SEGMENTS
+    exact_kept: ClassVar[bool] = True
+
+    def near_vertex(self, i):
+        """R_i's vertex i * segments is p_i on camera i's near plane (the end of guide
+        B_{i-1}: the cubic at t = 1 is its last control point, exactly); the vertices
+        after it run straight along v_i (``geometry.curved_rays``)."""
+        return i * self.segments
 
     def rays(self, ix, iy):
         ix, iy = np.asarray(ix), np.asarray(iy)
