@@ -141,3 +141,19 @@ def test_limited_sections_are_those_of_the_reference(seed, k, noise, back):
     limit = rng.integers(0, k + 2, size=(verts.shape[0] - 1, verts.shape[1] - 1))
     expected = reference_quad_folds(verts, active, np.minimum(limit, k))
     np.testing.assert_array_equal(quad_folds(verts, active, limit), expected)
+
+
+@pytest.mark.parametrize("rig", [demo_rig, turned_rig])
+def test_image_blend_rays_are_the_blend_of_all_curves_bit_for_bit(rig):
+    """Kept pixels make their own curve alone: the bits (signed zeros too) of the blend
+    of every curve by the pixel's weights, as every pixel's ray was made before."""
+    cams, masks = rig(96, 54)
+    fld = prepare(Rig(cams, masks), "IMAGE_BLEND", settings_for("STANDARD"))
+    iy, ix = np.mgrid[0:54, 0:96]
+    ix, iy = ix.ravel(), iy.ravel()
+    g = build_guides(cams, ix + 0.5, iy + 0.5, beta=fld.rig.beta)
+    w = fld.weights[:, iy, ix].astype(np.float64)
+    blend = np.einsum("np,npkc->pkc", w, curved_rays(g, fld.segments)).astype(np.float32)
+    got = fld.rays(ix, iy).vertices
+    np.testing.assert_array_equal(got.view(np.uint32), blend.view(np.uint32))
+    assert masks.any(axis=0).mean() > 0.3 and not masks.any(axis=0).all()

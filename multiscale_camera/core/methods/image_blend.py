@@ -7,7 +7,7 @@ from typing import ClassVar
 import numpy as np
 
 from ..field import mask_weights
-from ..geometry import DEFAULT_SEGMENTS, build_guides, curved_rays
+from ..geometry import DEFAULT_SEGMENTS, Guides, build_guides, curved_rays
 from ..quality import check_rig
 from .base import RayField, guard_warnings, record_seconds
 
@@ -34,14 +34,37 @@ class CurveBlendField(RayField):
         return i * self.segments
 
     def rays(self, ix, iy):
+        """The blend of each pixel's curves; a pixel whose weights are one-hot (kept by
+        camera i) gets R_i alone, the bits the blend ``1 R_i + 0 R_j`` has."""
         ix, iy = np.asarray(ix), np.asarray(iy)
         cams = self.rig.cameras
+        n = len(cams)
         g = build_guides(cams, ix + 0.5, iy + 0.5, beta=self.rig.beta)
-        curves = curved_rays(g, self.segments)
         w = self.weights[:, iy, ix].astype(np.float64)
-        verts = np.einsum("np,npkc->pkc", w, curves)
-        m = np.arange(1, len(cams) + 1, dtype=np.float64) @ w
+        one = (w == 1.0).any(axis=0) & ((w == 0.0).sum(axis=0) == n - 1)
+        verts = np.empty((len(ix), 1 + (n - 1) * self.segments + 1, 3))
+        blend = np.flatnonzero(~one)
+        if len(blend):
+            curves = curved_rays(_subset(g, blend), self.segments)
+            verts[blend] = np.einsum("np,npkc->pkc", w[:, blend], curves)
+        owner = w.argmax(axis=0)
+        for i in range(n):
+            mine = np.flatnonzero(one & (owner == i))
+            if len(mine):
+                verts[mine] = curved_rays(_subset(g, mine), self.segments, [i])[0]
+        m = np.arange(1, n + 1, dtype=np.float64) @ w
         return self._bundle(ix, iy, verts, np.repeat(m[:, None], verts.shape[1], axis=1))
+
+
+def _subset(guides, rows):
+    """The guides of the pixels ``rows`` ((P',) int) of ``guides``."""
+    return Guides(
+        guides.points[:, rows],
+        guides.directions[:, rows],
+        guides.handles_out[:, rows],
+        guides.handles_in[:, rows],
+        guides.shortened,
+    )
 
 
 def eased(weights):
