@@ -20,6 +20,7 @@ from fixtures.rigs import (
 from multiscale_camera.core.geometry import Rig, build_guides, curved_rays
 from multiscale_camera.core.methods import prepare, settings_for
 from multiscale_camera.core.quality import fold_map, quad_folds
+from multiscale_camera.core.quality import folds as folds_module
 from multiscale_camera.core.quality.report import kept_limits
 
 from .fold_reference import reference_quad_folds
@@ -157,3 +158,21 @@ def test_image_blend_rays_are_the_blend_of_all_curves_bit_for_bit(rig):
     got = fld.rays(ix, iy).vertices
     np.testing.assert_array_equal(got.view(np.uint32), blend.view(np.uint32))
     assert masks.any(axis=0).mean() > 0.3 and not masks.any(axis=0).all()
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    runs=st.lists(
+        st.tuples(st.integers(1, 300), st.sampled_from([0, 0, 2, 10, 18])), min_size=1
+    ),
+    cols=st.integers(1, 400),
+)
+def test_row_windows_cover_every_quad_to_check_once(runs, cols):
+    limit = np.concatenate([np.full(n, v) for n, v in runs])
+    covered = np.zeros(len(limit), dtype=int)
+    for c0, c1, kmax in folds_module._row_windows(limit, cols):
+        assert 0 <= c0 < c1 <= len(limit) and c1 - c0 <= cols
+        assert kmax >= limit[c0:c1].max() and limit[c0] > 0 and limit[c1 - 1] > 0
+        covered[c0:c1] += 1
+    assert (covered <= 1).all()
+    assert (covered[limit > 0] == 1).all()

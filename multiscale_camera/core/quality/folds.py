@@ -177,10 +177,11 @@ def _row_windows(limit, cols):
     for run in merged:
         if run is None:
             continue
-        c0, c1, lim = run
-        while limit[c1 - 1] == 0:  # a trailing gap checks nothing
-            c1 -= 1
-        out += [(c, min(c + cols, c1), lim) for c in range(c0, c1, cols)]
+        for c in range(run[0], run[1], cols):
+            checked = np.flatnonzero(limit[c : min(c + cols, run[1])])
+            if len(checked):  # a piece starts and ends on quads to check
+                c0, c1 = c + checked[0], c + checked[-1] + 1
+                out.append((int(c0), int(c1), int(limit[c0:c1].max())))
     return out
 
 
