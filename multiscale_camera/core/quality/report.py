@@ -130,9 +130,11 @@ def kept_limits(fld, ys, xs):
       t > 0 on the pixels' directions d: the sign of det(d1, d2, d3), fixed).
     - camera i > 1: those up to vertex ``near_vertex(i) + 1`` of ray a, the first
       vertex past the near-plane point p_i of its own pixel. From there on each section
-      meets the four rays where they are camera i's pinhole rays, and every such
-      section orients the triangles alike (as above), so one of them says what all of
-      them say: whether the rays are turned there against the first section.
+      meets the four rays where they are camera i's pinhole rays (the neighbours' p_i
+      lie a pixel's footprint from a's, a stage's segment short of the plane, and the
+      walk starts at a's arc length, on their straight parts), and every such section
+      orients the triangles alike (as above), so one of them says what all of them
+      say: whether the rays are turned there against the first section.
     """
     masks = fld.rig.masks
     out = np.full((len(ys) - 1, len(xs) - 1), np.iinfo(np.int16).max, dtype=np.int16)
