@@ -91,13 +91,14 @@ def reference_section_points(q, origin, normal, start):
     return (qa - origin) + (qb - qa) * w[..., None], j
 
 
-def reference_quad_folds(vertices, active):
+def reference_quad_folds(vertices, active, limit=None):
     """Quads of neighbouring rays that fold in the bending stretch (module docstring).
 
     Parameters
     ----------
     vertices : (Hy, Wx, K, 3) float array, K >= 2: rays on a pixel lattice, world units.
     active : (Hy, Wx, K) bool: whether vertex k is inside the bending stretch.
+    limit : (Hy - 1, Wx - 1) int or None: only each quad's sections k < limit count.
 
     Returns
     -------
@@ -121,6 +122,8 @@ def reference_quad_folds(vertices, active):
     ref = cum[corners[0]].reshape(p, k)
     points = [np.zeros_like(a)]
     live = active[corners[0]].reshape(p, k).copy()
+    if limit is not None:
+        live &= np.arange(k) < np.asarray(limit).reshape(p, 1)
     for sl in corners[1:]:
         q = v[sl].reshape(p, k, 3)
         qc = cum[sl].reshape(p, k)

@@ -1,4 +1,3 @@
-from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -233,41 +232,3 @@ def test_auto_says_which_camera_misses_the_target_and_by_how_much():
     assert shortfall([cam("C", 10, None, None)], 1, 0.5) == (
         "camera 'C' has rays that never reach its near plane; 1 folded quads"
     )
-
-
-def test_a_stroke_on_a_mask_leaves_image_blends_curves_to_be_gathered(monkeypatch):
-    """Every field of IMAGE_BLEND made its pixels' curves R_i anew, though a stroke on a
-    mask changes only the weights (a fifth of the live picture's CPU time on the demo
-    went to them, in the build's measurement and in the sampler). Now the curves of a
-    small rig's whole image are kept for its cameras and gathered: the same numbers as
-    made afresh, made once for two fields of the same cameras, again for moved ones."""
-    from multiscale_camera.core.geometry import build_guides, curved_rays
-    from multiscale_camera.core.methods import image_blend
-
-    made = []
-    monkeypatch.setattr(image_blend, "_KEPT", {})
-    monkeypatch.setattr(
-        image_blend, "curved_rays", lambda g, s: made.append(g.points.shape[1]) or curved_rays(g, s)
-    )
-    cams, masks = two_camera_rig(40, 30)
-    ix, iy = np.arange(0, 40, 3), np.arange(0, 30, 3)[:, None].repeat(3, 1).ravel()[:14]
-    fresh = curved_rays(build_guides(cams, ix + 0.5, iy + 0.5, beta=0.2), 8)
-    first = prepare(Rig(cams, masks), "IMAGE_BLEND")
-    np.testing.assert_array_equal(image_blend.pixel_curves(cams, ix, iy, 0.2), fresh)
-    stroked = masks.copy()
-    stroked[1, 10:14, 10:14] = True
-    stroked[0, 10:14, 10:14] = False
-    second = prepare(Rig(cams, stroked), "IMAGE_BLEND")
-    assert made == [40 * 30]  # one whole image, for both fields
-    for fld in (first, second):
-        w = fld.weights[:, iy, ix].astype(np.float64)
-        expected = np.einsum("np,npkc->pkc", w, fresh).astype(np.float32)
-        np.testing.assert_array_equal(fld.rays(ix, iy).vertices, expected)
-    moved = (cams[0], replace(cams[1], clip_start=cams[1].clip_start * 1.1))
-    prepare(Rig(moved, masks), "IMAGE_BLEND").rays(ix, iy)
-    assert made == [40 * 30, 40 * 30]
-    # a rig whose curves would not fit makes its pixels' curves each time, keeps none
-    monkeypatch.setattr(image_blend, "CURVES_KEPT_BYTES", 1000)
-    image_blend._KEPT.clear()
-    np.testing.assert_array_equal(image_blend.pixel_curves(cams, ix, iy, 0.2), fresh)
-    assert made[-1] == len(ix) and not image_blend._KEPT

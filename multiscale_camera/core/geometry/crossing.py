@@ -11,8 +11,6 @@ plane from behind (docs/report.md, *Preserved error*).
 
 import numpy as np
 
-from .vectors import dot3
-
 
 def near_plane_entries(vertices, cameras):
     """For each camera in order, where each polyline enters its view.
@@ -34,20 +32,29 @@ def near_plane_entries(vertices, cameras):
     (N, R) float64: the polyline parameter of each entry, vertex index plus the fraction
     of the segment (k + t: the point v[k] + t (v[k+1] - v[k])); inf where there is none.
     """
-    v = np.asarray(vertices, dtype=np.float64)
+    v = np.asarray(vertices)
     r, k = v.shape[:2]
+    # coordinate planes, summed as ``dot3`` sums rows (x, then z, then y: numpy's
+    # einsum), so that the depths are the bits ``dot3(v - eye, forward)`` gives
+    comp = [np.asarray(v[..., i], dtype=np.float64) for i in range(3)]
     out = np.empty((len(cameras), r))
     prev = np.zeros(r)
-    index = np.arange(k - 1, dtype=np.float64)[None, :]
     rows = np.arange(r)
     for n, cam in enumerate(cameras):
-        d = dot3(v - cam.eye, cam.forward) - float(cam.clip_start)  # (R, K), >= 0 beyond
+        eye = np.asarray(cam.eye, dtype=np.float64)
+        fwd = np.asarray(cam.forward, dtype=np.float64)
+        p = [(comp[i] - eye[i]) * fwd[i] for i in range(3)]
+        d = ((p[0] + p[2]) + p[1]) - float(cam.clip_start)  # (R, K), >= 0 beyond
         d0, d1 = d[:, :-1], d[:, 1:]
-        up = (d0 < 0) & (d1 >= 0)
+        # the upward crossings alone (few: one or two per ray) are located
+        ri, ci = np.nonzero((d0 < 0) & (d1 >= 0))
+        a0, a1 = d0[ri, ci], d1[ri, ci]
         with np.errstate(divide="ignore", invalid="ignore"):
-            at = index + np.where(up, -d0 / (d1 - d0), np.inf)
+            at_up = ci.astype(np.float64) + (-a0 / (a1 - a0))
         # ... not before the entry into the camera before (the first camera: vertex 0)
-        at = np.where(up & (at >= prev[:, None]), at, np.inf).min(axis=1)
+        keep = at_up >= prev[ri]
+        at = np.full(r, np.inf)
+        np.minimum.at(at, ri[keep], at_up[keep])
         finite = np.isfinite(prev)
         seg = np.clip(np.floor(np.where(finite, prev, 0.0)), 0, k - 2).astype(np.int64)
         t = np.where(finite, prev, 0.0) - seg

@@ -91,43 +91,50 @@ def bezier(q0, q1, q2, q3, t):
     )
 
 
-def curved_rays(guides, segments=DEFAULT_SEGMENTS):
+def curved_rays(guides, segments=DEFAULT_SEGMENTS, which=None):
     """The curved rays R_1..R_N of every pixel, in the shared vertex layout.
 
     Parameters
     ----------
     guides : Guides for N cameras and P pixels.
     segments : int, vertices per stage.
+    which : sequence of int or None: the curves to make (0-based cameras; None: all N),
+        each the bits it has among all N.
 
     Returns
     -------
-    (N, P, K, 3) float64 array, K = 1 + (N - 1) * segments + 1, world units. The last
-    segment of R_i points along v_i (its length is the last stage's chord, or one
-    world unit for a single camera) and is meant to be extended.
+    (len(which), P, K, 3) float64 array, K = 1 + (N - 1) * segments + 1, world units.
+    The last segment of R_i points along v_i (its length is the last stage's chord, or
+    one world unit for a single camera) and is meant to be extended.
     """
     pts, dirs = guides.points, guides.directions
     n, p = pts.shape[:2]
+    which = list(range(n)) if which is None else [int(i) for i in which]
     t = np.arange(1, segments + 1) / segments
-    rays = np.empty((n, p, 1 + (n - 1) * segments + 1, 3))
+    rays = np.empty((len(which), p, 1 + (n - 1) * segments + 1, 3))
     rays[:, :, 0] = pts[0]
     for j in range(n - 1):
         chord = np.linalg.norm(pts[j + 1] - pts[j], axis=-1)
         sl = slice(1 + j * segments, 1 + (j + 1) * segments)
         start = rays[:, :, j * segments]
-        for i in range(n):
+        # the curves still bending follow guide B_j (they stand at p_j here): one
+        # evaluation serves them all
+        guide = None
+        if max(which) > j:
+            guide = bezier(
+                pts[j],
+                pts[j] + dirs[j] * guides.handles_out[j][:, None],
+                pts[j + 1] - dirs[j + 1] * guides.handles_in[j][:, None],
+                pts[j + 1],
+                t,
+            )
+        for r, i in enumerate(which):
             if i > j:
-                # still bending: follow guide B_j (the curve stands at p_j here)
-                rays[i, :, sl] = bezier(
-                    pts[j],
-                    pts[j] + dirs[j] * guides.handles_out[j][:, None],
-                    pts[j + 1] - dirs[j + 1] * guides.handles_in[j][:, None],
-                    pts[j + 1],
-                    t,
-                )
+                rays[r, :, sl] = guide
             else:
-                rays[i, :, sl] = start[i][:, None] + dirs[i][:, None] * (
+                rays[r, :, sl] = start[r][:, None] + dirs[i][:, None] * (
                     chord[:, None, None] * t[None, :, None]
                 )
     tail = np.linalg.norm(pts[-1] - pts[-2], axis=-1) if n > 1 else np.ones(p)
-    rays[:, :, -1] = rays[:, :, -2] + dirs * tail[None, :, None]
+    rays[:, :, -1] = rays[:, :, -2] + dirs[which] * tail[None, :, None]
     return rays

@@ -6,6 +6,7 @@ bounded memory.
 
 import abc
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import numpy as np
 
@@ -98,6 +99,11 @@ class RayField(abc.ABC):
     warnings: list = field(default_factory=list)
     grids: list = field(default_factory=list)
     stats: dict = field(default_factory=dict)
+    # Whether the ray of a pixel kept by camera i (inside its mask) is camera i's curve
+    # R_i itself, vertex for vertex (``geometry.curved_rays``): then from R_i's vertex
+    # ``near_vertex(i)`` on it lies on camera i's pinhole ray, and the fold count skips
+    # what cannot fold there (``quality.report.fold_map``).
+    exact_kept: ClassVar[bool] = False
 
     @abc.abstractmethod
     def rays(self, ix, iy):
@@ -107,6 +113,12 @@ class RayField(abc.ABC):
         """(P,) int: the vertex where each pixel's ray leaves the modelled volume (the
         end of its bending stretch); the last vertex unless a method knows better."""
         return None
+
+    def near_vertex(self, i):
+        """int: the vertex of a kept pixel's ray on camera ``i``'s near plane (0-based
+        ``i``), from which on the ray is camera i's pinhole ray; only where
+        ``exact_kept``."""
+        raise NotImplementedError(f"{self.method} does not lay kept rays out as R_i")
 
     def _bundle(self, ix, iy, verts, membership):
         cams = self.rig.cameras

@@ -1,59 +1,15 @@
 """IMAGE_BLEND: each pixel's ray is its curves R_i blended by eased harmonic mask weights."""
 
-import hashlib
-import threading
 import time
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 
 from ..field import mask_weights
-from ..geometry import DEFAULT_SEGMENTS, build_guides, curved_rays
+from ..geometry import DEFAULT_SEGMENTS, Guides, build_guides, curved_rays
 from ..quality import check_rig
 from .base import RayField, guard_warnings, record_seconds
-
-# Every pixel's curves are kept for the last rig at most this large (float64 bytes): a
-# stroke on a mask changes the weights alone, so the next field of the same cameras
-# (the live picture's, 240x135 with three cameras: 42 MB) gathers its curves.
-CURVES_KEPT_BYTES = 64 << 20
-_KEPT = {}  # cameras_key -> (N, H*W, K, 3) float64, the last rig's only
-_KEEPING = threading.Lock()
-
-
-def cameras_key(cameras, beta, segments):
-    """A digest of everything the curves R_i of ``cameras`` depend on (str)."""
-    digest = hashlib.blake2b(repr((float(beta), int(segments))).encode())
-    for cam in cameras:
-        for f in fields(cam):
-            value = getattr(cam, f.name)
-            if isinstance(value, np.ndarray):
-                digest.update(np.ascontiguousarray(value, dtype=np.float64).tobytes())
-            else:
-                digest.update(repr(value).encode())
-    return digest.hexdigest()
-
-
-def pixel_curves(cameras, ix, iy, beta, segments=DEFAULT_SEGMENTS):
-    """(N, P, K, 3) float64: the curves R_1..R_N of pixels (ix, iy), as
-    ``curved_rays(build_guides(...))`` gives them. For cameras whose curves over the
-    whole image fit in ``CURVES_KEPT_BYTES``, those are made once and kept (the last
-    rig's only), and the pixels' are gathered from them."""
-    w, h = cameras[0].width, cameras[0].height
-    k = 1 + (len(cameras) - 1) * segments + 1
-    if len(cameras) * w * h * k * 3 * 8 > CURVES_KEPT_BYTES:
-        return curved_rays(build_guides(cameras, ix + 0.5, iy + 0.5, beta=beta), segments)
-    key = cameras_key(cameras, beta, segments)
-    kept = _KEPT.get(key)
-    if kept is None:
-        with _KEEPING:
-            kept = _KEPT.get(key)
-            if kept is None:
-                y, x = np.divmod(np.arange(w * h), w)
-                g = build_guides(cameras, x + 0.5, y + 0.5, beta=beta)
-                kept = curved_rays(g, segments)
-                _KEPT.clear()
-                _KEPT[key] = kept
-    return kept[:, np.asarray(iy) * w + np.asarray(ix)]
 
 
 @dataclass
@@ -61,19 +17,54 @@ class CurveBlendField(RayField):
     """Rays that blend each pixel's own curves R_i by per-pixel camera weights.
 
     weights : (N, H, W) float32, summing to one per pixel.
+
+    Kept rays are exact (``exact_kept``): inside camera i's mask the weights are one-hot
+    (1 for i, 0 for the others, exactly: ``harmonic.mask_weights`` fixes them there and
+    ``eased`` keeps 0 and 1), so the blend ``1 * R_i + 0 * R_j`` is R_i bit for bit.
     """
 
     weights: np.ndarray = None
     segments: int = DEFAULT_SEGMENTS
+    exact_kept: ClassVar[bool] = True
+
+    def near_vertex(self, i):
+        """R_i's vertex i * segments is p_i on camera i's near plane (the end of guide
+        B_{i-1}: the cubic at t = 1 is its last control point, exactly); the vertices
+        after it run straight along v_i (``geometry.curved_rays``)."""
+        return i * self.segments
 
     def rays(self, ix, iy):
+        """The blend of each pixel's curves; a pixel whose weights are one-hot (kept by
+        camera i) gets R_i alone, the bits the blend ``1 R_i + 0 R_j`` has."""
         ix, iy = np.asarray(ix), np.asarray(iy)
         cams = self.rig.cameras
-        curves = pixel_curves(cams, ix, iy, self.rig.beta, self.segments)
+        n = len(cams)
+        g = build_guides(cams, ix + 0.5, iy + 0.5, beta=self.rig.beta)
         w = self.weights[:, iy, ix].astype(np.float64)
-        verts = np.einsum("np,npkc->pkc", w, curves)
-        m = np.arange(1, len(cams) + 1, dtype=np.float64) @ w
+        one = (w == 1.0).any(axis=0) & ((w == 0.0).sum(axis=0) == n - 1)
+        verts = np.empty((len(ix), 1 + (n - 1) * self.segments + 1, 3))
+        blend = np.flatnonzero(~one)
+        if len(blend):
+            curves = curved_rays(_subset(g, blend), self.segments)
+            verts[blend] = np.einsum("np,npkc->pkc", w[:, blend], curves)
+        owner = w.argmax(axis=0)
+        for i in range(n):
+            mine = np.flatnonzero(one & (owner == i))
+            if len(mine):
+                verts[mine] = curved_rays(_subset(g, mine), self.segments, [i])[0]
+        m = np.arange(1, n + 1, dtype=np.float64) @ w
         return self._bundle(ix, iy, verts, np.repeat(m[:, None], verts.shape[1], axis=1))
+
+
+def _subset(guides, rows):
+    """The guides of the pixels ``rows`` ((P',) int) of ``guides``."""
+    return Guides(
+        guides.points[:, rows],
+        guides.directions[:, rows],
+        guides.handles_out[:, rows],
+        guides.handles_in[:, rows],
+        guides.shortened,
+    )
 
 
 def eased(weights):

@@ -16,7 +16,10 @@ orientation exactly while the four points stay the corners of a convex quadrilat
 turned as the pixels are. Equal arc length is no section: rays of different speeds
 compared there flag crossings that do not exist.
 
-Every quad of the lattice is checked, at every image size, in float64 throughout. The
+Every quad of the lattice is checked, at every image size, in float64 throughout, or,
+given a per-quad ``limit``, its first ``limit`` sections (``report.kept_limits``: what
+provably cannot fold is not checked); the windows then follow each row's runs of quads
+to check. The
 walk's start is the last vertex of q at or before a's arc length; section k is settled
 at once where that start is segment j0 = min(k, K - 2) or j0 - 1 and the walk stops
 within one step (rays of one band share their vertices' order, so this is nearly every
@@ -101,18 +104,23 @@ def section_points(q, origin, normal, start):
     return (qa - origin) + (qb - qa) * w[..., None], j
 
 
-def quad_folds(vertices, active):
+def quad_folds(vertices, active, limit=None):
     """Quads of neighbouring rays that fold in the bending stretch (module docstring).
 
     Parameters
     ----------
     vertices : (Hy, Wx, K, 3) float array, K >= 2: rays on a pixel lattice, world units.
     active : (Hy, Wx, K) bool: whether vertex k is inside the bending stretch.
+    limit : (Hy - 1, Wx - 1) int or None: each quad's sections k < limit are those
+        checked (0: the quad is not checked, K or None: every section). A quad's map
+        entry depends on its own sections only, and a section on its four rays only,
+        so a quad's sections below its limit give the bits they give without one.
 
     Returns
     -------
-    (Hy - 1, Wx - 1) bool: True where a corner triangle's orientation in some section
-    inside the bending stretch differs from its orientation in the first section.
+    (Hy - 1, Wx - 1) bool: True where a corner triangle's orientation in some checked
+    section inside the bending stretch differs from its orientation in the first
+    section.
     """
     hy, wx, k = vertices.shape[:3]
     out = np.zeros((max(hy - 1, 0), max(wx - 1, 0)), dtype=bool)
@@ -120,11 +128,60 @@ def quad_folds(vertices, active):
         return out
     rays = _Rays(vertices, np.asarray(active, dtype=bool))
     cols = min(wx - 1, max(1, CHUNK_SECTIONS // k))
-    rows = max(1, CHUNK_SECTIONS // (k * (wx - 1)))
-    for r0 in range(0, hy - 1, rows):
-        for c0 in range(0, wx - 1, cols):
-            window = (slice(r0, min(r0 + rows, hy - 1)), slice(c0, min(c0 + cols, wx - 1)))
-            out[window] = _chunk_folds(rays, window)
+    if limit is None:
+        rows = max(1, CHUNK_SECTIONS // (k * (wx - 1)))
+        for r0 in range(0, hy - 1, rows):
+            for c0 in range(0, wx - 1, cols):
+                window = (slice(r0, min(r0 + rows, hy - 1)), slice(c0, min(c0 + cols, wx - 1)))
+                out[window] = _chunk_folds(rays, window, k, None)
+        return out
+    limit = np.minimum(np.asarray(limit), k)
+    for r0 in range(hy - 1):
+        for c0, c1, kmax in _row_windows(limit[r0], cols):
+            window = (slice(r0, r0 + 1), slice(c0, c1))
+            out[window] = _chunk_folds(rays, window, kmax, limit[window])
+    return out
+
+
+# Quads not checked between two that are, at most this many, are checked with them
+# (and their result dropped): a window's fixed cost is that of about this many quads.
+GAP_QUADS = 24
+# A run of quads of one section limit shorter than this joins its neighbours' window.
+MIN_RUN_QUADS = 96
+
+
+def _row_windows(limit, cols):
+    """The windows of one row of quads whose ``limit`` ((Wx - 1,) int) is not 0: a list
+    of (c0, c1, kmax), columns c0 to c1 (excluded) and the largest limit among them.
+    A short run (under ``MIN_RUN_QUADS``) joins the window before it where its limit is
+    lower or that window is short too, a short gap (``GAP_QUADS``) joins it always: a
+    window's fixed cost is paid fewer times; no window is wider than ``cols``."""
+    cut = np.flatnonzero(np.diff(limit) != 0) + 1
+    bounds = np.concatenate([[0], cut, [len(limit)]])
+    runs = [[int(b0), int(b1), int(limit[b0])] for b0, b1 in zip(bounds[:-1], bounds[1:])]
+    merged = []
+    for c0, c1, lim in runs:
+        last = merged[-1] if merged else None
+        short = c1 - c0 < MIN_RUN_QUADS
+        if lim == 0 and (last is None or c1 - c0 > GAP_QUADS):
+            merged.append(None)  # nothing checked here
+        elif last is not None and (
+            lim == 0
+            or lim == last[2]
+            or (short and (lim < last[2] or last[1] - last[0] < MIN_RUN_QUADS))
+        ):
+            last[1], last[2] = c1, max(last[2], lim)
+        else:
+            merged.append([c0, c1, lim])
+    out = []
+    for run in merged:
+        if run is None:
+            continue
+        for c in range(run[0], run[1], cols):
+            checked = np.flatnonzero(limit[c : min(c + cols, run[1])])
+            if len(checked):  # a piece starts and ends on quads to check
+                c0, c1 = c + checked[0], c + checked[-1] + 1
+                out.append((int(c0), int(c1), int(limit[c0:c1].max())))
     return out
 
 
@@ -173,13 +230,16 @@ CHUNK_SECTIONS = 1 << 14
 ROLES = ((0, 1), (1, 1), (1, 0))
 
 
-def _chunk_folds(rays, window):
-    """(rows, cols) bool: the folds of the quads ``window`` (row, column slices)."""
+def _chunk_folds(rays, window, kmax, limit):
+    """(rows, cols) bool: the folds of the quads ``window`` (row, column slices) in
+    their sections k < ``kmax`` (and k < ``limit``, (rows, cols) int, where given)."""
     ys, xs = window
-    a = rays.vertex[:, ys, xs]
-    normal = rays.normal[:, ys, xs]
-    ref = rays.cum[ys, xs]
-    live = rays.active[ys, xs].copy()
+    a = rays.vertex[:, ys, xs, :kmax]
+    normal = rays.normal[:, ys, xs, :kmax]
+    ref = rays.cum[ys, xs, :kmax]
+    live = rays.active[ys, xs, :kmax].copy()
+    if limit is not None:
+        live &= np.arange(kmax) < limit[..., None]
     points = []
     for dy, dx in ROLES:
         q = (slice(ys.start + dy, ys.stop + dy), slice(xs.start + dx, xs.stop + dx))
@@ -194,15 +254,18 @@ def _sections(rays, q, a, normal, ref):
     relative to a's vertices (three planes) and whether each point's segment is active.
     ``section_points``' walk, from the segment at a's arc length, settled at once where
     it takes at most one step from segment j0 or j0 - 1; the other sections walk there."""
-    inner0, inner1, inner_m = rays.inner
+    kmax = ref.shape[-1]
+    inner0, inner1, inner_m = (x[:kmax] for x in rays.inner)
+    runs = [_upto(r, kmax) for r in rays.runs]
+    qk = (*q, slice(0, kmax))
     vq = rays.vertex[:, q[0], q[1]]
-    d_m, d_0, d_1 = ([_minus(vq[i], a[i], runs) for i in range(3)] for runs in rays.runs)
+    d_m, d_0, d_1 = ([_minus(vq[i], a[i], r) for i in range(3)] for r in runs)
     s_m = dot_planes(d_m, normal)
     s_0 = dot_planes(d_0, normal)
     s_1 = dot_planes(d_1, normal)
     want = np.clip(ref, 0.0, rays.end[q])
-    start_0 = (rays.cum_0[q] <= want) & (want < rays.cum_1[q])
-    start_m = (rays.cum_m[q] <= want) & (want < rays.cum_0[q])
+    start_0 = (rays.cum_0[qk] <= want) & (want < rays.cum_1[qk])
+    start_m = (rays.cum_m[qk] <= want) & (want < rays.cum_0[qk])
     pos, neg = s_0 > 0, s_0 < 0
     # segments j0 and j0 - 1 hold the plane (a walk stops there)
     stop_0 = ~((pos & (s_1 > 0) & inner0) | (neg & (s_1 < 0) & inner1))
@@ -213,13 +276,13 @@ def _sections(rays, q, a, normal, ref):
     den = s_a - np.where(back, s_0, s_1)
     w = np.where(den != 0, s_a / np.where(den != 0, den, 1.0), 0.0)
     sq = rays.steps[:, q[0], q[1]]
-    runs_m, runs_0 = rays.runs[:2]
+    runs_m, runs_0 = runs[:2]
     point = [
         np.where(back, d_m[i], d_0[i])
         + np.where(back, _gather(sq[i], runs_m, w.shape), _gather(sq[i], runs_0, w.shape)) * w
         for i in range(3)
     ]
-    alive = np.where(back, rays.active_m[q], rays.active_0[q])
+    alive = np.where(back, rays.active_m[qk], rays.active_0[qk])
     slow = np.nonzero(~(back | here))
     if len(slow[0]):
         _walk(rays, q, (a, normal, ref), slow, point, alive)
@@ -234,6 +297,15 @@ def _runs(index):
     return [
         (slice(b0, b1), slice(int(index[b0]), int(index[b0]) + b1 - b0))
         for b0, b1 in zip(bounds[:-1], bounds[1:])
+    ]
+
+
+def _upto(runs, kmax):
+    """``runs`` of an index array cut to its first ``kmax`` entries."""
+    return [
+        (slice(d.start, min(d.stop, kmax)), slice(s.start, s.start + min(d.stop, kmax) - d.start))
+        for d, s in runs
+        if d.start < kmax
     ]
 
 

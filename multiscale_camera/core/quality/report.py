@@ -36,6 +36,15 @@ def fold_map(fld, processes=1, should_stop=None):
     the same either way, so is the map (every quad is counted from its four rays
     alone); a share whose worker is given up runs here.
 
+    What cannot fold is not checked (``kept_limits``): where the field lays kept
+    pixels' rays out as their camera's curve R_i exactly (``exact_kept``:
+    ``IMAGE_BLEND``), a quad whose four pixels camera 1 keeps is four pinhole rays of
+    camera 1 from their first vertex on, which no section across them shows crossing;
+    one that camera i > 1 keeps is checked up to the first vertex of its first ray past
+    camera i's near plane, beyond which its four rays are camera i's pinhole rays and
+    every section says the same. Rays are made only for the pixels of the quads checked.
+    The map is the full count's (tests/unit/test_folds_kept.py).
+
     Returns
     -------
     folds : (H - 1, W - 1) bool: the quad of pixels (y, x), (y, x + 1), (y + 1, x + 1),
@@ -70,21 +79,73 @@ def fold_map(fld, processes=1, should_stop=None):
 def _fold_bands(fld, xs, ys, rows, starts, context):
     """The fold maps of the lattice bands starting at rows ``starts`` of ``ys`` (each
     ``rows`` rows, the last shorter), a list of (rows - 1, len(xs) - 1) bool; what
-    ``fold_map`` runs here or in a worker (``context``: the worker's beat)."""
-    last = fld.rig.cameras[-1]
+    ``fold_map`` runs here or in a worker (``context``: the worker's beat). Only the
+    quads ``kept_limits`` leaves to check are checked, and only their pixels' rays are
+    made."""
+    cams = fld.rig.cameras
     out = []
     for r0 in starts:
         if context is not None:
             context()
         band = ys[r0 : r0 + rows]
-        iy, ix = np.meshgrid(band, xs, indexing="ij")
-        bundle = fld.rays(ix.ravel(), iy.ravel())
+        limit = kept_limits(fld, band, xs)
+        folds = np.zeros((len(band) - 1, len(xs) - 1), dtype=bool)
+        out.append(folds)
+        need = np.zeros((len(band), len(xs)), dtype=bool)
+        for dy in (0, 1):
+            for dx in (0, 1):
+                need[dy : dy + len(band) - 1, dx : dx + len(xs) - 1] |= limit != 0
+        cols = np.flatnonzero(need.any(axis=0))
+        if len(cols) == 0:
+            continue
+        c0, c1 = cols[0], cols[-1] + 1  # the lattice's columns that hold them
+        sub = need[:, c0:c1]
+        iy, ix = np.nonzero(sub)
+        iy, ix = band[iy], xs[c0:c1][ix]
+        bundle = fld.rays(ix, iy)
         k = bundle.vertices.shape[1]
-        verts = bundle.vertices.reshape(len(band), len(xs), k, 3)
-        exit_index = fld.exit_index(ix.ravel(), iy.ravel())
-        counts = None if exit_index is None else (exit_index + 1).reshape(len(band), len(xs))
-        active = bending_active(verts, last, counts, fld.rig.cameras[:-1])
-        out.append(quad_folds(verts, active))
+        exit_index = fld.exit_index(ix, iy)
+        counts = None if exit_index is None else exit_index + 1
+        active = bending_active(bundle.vertices, cams[-1], counts, cams[:-1])
+        verts = np.zeros((*sub.shape, k, 3), dtype=bundle.vertices.dtype)
+        verts[sub] = bundle.vertices
+        on = np.zeros((*sub.shape, k), dtype=bool)
+        on[sub] = active
+        folds[:, c0 : c1 - 1] = quad_folds(verts, on, np.minimum(limit[:, c0 : c1 - 1], k))
+    return out
+
+
+def kept_limits(fld, ys, xs):
+    """(len(ys) - 1, len(xs) - 1) int: the sections of each quad of the lattice ``ys`` x
+    ``xs`` that can fold, counted from the first (``quad_folds``' ``limit``): all of
+    them (a large number), unless the field lays kept rays out exactly (``exact_kept``)
+    and the quad's four pixels are kept by one camera i:
+
+    - camera 1: none. The four rays are camera 1's pinhole rays from their first vertex
+      on (on camera 1's near plane): every section normal to one of them, through a
+      point in front of the eye, is a projective image of the image plane, seen from
+      the eye, in which each corner triangle keeps the orientation of the pixel
+      centres' triangle (its signed area along the normal is det(X1 - e, X2 - e,
+      X3 - e) over the plane's distance from the eye, and the points X = e + t d lie at
+      t > 0 on the pixels' directions d: the sign of det(d1, d2, d3), fixed).
+    - camera i > 1: those up to vertex ``near_vertex(i) + 1`` of ray a, the first
+      vertex past the near-plane point p_i of its own pixel. From there on each section
+      meets the four rays where they are camera i's pinhole rays (the neighbours' p_i
+      lie a pixel's footprint from a's, a stage's segment short of the plane, and the
+      walk starts at a's arc length, on their straight parts), and every such section
+      orients the triangles alike (as above), so one of them says what all of them
+      say: whether the rays are turned there against the first section.
+    """
+    masks = fld.rig.masks
+    out = np.full((len(ys) - 1, len(xs) - 1), np.iinfo(np.int16).max, dtype=np.int16)
+    if not fld.exact_kept or len(ys) < 2 or len(xs) < 2:
+        return out
+    band = masks[:, ys][:, :, xs]
+    owner = np.where(band.any(axis=0), band.argmax(axis=0), -1)
+    a = owner[:-1, :-1]
+    kept = (a >= 0) & (a == owner[:-1, 1:]) & (a == owner[1:, 1:]) & (a == owner[1:, :-1])
+    for i in range(len(masks)):
+        out[kept & (a == i)] = 0 if i == 0 else fld.near_vertex(i) + 2
     return out
 
 
@@ -147,7 +208,8 @@ def kept_folds(masks, folds, stride, names):
     n, h, w = masks.shape
     xs = np.unique(np.append(np.arange(0, w, stride), w - 1))
     ys = np.unique(np.append(np.arange(0, h, stride), h - 1))
-    owner = np.where(masks.any(axis=0), masks.argmax(axis=0), -1)[np.ix_(ys, xs)]
+    band = masks[:, ys][:, :, xs]
+    owner = np.where(band.any(axis=0), band.argmax(axis=0), -1)
     corners = np.stack([owner[:-1, :-1], owner[:-1, 1:], owner[1:, 1:], owner[1:, :-1]])
     fixed = folds & (corners >= 0).all(axis=0)
     seen = corners[:, fixed]
