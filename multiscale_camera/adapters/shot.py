@@ -84,19 +84,12 @@ def sampled_rigs(scene, frames, depsgraph=None, mask_frames=None):
     read at that frame through ``mask_frames``, an ``adapters.masks.MaskFrames``). The
     scene is stepped and set back to its frame and subframe. None when this thread may
     not step frames (``can_step_frames``)."""
-    if not can_step_frames():
-        return None
-    scene = getattr(scene, "original", None) or scene
-    layer = _layer(scene, depsgraph)
-    frame, subframe = scene.frame_current, scene.frame_subframe
-    out = []
-    try:
-        for f in frames:
-            scene.frame_set(f)
-            out.append((int(f), rig_from_scene(scene, layer.depsgraph, frames=mask_frames)))
-    finally:
-        scene.frame_set(frame, subframe=subframe)
-    return out
+    return _at_frames(
+        scene,
+        frames,
+        depsgraph,
+        lambda s, f, graph: (int(f), rig_from_scene(s, graph, frames=mask_frames)),
+    )
 
 
 def masks_source_digest(scene, rig):
@@ -151,24 +144,36 @@ def shot_rigs(scene, rig, depsgraph=None):
     render's, to name the view layer (else the scene's first). Returns a list of Rig, or
     None when this thread may not step frames (``can_step_frames``).
     """
+
+    def rig_at(s, _f, graph):
+        cams = [
+            pinhole_from_object(evaluated(item.camera, graph), s) for item in s.multiscale.cameras
+        ]
+        return Rig(tuple(cams), rig.masks, beta=rig.beta)
+
+    original = getattr(scene, "original", None) or scene
+    return _at_frames(original, shot_frames(original), depsgraph, rig_at)
+
+
+def _at_frames(scene, frames, depsgraph, make):
+    """[make(scene, frame, depsgraph) for each of ``frames``], the scene (an evaluated
+    one is followed to its original) stepped to each frame and set back to its frame
+    and subframe after; ``depsgraph`` (the render's, or None) names the view layer
+    whose depsgraph ``make`` gets. None when this thread may not step frames
+    (``can_step_frames``)."""
     if not can_step_frames():
         return None
     scene = getattr(scene, "original", None) or scene
     layer = _layer(scene, depsgraph)
     frame, subframe = scene.frame_current, scene.frame_subframe
-    rigs = []
+    out = []
     try:
-        for f in shot_frames(scene):
+        for f in frames:
             scene.frame_set(f)
-            graph = layer.depsgraph
-            cams = [
-                pinhole_from_object(evaluated(item.camera, graph), scene)
-                for item in scene.multiscale.cameras
-            ]
-            rigs.append(Rig(tuple(cams), rig.masks, beta=rig.beta))
+            out.append(make(scene, f, layer.depsgraph))
     finally:
         scene.frame_set(frame, subframe=subframe)
-    return rigs
+    return out
 
 
 def _fcurves(anim):
