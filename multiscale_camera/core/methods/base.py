@@ -102,7 +102,8 @@ class RayField(abc.ABC):
     # Whether the ray of a pixel kept by camera i (inside its mask) is camera i's curve
     # R_i itself, vertex for vertex (``geometry.curved_rays``): then from R_i's vertex
     # ``near_vertex(i)`` on it lies on camera i's pinhole ray, and the fold count skips
-    # what cannot fold there (``quality.report.fold_map``).
+    # what cannot fold there (``quality.report.fold_map``). A field that sets it True
+    # has ``near_vertex(i)`` -> int (0-based camera i), as ``CurveBlendField`` does.
     exact_kept: ClassVar[bool] = False
 
     @abc.abstractmethod
@@ -113,12 +114,6 @@ class RayField(abc.ABC):
         """(P,) int: the vertex where each pixel's ray leaves the modelled volume (the
         end of its bending stretch); the last vertex unless a method knows better."""
         return None
-
-    def near_vertex(self, i):
-        """int: the vertex of a kept pixel's ray on camera ``i``'s near plane (0-based
-        ``i``), from which on the ray is camera i's pinhole ray; only where
-        ``exact_kept``."""
-        raise NotImplementedError(f"{self.method} does not lay kept rays out as R_i")
 
     def _bundle(self, ix, iy, verts, membership):
         cams = self.rig.cameras

@@ -140,10 +140,9 @@ def kept_limits(fld, ys, xs):
     out = np.full((len(ys) - 1, len(xs) - 1), np.iinfo(np.int16).max, dtype=np.int16)
     if not fld.exact_kept or len(ys) < 2 or len(xs) < 2:
         return out
-    band = masks[:, ys][:, :, xs]
-    owner = np.where(band.any(axis=0), band.argmax(axis=0), -1)
-    a = owner[:-1, :-1]
-    kept = (a >= 0) & (a == owner[:-1, 1:]) & (a == owner[1:, 1:]) & (a == owner[1:, :-1])
+    corners = _quad_owners(masks, ys, xs)
+    a = corners[0]
+    kept = (a >= 0) & (corners == a).all(axis=0)
     for i in range(len(masks)):
         out[kept & (a == i)] = 0 if i == 0 else fld.near_vertex(i) + 2
     return out
@@ -187,6 +186,15 @@ def measure_map(fld, processes=1, should_stop=None):
     return cameras, folds, stride
 
 
+def _quad_owners(masks, ys, xs):
+    """(4, len(ys) - 1, len(xs) - 1) int: the camera keeping each corner (a, b, c, d, as
+    ``quad_folds`` orders them) of every quad of the lattice ``ys`` x ``xs`` of
+    ``masks`` ((N, H, W) bool, one owner at most a pixel), -1 where none does."""
+    band = masks[:, ys][:, :, xs]
+    owner = np.where(band.any(axis=0), band.argmax(axis=0), -1)
+    return np.stack([owner[:-1, :-1], owner[:-1, 1:], owner[1:, 1:], owner[1:, :-1]])
+
+
 def kept_folds(masks, folds, stride, names):
     """The folds no method can avoid: quads whose four pixels every camera's mask keeps.
 
@@ -208,9 +216,7 @@ def kept_folds(masks, folds, stride, names):
     n, h, w = masks.shape
     xs = np.unique(np.append(np.arange(0, w, stride), w - 1))
     ys = np.unique(np.append(np.arange(0, h, stride), h - 1))
-    band = masks[:, ys][:, :, xs]
-    owner = np.where(band.any(axis=0), band.argmax(axis=0), -1)
-    corners = np.stack([owner[:-1, :-1], owner[:-1, 1:], owner[1:, 1:], owner[1:, :-1]])
+    corners = _quad_owners(masks, ys, xs)
     fixed = folds & (corners >= 0).all(axis=0)
     seen = corners[:, fixed]
     low, high = seen.min(axis=0), seen.max(axis=0)
