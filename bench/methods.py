@@ -599,6 +599,37 @@ def _accepts(r, build_limit, targets=TARGETS):
     return "yes" if not bad else "no: " + ", ".join(bad)
 
 
+def _verdict_lines(rows, limit_of, targets, extra=(0, None)):
+    """Table lines of ``rows``, rig by rig in ``RIGS``' order: rig, method (built),
+    Compute Field s, load, per-camera figures, folds, the ``n`` cells ``fn(r)`` gives
+    (``extra`` = (n, fn), fn returning a list of str), commit, and ``_accepts`` against
+    ``targets`` and ``limit_of(r)`` s."""
+    n_extra, fn = extra
+    out = []
+    for g in RIGS:
+        for r in (r for r in rows if r["rig"] == g):
+            method = f"`{r['method']}`" + (f" ({r['built']})" if r.get("built") else "")
+            verdict = _accepts(r, limit_of(r), targets)
+            if "build_seconds" not in r:
+                blank = " |" * (2 + n_extra)
+                out.append(
+                    f"| {RIGS[g]} | {method} | | {r.get('load_1min', '')} |{blank} "
+                    f"{r.get('commit', '')} | {verdict} |"
+                )
+                continue
+            cells = [
+                f"{_seconds(r):.3g}",
+                str(r["load_1min"]),
+                _camera_figures(r),
+                str(r["folds"]),
+                *(fn(r) if n_extra else ()),
+                str(r["commit"]),
+                verdict,
+            ]
+            out.append(f"| {RIGS[g]} | {method} | " + " | ".join(cells) + " |")
+    return out
+
+
 def preview_acceptance(results, source):
     """The PREVIEW table at 480x270 in docs/performance.md (between its GENERATED
     markers): AUTO at PREVIEW on every rig against ``PREVIEW_TARGETS``."""
@@ -617,20 +648,7 @@ def preview_acceptance(results, source):
         "| commit | meets the targets |",
         "|---|---|---|---|---|---|---|---|",
     ]
-    for g in RIGS:
-        for r in (r for r in rows if r["rig"] == g):
-            method = f"`{r['method']}`" + (f" ({r['built']})" if r.get("built") else "")
-            if "build_seconds" not in r:
-                lines.append(
-                    f"| {RIGS[g]} | {method} | | {r.get('load_1min', '')} | | | "
-                    f"{r.get('commit', '')} | {_accepts(r, t['build'], t)} |"
-                )
-                continue
-            lines.append(
-                f"| {RIGS[g]} | {method} | {_seconds(r):.3g} | {r['load_1min']} | "
-                f"{_camera_figures(r)} | {r['folds']} | {r['commit']} | "
-                f"{_accepts(r, t['build'], t)} |"
-            )
+    lines += _verdict_lines(rows, lambda r: t["build"], t)
     _replace_generated(ACCEPTANCE, "preview 480x270", "\n".join(lines))
 
 
@@ -654,22 +672,18 @@ def acceptance(results, source=OUT):
         "| stalled, Newton | peak MB (all) | commit | meets the targets |",
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
-    for g in RIGS:
-        for r in (r for r in rows if r["rig"] == g):
-            limit = TARGETS["build"] if r["method"] == "AUTO" else TARGETS["forced_build"]
-            method = f"`{r['method']}`" + (f" ({r['built']})" if r.get("built") else "")
-            if "build_seconds" not in r:
-                lines.append(
-                    f"| {RIGS[g]} | {method} | | {r.get('load_1min', '')} | | | | | "
-                    f"{r.get('commit', '')} | {_accepts(r, limit)} |"
-                )
-                continue
-            lines.append(
-                f"| {RIGS[g]} | {method} | {_seconds(r):.3g} | {r['load_1min']} | "
-                f"{_camera_figures(r)} | {r['folds']} | {r['stalled']}, {r['newton_lost']} | "
-                f"{r.get('peak_mb_all', r['peak_mb']):.0f} | {r['commit']} | "
-                f"{_accepts(r, limit)} |"
-            )
+    lines += _verdict_lines(
+        rows,
+        lambda r: TARGETS["build"] if r["method"] == "AUTO" else TARGETS["forced_build"],
+        TARGETS,
+        (
+            2,
+            lambda r: [
+                f"{r['stalled']}, {r['newton_lost']}",
+                f"{r.get('peak_mb_all', r['peak_mb']):.0f}",
+            ],
+        ),
+    )
     _replace_generated(ACCEPTANCE, "acceptance 1920x1080", "\n".join(lines))
 
 
