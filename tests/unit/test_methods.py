@@ -1,4 +1,3 @@
-
 import numpy as np
 import pytest
 
@@ -232,3 +231,21 @@ def test_auto_says_which_camera_misses_the_target_and_by_how_much():
     assert shortfall([cam("C", 10, None, None)], 1, 0.5) == (
         "camera 'C' has rays that never reach its near plane; 1 folded quads"
     )
+
+
+def test_auto_names_a_camera_it_could_not_measure():
+    # camera 3's mask is 2x2 pixels: none left once eroded for measuring, so AUTO's choice
+    # holds it to nothing and must say so rather than claim every camera meets the target
+    cams, masks = three_camera_rig(96, 54)
+    masks = masks.copy()
+    ys, xs = np.nonzero(masks[2])
+    cy, cx = int(ys.mean()), int(xs.mean())
+    masks[2] = False
+    masks[2, cy : cy + 2, cx : cx + 2] = True
+    fld = prepare(Rig(cams, masks), "AUTO", settings_for("PREVIEW"))
+    assert fld.stats["auto"].startswith(f"{fld.method}: the cheapest method whose rays meet")
+    assert fld.stats["auto"].endswith(
+        "; not measured, so not held to the target: camera 'C3' (its mask keeps no pixel "
+        "once eroded by 2 px for measuring (too small or too thin at this render size); its "
+        "pixels render, unmeasured)"
+    ), fld.stats["auto"]

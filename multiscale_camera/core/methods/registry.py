@@ -84,6 +84,15 @@ def accuracy_misses(cameras, accuracy_px):
     return out
 
 
+def not_measured(cameras):
+    """What AUTO's word adds for the cameras it could not measure (``cameras``: the
+    report's entries; those with no measured pixel carry an "unmeasured" reason):
+    "; not measured: camera 'X' (why)", or "" when every camera was measured. The
+    target then holds on the others alone, and the word says so."""
+    out = [f"camera '{c['name']}' ({c['unmeasured']})" for c in cameras if not c["pixels"]]
+    return "; not measured, so not held to the target: " + ", ".join(out) if out else ""
+
+
 def seam_message(folds, pairs):
     """The warning for folds no method avoids (``quality.kept_folds``): ``folds`` int,
     ``pairs`` the (str, str) cameras whose masks touch there."""
@@ -108,7 +117,8 @@ def prepare_auto(rig, settings=None, diag=None, reuse=None):
     seam where masks touch) send it no further: its rays are kept and a warning names the
     cameras. When no candidate meets the target, the one that misses it least is kept
     (fewest folds, then fewest cameras off the target, then the cheapest) and the report
-    says why.
+    says why. A camera with no pixel to measure (an empty mask, or one too thin once
+    eroded: ``quality.unmeasured_camera``) is held to nothing, and the word names it.
     The choice and why are in ``stats["auto"]``; the measurement stays with the field
     (``measured``), so the report does not measure it again.
 
@@ -141,7 +151,7 @@ def prepare_auto(rig, settings=None, diag=None, reuse=None):
             f"p95 <= {settings.accuracy_px:g} px, max <= "
             f"{MAX_OVER_TARGET * settings.accuracy_px:g} px along every preserved ray"
         )
-        tried = "".join(f"; {m}" for m in misses)
+        tried = "".join(f"; {m}" for m in misses) + not_measured(cameras)
         if not off and not folds:
             fld.stats["auto"] = (
                 f"{name}: the cheapest method whose rays meet the target ({target}, no "
