@@ -5,7 +5,8 @@
 # Writes out/e2e-real/timing-{window,background}.json and prints both, with the ratio
 # of window to background for the build and the renders (RENDERS of them, default 4: the
 # first starts the render workers), and the CPU seconds each render took in Blender's
-# process and in its workers, which the machine's other load does not change.
+# process and in its workers, which the machine's other load does not change. Then the
+# same renders by Blender's Workbench (BASELINE=0 skips them): the window's own cost.
 set -euo pipefail
 REPO=$(cd "$(dirname "$0")/../.." && pwd)
 RB=${RB:-$(cd "$REPO/../shared/tools/realblender" 2>/dev/null && pwd || echo /work/shared/tools/realblender)}
@@ -27,6 +28,16 @@ echo "== background: $BLEND"
 echo "== window: $BLEND"
 RB_DISPLAY=${RB_DISPLAY:-:99} "$RB/run.sh" "$BLEND" --python "$REPO/tools/e2e_real/timing.py" \
   -- --out "$OUT/timing-window.json" --renders "${RENDERS:-4}" > "$OUT/timing-window.log" 2>&1 || true
+# the same file rendered by Blender's own Workbench, window and -b: what opening the
+# render window and drawing in it costs any engine here (BASELINE=0 skips it)
+if [ "${BASELINE:-1}" = 1 ]; then
+  for mode in background window; do
+    flag=(); [ "$mode" = background ] && flag=(-b)
+    RB_DISPLAY=${RB_DISPLAY:-:99} "$RB/run.sh" "${flag[@]}" "$BLEND" --python \
+      "$REPO/tools/e2e_real/timing.py" -- --out "$OUT/timing-workbench-$mode.json" \
+      --renders "${RENDERS:-4}" --engine BLENDER_WORKBENCH > "$OUT/timing-workbench-$mode.log" 2>&1 || true
+  done
+fi
 RB_DISPLAY=${RB_DISPLAY:-:99} "$RB/run.sh" --stop-xvfb || true
 
 python3 - "$OUT/timing-background.json" "$OUT/timing-window.json" <<'PY'
@@ -41,5 +52,13 @@ for name, run in (("background", bg), ("window", win)):
         print(f"{name} render {i}: {r['seconds']} s; CPU s: Blender {r['blender_cpu_seconds']}, "
               f"workers {r['workers_cpu_seconds']}")
 print("load averages: background", bg["load_average"], "window", win["load_average"])
+try:
+    wb = [json.load(open(p.replace("timing-", "timing-workbench-"))) for p in sys.argv[1:3]]
+except OSError:
+    wb = None
+if wb:
+    for key in ("render_seconds", "later_render_median_seconds"):
+        print(f"Workbench {key}: window {wb[1][key]} s, background {wb[0][key]} s, "
+              f"ratio {wb[1][key] / wb[0][key]:.2f}")
 sys.exit(0 if "error" not in win else 1)
 PY
