@@ -1,18 +1,25 @@
 """Run inside a real Blender window on the demo scene: Esc pressed in each stage of a
 render, through the window's own escape path, and the render's end timed.
 
-For each stage (the field's fill, solve and trace, the simplification, the tile loop),
-a render is started as F12 starts it (``render.render`` invoked: a render job whose
-``test_break`` hears Esc), and a quarter of a second after the render enters the stage
-(``Diagnostics.stage``, patched here) xdotool presses Escape over the window. Logged per
-stage: ``key_to_end``, the time from the key to the end of the render job
+For each step, a method and one of its stages (SCALAR_FIELD's fill, solve and trace at
+the demo's size, then the simplification and the tile loop; AUTO's, which builds
+IMAGE_BLEND on the demo and measures it, at 1920x1080: the weight solve, the measure
+along the rays and the fold count), a render is started as F12 starts it
+(``render.render`` invoked: a render job whose ``test_break`` hears Esc), and a quarter
+of a second after the render enters the stage (``Diagnostics.stage``, patched here)
+xdotool presses Escape over the window. A stage too short for that (``HELD``: the
+measure along the rays, about 0.4 s) has Escape pressed as it starts, and its work
+waits (at most ``HOLD_SECONDS``) until the render job's ``test_break`` says the key
+arrived, so that the stage's own cancel check is what hears it. Logged per step:
+``key_to_end``, the time from the key to the end of the render job
 (``bpy.app.is_job_running('RENDER')``), and ``heard_to_end``, from the first time the
 engine's cancel check said stop (``heard``: the render job's ``test_break``, asked at
 least every 0.1 s) to that end. The second is what the extension controls and is
 bounded at 2 s; the first adds the key's way in (xdotool, the X server, Blender's event
 loop), which took up to 1.5 s at load average 13 on 2 cores while the engine was asking
 every 0.1 s (the threads' stacks half a second after an unheard key are logged). A
-render whose engine never hears the key fails the step.
+render whose engine never hears the key fails the step, as does one that hears it
+outside the stage (``heard_in``: the stages open when it first did).
 
 Started by ``make e2e-real`` (tools/e2e_real/run.sh) in a real Blender window with the
 demo scene open, ``E2E_LOG`` naming the log file.
@@ -32,12 +39,20 @@ from contextlib import contextmanager
 import bpy
 
 LOG = os.environ.get("E2E_LOG", "cancel_log.json")
-STAGES = tuple(os.environ.get("CANCEL_STAGES", "fill,solve,trace,simplify,render").split(","))
+# METHOD:stage, or a stage alone (SCALAR_FIELD's)
+STEPS = "fill,solve,trace,simplify,render,AUTO:solve,AUTO:measure,AUTO:folds"
+STAGES = tuple(os.environ.get("CANCEL_STAGES", STEPS).split(","))
+# the render size (percent of the demo's 640x360) per method, 300 for those not named:
+# IMAGE_BLEND's stages last long enough to press a key in at 1920x1080 (the solve about
+# 2 s, the fold count several seconds), a fraction of a second at 640x360
+PERCENT = {"SCALAR_FIELD": 100}
 DELAY = 0.25  # seconds into the stage
+HELD = {"measure"}  # Escape as the stage starts, its work held until the key is heard
+HOLD_SECONDS = 5.0
 BOUND = 2.0
 log = {"version": bpy.app.version_string, "steps": []}
 T0 = time.time()
-state = {"stage": None, "pressed": None, "entered": [], "step": 0}
+state = {"stage": None, "pressed": None, "entered": [], "open": [], "step": 0}
 
 
 def note(step, **info):
@@ -84,23 +99,45 @@ def where_unheard():
     state["unheard"] = stacks
 
 
+def hold(name):
+    """Press Escape now and wait until the render job's ``test_break`` says it arrived
+    (at most ``HOLD_SECONDS``; the stage ``name`` then runs and its check hears it)."""
+    press_escape()
+    engine = state.get("engine")
+    waited = time.perf_counter()
+    while engine is not None and time.perf_counter() - waited < HOLD_SECONDS:
+        if engine.test_break():
+            break
+        time.sleep(0.01)
+    state["held"] = round(time.perf_counter() - waited, 3)
+
+
 def arm():
     """Patch ``Diagnostics.stage``: entering the stage wanted sets a timer that presses
-    Escape ``DELAY`` s later (the stage runs on the render job's thread)."""
+    Escape ``DELAY`` s later, or for a stage of ``HELD`` presses it at once and waits
+    for it (``hold``); the stage runs on the render job's thread."""
     diagnostics = module("multiscale_camera.core.diagnostics")
     stage = diagnostics.Diagnostics.stage
 
     @contextmanager
     def armed(self, name):
         state["entered"].append(name)
-        if name == state["stage"] and state["pressed"] is None and not state.get("timer"):
-            state["timer"] = threading.Timer(DELAY, press_escape)
-            state["timer"].start()
-        with stage(self, name):
-            yield self
+        state["open"].append(name)
+        try:
+            if name == state["stage"] and state["pressed"] is None and not state.get("timer"):
+                if name in HELD:
+                    hold(name)
+                else:
+                    state["timer"] = threading.Timer(DELAY, press_escape)
+                    state["timer"].start()
+            with stage(self, name):
+                yield self
+        finally:
+            state["open"].pop()
 
     diagnostics.Diagnostics.stage = armed
-    # when the engine first hears the key, and when its render returns
+    # when the engine first hears the key (and in which stages), and when its render
+    # returns
     engine = module("multiscale_camera.render.engine").MultiscaleRenderEngine
     should_stop, render = engine.should_stop, engine.render
 
@@ -108,26 +145,34 @@ def arm():
         stop = should_stop(self)
         if stop and state.get("heard") is None:
             state["heard"] = time.perf_counter()
+            state["heard_in"] = list(state["open"])
         return stop
 
     def rendered(self, depsgraph):
+        state["engine"] = self
         try:
             return render(self, depsgraph)
         finally:
             state["returned"] = time.perf_counter()
+            state["engine"] = None
 
     engine.should_stop, engine.render = heard, rendered
 
 
-def start(stage):
+def start(step):
+    method, _, stage = step.rpartition(":")
+    method = method or "SCALAR_FIELD"
     state.update(stage=stage, pressed=None, timer=None, entered=[], began=time.perf_counter())
-    state.update(heard=None, returned=None, unheard=None)
+    state.update(heard=None, heard_in=None, held=None, returned=None, unheard=None, open=[])
     scene = bpy.context.scene
+    percent = PERCENT.get(method, 300)
+    scene.multiscale.method = method
+    scene.render.resolution_percentage = percent
     with bpy.context.temp_override(window=bpy.context.window_manager.windows[0]):
         bpy.ops.multiscale.cache_clear()  # every render builds its field afresh
         scene.render.filepath = os.path.join(os.path.dirname(LOG), "cancelled_")
         bpy.ops.render.render("INVOKE_DEFAULT")
-    note("render started", stage=stage)
+    note("render started", stage=stage, method=method, percent=percent)
 
 
 def watch():
@@ -168,8 +213,18 @@ def watch():
             key_to_end=round(key_to_end, 3),
             heard_to_end=round(stopping, 3),
             within=stopping < BOUND,
+            heard_in=state["heard_in"],
+            **({"held": state["held"]} if state.get("held") is not None else {}),
             **since,
         )
+        if stage not in state["heard_in"]:
+            note(
+                "failed",
+                stage=stage,
+                reason=f"Escape was heard in {state['heard_in']}, not in {stage}: the stage "
+                "ended before the key arrived (a stage that short belongs in HELD)",
+            )
+            return quit_blender()
         if stopping >= BOUND and os.environ.get("CANCEL_KEEP_GOING") != "1":
             note("failed", stage=stage, reason=f"{stopping:.2f} s from the break to the end")
             return quit_blender()
