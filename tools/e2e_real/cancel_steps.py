@@ -57,7 +57,8 @@ HOLD_SECONDS = 5.0
 BOUND = 2.0
 log = {"version": bpy.app.version_string, "steps": []}
 T0 = time.time()
-state = {"stage": None, "pressed": None, "entered": [], "open": [], "step": 0}
+# "open": the stages open per thread (ident -> list of names, innermost last)
+state = {"stage": None, "pressed": None, "entered": [], "open": {}, "step": 0}
 engine_lock = threading.Lock()  # the render's engine is asked from other threads under it
 
 
@@ -111,7 +112,7 @@ def hear():
     with engine_lock:
         if state.get("heard") is None:
             state["heard"] = time.perf_counter()
-            state["heard_in"] = list(state["open"])
+            state["heard_in"] = list(state["open"].get(state.get("render_thread"), []))
 
 
 def where_unheard():
@@ -144,13 +145,19 @@ def hold(name):
 
 @contextmanager
 def entered(name, delay=DELAY):
-    """The render enters stage ``name`` (on the render job's thread): if it is the one
-    wanted, a timer presses Escape ``delay`` s later, or for a stage of ``HELD`` Escape
-    is pressed at once and the stage waits for it (``hold``)."""
-    state["entered"].append(name)
-    state["open"].append(name)
+    """A thread enters stage ``name``; on the render job's thread (not another job's,
+    such as the viewport's picture), if it is the one wanted, a timer presses Escape
+    ``delay`` s later, or for a stage of ``HELD`` Escape is pressed at once and the stage
+    waits for it (``hold``)."""
+    here = threading.get_ident()
+    rendering = here == state.get("render_thread")
+    opened = state["open"].setdefault(here, [])
+    opened.append(name)
+    if rendering:
+        state["entered"].append(name)
     try:
-        if name == state["stage"] and state["pressed"] is None and not state.get("timer"):
+        wanted = rendering and name == state["stage"]
+        if wanted and state["pressed"] is None and not state.get("timer"):
             if name in HELD:
                 hold(name)
             else:
@@ -158,7 +165,7 @@ def entered(name, delay=DELAY):
                 state["timer"].start()
         yield
     finally:
-        state["open"].pop()
+        opened.pop()
 
 
 def arm():
@@ -193,7 +200,7 @@ def arm():
         return stop
 
     def rendered(self, depsgraph):
-        state["engine"] = self
+        state["engine"], state["render_thread"] = self, threading.get_ident()
         try:
             return render(self, depsgraph)
         finally:
@@ -208,7 +215,8 @@ def start(step):
     method, _, stage = step.rpartition(":")
     method = method or "SCALAR_FIELD"
     state.update(stage=stage, pressed=None, timer=None, entered=[], began=time.perf_counter())
-    state.update(heard=None, heard_in=None, held=None, returned=None, unheard=None, open=[])
+    state.update(heard=None, heard_in=None, held=None, returned=None, unheard=None)
+    state.update(render_thread=None)
     scene = bpy.context.scene
     percent = PERCENT.get(method, 300)
     if method == "CYCLES":  # the hand-off, long enough to press a key in
