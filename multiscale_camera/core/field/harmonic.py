@@ -39,7 +39,7 @@ def mask_weights(masks, tol=TOLERANCE, should_stop=None):
     masks : (N, H, W) bool array, at most one True per pixel, at least one True overall.
     tol : float, relative residual of each solve.
     should_stop : callable () -> bool or None, asked before each solve, its coarse
-        start and each of its iterations (``solve_membership``: at most about 0.4 s
+        start and each of its iterations (``solve_membership``: at most about 0.5 s
         apart at 1920x1080).
 
     Returns
