@@ -49,11 +49,12 @@ MIN_VERSION = (4, 5, 0)
 # Depth written where a ray hits nothing, as in the other passes (pipeline.MISS_DEPTH).
 MISS_DEPTH = 1e10
 # Cycles polls Blender's break flag (Esc, Ctrl-C) between its batches of samples, and
-# headless (`blender -b`) it schedules batches of up to 30 s of work (Cycles'
-# render_scheduler.cpp): a batch never spans more than a tile, so there the hand-off
-# renders in tiles of at most this many pixel samples (about 0.4 s a tile measured on
-# the two-camera test scene with 2 cores shared, docs/performance.md), at least
-# ``MIN_TILE`` px a side (Cycles' own least tile size).
+# schedules batches of up to 30 s of work headless (`blender -b`), up to 2 s in the
+# first 10 s of a render in the window and up to 15 s after (Cycles'
+# render_scheduler.cpp): a batch never spans more than a tile, so the hand-off renders
+# in tiles of at most this many pixel samples (about 0.4 s a tile measured on the
+# two-camera test scene with 2 cores shared, docs/performance.md), at least ``MIN_TILE``
+# px a side (Cycles' own least tile size), in the window as headless.
 TILE_PIXEL_SAMPLES = 1 << 17
 MIN_TILE = 8
 
@@ -117,7 +118,7 @@ def unsupported_reason(version=None):
 
 
 def cancel_tile(samples, tile_size=None):
-    """int, pixels a side of the tiles a headless hand-off renders in: at most
+    """int, pixels a side of the tiles the hand-off renders in: at most
     ``TILE_PIXEL_SAMPLES`` pixel samples a tile for ``samples`` samples a pixel, never
     below ``MIN_TILE`` nor above the scene's own ``tile_size`` (None: no tiles)."""
     tile = max(MIN_TILE, int(np.sqrt(TILE_PIXEL_SAMPLES / max(int(samples), 1))))
@@ -206,11 +207,9 @@ def render(engine, depsgraph, frame):
         settings = depsgraph.scene_eval.cycles
         settings.device = "CPU"  # OSL custom cameras run on the CPU (and OptiX) only
         settings.use_denoising = False
-        if bpy.app.background:  # Ctrl-C heard within a tile (``TILE_PIXEL_SAMPLES``)
-            tile = cancel_tile(
-                settings.samples, settings.tile_size if settings.use_auto_tile else None
-            )
-            settings.use_auto_tile, settings.tile_size = True, tile
+        # Esc and Ctrl-C heard within a tile (``TILE_PIXEL_SAMPLES``)
+        tile = cancel_tile(settings.samples, settings.tile_size if settings.use_auto_tile else None)
+        settings.use_auto_tile, settings.tile_size = True, tile
         index_name = index_pass_name()
         for name, channels, chan_id in (
             ("Depth", 1, "Z"),

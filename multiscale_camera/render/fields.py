@@ -142,7 +142,7 @@ class FieldBuild:
         try:
             self.field, self.gave_up = _build(self.request, self.diagnostics)
             if self.measure:
-                self.report = _measure(self.field, self.request, self.start)
+                self.report = _measure(self.field, self.request, self.start, self.diagnostics)
         except Cancelled:
             self.cancelled = True
         except Exception as err:  # handed to the main thread, reported there
@@ -330,7 +330,7 @@ class FieldService:
             fld, gave_up, stored = self._build_once(request, diag, start if measure else None)
             built = stored is not None
         diag.extend(self.cache.take_notices())  # a damaged entry deleted, memory only
-        report = _measure(fld, request, start) if measure else None
+        report = _measure(fld, request, start, diag) if measure else None
         if built:
             _say(request, fld, diag, gave_up=gave_up, store_failed=stored or None)
         else:
@@ -439,7 +439,7 @@ class FieldService:
         lock = self.cache.build_lock(request.key)
         if lock is None:  # no disk cache: nothing to share
             fld, gave_up = _build(request, diag)
-            return fld, gave_up, self._measure_and_store(request, fld, measure_from)
+            return fld, gave_up, self._measure_and_store(request, fld, diag, measure_from)
         waited = time.perf_counter()
         while not lock.acquire():
             diag.check()  # Esc while waiting
@@ -457,19 +457,22 @@ class FieldService:
                 return fld, False, None
             start = time.perf_counter()
             fld, gave_up = _build(request, diag)
-            stored = self._measure_and_store(request, fld, measure_from)
+            stored = self._measure_and_store(request, fld, diag, measure_from)
             self.cache.record_build(request.key, round(time.perf_counter() - start, 3))
         finally:
             lock.release()
         return fld, gave_up, stored
 
-    def _measure_and_store(self, request: FieldRequest, fld, measure_from=None) -> str:
-        """Measure ``fld`` (with ``measure_from``, the request's start) before it is
-        stored, so the disk keeps its report too, and store it even when the measure
-        fails: a failed measure loses no build. "" or the message of a refused write."""
+    def _measure_and_store(
+        self, request: FieldRequest, fld, diag: Diagnostics, measure_from=None
+    ) -> str:
+        """Measure ``fld`` (with ``measure_from``, the request's start; ``diag`` steers
+        it) before it is stored, so the disk keeps its report too, and store it even
+        when the measure fails or is cancelled: a failed measure loses no build. "" or
+        the message of a refused write."""
         try:
             if measure_from is not None:
-                _measure(fld, request, measure_from)
+                _measure(fld, request, measure_from, diag)
         finally:
             stored = self._store(request, fld) or ""
         return stored
@@ -518,12 +521,18 @@ def _build(request: FieldRequest, diag: Diagnostics):
     return fld, gave_up(runs)
 
 
-def _measure(fld, request: FieldRequest, start: float) -> dict:
-    """The build report of ``fld`` (measured once, kept with the field), a copy."""
+def _measure(fld, request: FieldRequest, start: float, diag: Diagnostics | None = None) -> dict:
+    """The build report of ``fld`` (measured once, kept with the field), a copy.
+    ``diag`` steers the measure (its cancel check; stages "measure" and "folds").
+
+    Raises
+    ------
+    Cancelled: ``diag`` said so.
+    """
     report = getattr(fld, "report", None)
     if report is None:
         report = build_report(
-            fld, request.quality, time.perf_counter() - start, request.settings.processes
+            fld, request.quality, time.perf_counter() - start, request.settings.processes, diag
         )
         fld.report = report  # derived from the field alone: the same for every caller
     return dict(report)

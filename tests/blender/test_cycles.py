@@ -3,6 +3,7 @@
 import os
 import tempfile
 import time
+import types
 
 import bpy
 import numpy as np
@@ -404,8 +405,8 @@ def _hang(*args):
 
 
 @pytest.mark.parametrize("samples", [1, 16, 128, 1024, 4096, 1 << 20])
-def test_headless_cycles_tiles_are_small_enough_to_hear_ctrl_c(samples):
-    """Headless Cycles hears Ctrl-C only between its batches, which never span a tile:
+def test_cycles_tiles_are_small_enough_to_hear_esc_and_ctrl_c(samples):
+    """Cycles hears Esc and Ctrl-C only between its batches, which never span a tile:
     the hand-off's tiles hold at most TILE_PIXEL_SAMPLES pixel samples (a tile a side
     larger would hold more), never less than MIN_TILE px a side."""
     tile = cycles.cancel_tile(samples)
@@ -414,3 +415,37 @@ def test_headless_cycles_tiles_are_small_enough_to_hear_ctrl_c(samples):
         assert tile * tile * samples <= cycles.TILE_PIXEL_SAMPLES
     assert (tile + 1) ** 2 * samples > cycles.TILE_PIXEL_SAMPLES
     assert cycles.cancel_tile(samples, tile_size=cycles.MIN_TILE) == cycles.MIN_TILE
+
+
+class _WindowApp:
+    """``bpy.app`` as a render in Blender's window sees it (not in background mode)."""
+
+    background = False
+
+    def __getattr__(self, name):
+        return getattr(bpy.app, name)
+
+
+def test_a_render_in_the_window_is_tiled_as_headless(empty_scene, tmp_path, monkeypatch):
+    """In the window Cycles heard Esc only between batches of 1 to 2 s of work (15 s
+    after the first 10 s of a render), untiled: the hand-off now tiles there too."""
+    scene = empty_scene
+    two_camera_scene(scene, 64, 48)
+    scene.multiscale.shading = "CYCLES"
+    cycles_settings(scene, samples=128)
+    window = types.SimpleNamespace(**{k: getattr(bpy, k) for k in ("data", "types", "props")})
+    window.app = _WindowApp()
+    monkeypatch.setattr(cycles, "bpy", window)
+    seen = []
+    run = cycles._run_cycles
+
+    def recording(engine, depsgraph, data):
+        settings = depsgraph.scene_eval.cycles
+        seen.append((settings.use_auto_tile, settings.tile_size))
+        return run(engine, depsgraph, data)
+
+    monkeypatch.setattr(cycles, "_run_cycles", recording)
+    passes = render(scene, tmp_path / "window.exr", "MULTISCALE")
+    assert seen == [(True, cycles.cancel_tile(128))]  # 32 px: 2^17 pixel samples
+    assert scene.cycles.tile_size == 2048  # the user's own, kept
+    assert passes["Combined"][..., :3].mean() > 0.01

@@ -3,7 +3,9 @@
 signal is sent a quarter of a second into the stage named (``Diagnostics.stage``, or
 the Cycles hand-off's march and tables), or as it starts for stages shorter than that,
 and the time from the signal to the end of the call is measured in Blender's own
-process. Nothing is written and no worker's shared memory is left."""
+process. Nothing is written and no worker's shared memory is left. AUTO's IMAGE_BLEND
+stages (the weight solve, the measure along the rays, the fold count) are signalled at
+1920x1080, where they last long enough."""
 
 import os
 import subprocess
@@ -187,5 +189,26 @@ def test_ctrl_c_stops_cycles_own_render_within_2_s(tmp_path):
         "_run_cycles", RENDER, tmp_path, shading="CYCLES", delay=1.0
     )
     assert "Sent an internal break event" in output
+    assert result == RENDER_CANCELLED, output
+    assert seconds < 2.0, output
+
+
+@pytest.mark.parametrize("stage,delay", [("solve", 0.25), ("measure", 0.0), ("folds", 1.0)])
+def test_ctrl_c_stops_auto_in_image_blends_stages_within_2_s(tmp_path, stage, delay):
+    """AUTO (the default) builds IMAGE_BLEND here and measures it: at 1920x1080 the
+    weight solve takes about 2 s and the fold count several seconds (shared with
+    workers here), which heard Ctrl-C only once they ended. The measure along the rays
+    lasts a fraction of a second: the signal comes as it starts."""
+    seconds, result, output = interrupted_at(
+        stage, COMPUTE, tmp_path, "AUTO", size=(1920, 1080), delay=delay
+    )
+    assert result == CANCELLED, output
+    assert seconds < 2.0, output
+
+
+def test_ctrl_c_stops_a_render_in_image_blends_fold_count_within_2_s(tmp_path):
+    seconds, result, output = interrupted_at(
+        "folds", RENDER, tmp_path, "IMAGE_BLEND", size=(1920, 1080), delay=1.0
+    )
     assert result == RENDER_CANCELLED, output
     assert seconds < 2.0, output

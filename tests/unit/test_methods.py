@@ -128,7 +128,7 @@ def test_auto_keeps_the_candidate_with_fewer_folds_when_none_meets_the_target(mo
 
     figures = {}
 
-    def fake_measure(fld, processes=1, should_stop=None):
+    def fake_measure(fld, processes=1, diag=None):
         cameras, folds = figures[fld.method]
         quads = np.zeros((4, 4), dtype=bool)
         quads.flat[:folds] = True

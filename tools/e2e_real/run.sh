@@ -94,7 +94,8 @@ print("mask steps:", ", ".join(steps))
 sys.exit(0 if steps and steps[-1] == "done" and "failed" not in steps else 1)
 PY
   # Esc in the window stops a render in each stage within 2 s (the render job's
-  # test_break; tools/e2e_real/cancel_steps.py)
+  # test_break; tools/e2e_real/cancel_steps.py: SCALAR_FIELD's stages, then AUTO's
+  # IMAGE_BLEND at 1920x1080)
   echo "== sid: Esc in each stage of a render in a window"
   export RB_DISPLAY=$GUI_DISPLAY
   RB_ENV="E2E_LOG=$OUT/cancel-log.json" \
@@ -107,7 +108,7 @@ import json, sys
 steps = json.load(open(sys.argv[1]))["steps"]
 for s in steps:
     if s["step"] in ("cancelled", "skipped", "failed"):
-        info = {k: s[k] for k in ("key_to_end", "heard_to_end", "reason") if k in s}
+        info = {k: s[k] for k in ("key_to_end", "heard_to_end", "heard_in", "reason") if k in s}
         print("cancel:", s["step"], s.get("stage"), info)
 names = [s["step"] for s in steps]
 sys.exit(0 if names and names[-1] == "done" and "failed" not in names else 1)

@@ -6,6 +6,7 @@ from typing import ClassVar
 
 import numpy as np
 
+from ..diagnostics import diagnostics_of
 from ..field import mask_weights
 from ..geometry import DEFAULT_SEGMENTS, Guides, build_guides, curved_rays
 from ..quality import check_rig
@@ -101,14 +102,20 @@ def prepare_image_blend(rig, settings=None, diag=None, reuse=None):
     a build whose masks are those the store kept takes its weights as they were (no
     solve), and one whose masks changed solves and keeps them; what it did is in
     ``stats["reuse"]`` (``FrameReuse.record_weights``).
+
+    ``diag`` (core.diagnostics.Diagnostics or None) steers the solve (its cancel check,
+    asked before every iteration) and gets its seconds as stage "solve".
     """
+    diag = diagnostics_of(diag)
+    run = diag.child()
     warnings = check_rig(rig)
     start = time.perf_counter()
     kept = reuse.mask_weights(rig.masks) if reuse is not None else None
     if kept is not None:
         weights, solver = kept
     else:
-        solve = mask_weights(rig.masks)
+        with run.stage("solve"):
+            solve = mask_weights(rig.masks, should_stop=run.should_stop)
         weights = eased(solve.x)
         solver = {
             "iterations": solve.iterations,
@@ -123,4 +130,5 @@ def prepare_image_blend(rig, settings=None, diag=None, reuse=None):
     fld.warnings += guard_warnings(rig)
     if reuse is not None:
         fld.stats["reuse"] = reuse.record_weights(kept is not None, fld.seconds)
+    diag.merge(run)
     return fld

@@ -143,7 +143,7 @@ def prepare_auto(rig, settings=None, diag=None, reuse=None):
         if n:
             diag.check()
         fld = METHODS[name](rig, settings, diag)
-        cameras, fold_quads, stride = measure_map(fld, settings.processes, diag.should_stop)
+        cameras, fold_quads, stride = measure_map(fld, settings.processes, diag)
         folds = int(fold_quads.sum())
         fld.measured = (cameras, folds)
         off = accuracy_misses(cameras, settings.accuracy_px)

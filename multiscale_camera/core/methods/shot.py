@@ -89,7 +89,7 @@ def choose_shot_method(samples, settings=None, diag=None):
     for frame, rig in sorted(samples, key=lambda s: s[0]):
         diag.check()
         fld = prepare_image_blend(rig, settings, diag)
-        cameras, folds = measure(fld, settings.processes, diag.should_stop)
+        cameras, folds = measure(fld, settings.processes, diag)
         measured.append(int(frame))
         why = shortfall(cameras, folds, settings.accuracy_px)
         if why:

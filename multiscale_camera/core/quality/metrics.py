@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..diagnostics import check_stop
 from ..geometry import dot3, near_plane_entries
 
 # Erosion of the masks, pixels, before measuring preserved rays (docs/report.md).
@@ -74,7 +75,7 @@ def far_depth(cam):
     return end if np.isfinite(end) else UNBOUNDED_NEAR_DISTANCES * float(cam.clip_start)
 
 
-def along_ray(vertices, cam, px, py, earlier=()):
+def along_ray(vertices, cam, px, py, earlier=(), should_stop=None):
     """Worst deviation of rendered rays from ``cam``'s pinhole rays beyond its near plane.
 
     Each polyline, with its last segment run on to the far depth (``far_depth``) as the
@@ -93,6 +94,8 @@ def along_ray(vertices, cam, px, py, earlier=()):
     vertices : (R, K, 3) float array, K >= 2, world units. cam : PinholeCamera.
     px, py : (R,) float, the pixel centres the rays serve, in ``cam``'s pixels.
     earlier : sequence of PinholeCamera, the rig's cameras before ``cam``, in order.
+    should_stop : callable () -> bool or None, asked before each block of
+        ``ALONG_BLOCK_VERTICES`` vertices (raises ``Cancelled``).
 
     Returns
     -------
@@ -111,6 +114,7 @@ def along_ray(vertices, cam, px, py, earlier=()):
     angle = np.empty(r)
     block = max(1, ALONG_BLOCK_VERTICES // (k + 1))
     for s in range(0, r, block):
+        check_stop(should_stop)
         sl = slice(s, s + block)
         error[sl], angle[sl] = _along_block(vertices[sl], cam, px[sl], py[sl], tuple(earlier))
     return error, angle
@@ -200,7 +204,7 @@ class Preserved:
         return int(np.count_nonzero(~np.isfinite(self.error_px)))
 
 
-def preserved_error(cameras, i, bundle):
+def preserved_error(cameras, i, bundle, should_stop=None):
     """Preserved-ray error of camera ``i`` (0-based) over the rays of ``bundle``: the
     worst deviation along each ray from camera i's near plane out to its clip end
     (``along_ray``).
@@ -209,6 +213,7 @@ def preserved_error(cameras, i, bundle):
     ----------
     cameras : sequence of PinholeCamera. i : int.
     bundle : RayBundle whose rays serve pixels of camera i's eroded mask.
+    should_stop : callable () -> bool or None, ``along_ray``'s cancel check.
 
     Returns
     -------
@@ -218,7 +223,7 @@ def preserved_error(cameras, i, bundle):
     if len(v) == 0:
         return Preserved(0, np.zeros(0), np.zeros(0))
     px, py = bundle.pixels[:, 0] + 0.5, bundle.pixels[:, 1] + 0.5
-    err, angle = along_ray(v, cameras[i], px, py, tuple(cameras[:i]))
+    err, angle = along_ray(v, cameras[i], px, py, tuple(cameras[:i]), should_stop)
     return Preserved(len(v), err, angle)
 
 
