@@ -23,6 +23,7 @@ from ..field import (
     near_plane_width,
     step_cells,
 )
+from .measure_memory import measure_memory
 
 # Megabytes as Blender counts them (its memory statistics), and as the project says them
 # everywhere (the Memory Budget, the cache limit, ``size_text``): 2**20 bytes.
@@ -60,17 +61,33 @@ RAY_COPIES = 2
 # and float64 temporaries each: per vertex of a round's rays, up to one block.
 DEVIATION_BLOCK_VERTICES = 1 << 20
 DEVIATION_BYTES_PER_VERTEX = 110
-# A share of rays in a worker: its preserved pixels' rays are laid out analytically on
-# every step up to the step limit (float64, with the temporaries of the layout and of
-# the membership's sampling, and the float32 copy kept), the others (transitions) are
-# streamlines trimmed to their longest ray (float32 xyz and membership). Per preserved
-# ray's vertex at the step limit: measured 65 and 72 B on the largest rounds of the
-# 25x zoom and the three-camera rig at STANDARD (bench/memory.py's ``rounds``: the
-# worker's peak less its interpreter and grid, over its share's preserved rays times
-# the step limit); per other vertex, the streamline's arrays. The parent holds a
-# share's pickled copy and its arrays while it merges it.
-WORKER_BYTES_PER_PRESERVED_VERTEX = 70
-WORKER_BYTES_PER_TRACED_VERTEX = 16
+# A share of rays in a worker (or of the trace in the main process), measured stage by
+# stage with ``tracemalloc`` on one share of the largest lattice round, replayed in a
+# fresh process (bench/worker_memory.py; docs/performance.md, "Peak memory"). The stages
+# come one after the other, so a share's peak is the largest of them, not their sum:
+# 1. each camera's preserved pixels' rays (``FieldTracer.preserved_rays``), one camera
+#    after the other: held as float32 xyz and membership on every step to the step limit
+#    (16 B a vertex), laid out and sampled ``BLOCK_VERTICES`` vertices at a time (the
+#    float64 temporaries of a block: 48 B a vertex for camera 1's pinhole rays, 130 for a
+#    later camera's, whose guides are looked up by arc length; on nested grids 225, the
+#    nested sampler's temporaries as the block is sampled), then trimmed to their length;
+# 2. the other rays (transitions) as streamlines to the longest ray's length: 52 B a
+#    vertex (the vertex buffer grown by doubling, 24; its trimmed and assembled copies,
+#    24; the membership, 4), and a block of them completed at a time (float64 copies and
+#    the sampler's temporaries: 46 B a vertex of the block, 130 on nested grids);
+# 3. the share merged and pickled for the trip back: 50 B a vertex of the longest ray.
+# Before, every preserved ray of the share was charged at once, to the step limit, at 70
+# B a vertex: the layout held them all in float64 (130 B a vertex of a later camera),
+# now it holds a block, so the share's preserved rays no longer set a worker's peak.
+WORKER_BLOCK_VERTICES = 1 << 18
+HELD_BYTES_PER_VERTEX = 16
+PINHOLE_LAYOUT_BYTES_PER_VERTEX = 48
+CURVED_LAYOUT_BYTES_PER_VERTEX = 130
+NESTED_BLOCK_BYTES_PER_VERTEX = 225
+STREAMLINE_BYTES_PER_VERTEX = 52
+COMPLETION_BYTES_PER_VERTEX = 46
+NESTED_COMPLETION_BYTES_PER_VERTEX = 130
+RETURN_BYTES_PER_VERTEX = 50
 RECEIVE_BYTES_PER_VERTEX = 2 * RAY_BYTES_PER_VERTEX
 # The lattice traces in rounds (the base lattice, then the midpoints of the cells it
 # splits); the largest round holds about this fraction of every traced ray, and is
@@ -84,8 +101,10 @@ MIN_RAYS_PER_PROCESS = 256
 # and the stride and step limit ``estimate_memory`` reads off a rig are those of
 # ``traced.lattice_stride`` and ``traced.trace_field``: tests/unit/test_memory_guard.py).
 MAX_STRIDE = 16
-# IMAGE_BLEND's weights: float64 per camera and pixel while each camera is solved.
+# IMAGE_BLEND's weights: float64 per camera and pixel while each camera is solved; the
+# field keeps them eased, float32 (what AUTO holds while it measures the field).
 WEIGHT_BYTES_PER_CAMERA_PIXEL = 8
+BLEND_BYTES_PER_CAMERA_PIXEL = 4
 # Traced rays over the image's pixels, beyond the base lattice: the lattice splits
 # cells down to single pixels along every preserved region's edge (a band of about
 # this many pixels for each edge pixel), and refines elsewhere as the accuracy target
@@ -181,6 +200,46 @@ def traced_workers(rays, workers):
     return n if n >= 2 else 0
 
 
+def share_memory(rays, max_vertices, vertices, preserved, nested=False):
+    """Bytes a share of ``rays`` traced rays holds at its peak, in a worker or in the
+    main process: the largest of its stages (see ``WORKER_BLOCK_VERTICES``): each
+    camera's preserved rays held to the step limit and laid out a block at a time, the
+    rest traced as streamlines, the whole share merged and pickled.
+
+    Parameters
+    ----------
+    rays : int. max_vertices : int, the step limit plus one (preserved rays' layout).
+    vertices : int, the longest ray's (what a share keeps of every ray).
+    preserved : sequence of float in [0, 1], each camera's share of the rays (its
+        mask's share of the image), in the rig's order. nested : bool, nested grids.
+
+    Returns
+    -------
+    dict str -> float: "preserved rays laid out", "streamlines", "share returned".
+    """
+    held = laid = 0.0
+    for i, fraction in enumerate(preserved):
+        count = float(fraction) * rays * max_vertices
+        if nested:
+            block = NESTED_BLOCK_BYTES_PER_VERTEX
+        else:
+            block = CURVED_LAYOUT_BYTES_PER_VERTEX if i else PINHOLE_LAYOUT_BYTES_PER_VERTEX
+        laid = max(
+            laid,
+            held + count * HELD_BYTES_PER_VERTEX + min(count, WORKER_BLOCK_VERTICES) * block,
+        )
+        held += float(fraction) * rays * vertices * HELD_BYTES_PER_VERTEX
+    rest = max(0.0, 1.0 - float(sum(preserved))) * rays * vertices
+    completion = NESTED_COMPLETION_BYTES_PER_VERTEX if nested else COMPLETION_BYTES_PER_VERTEX
+    return {
+        "preserved rays laid out": laid,
+        "streamlines": held
+        + rest * STREAMLINE_BYTES_PER_VERTEX
+        + min(rest, WORKER_BLOCK_VERTICES) * completion,
+        "share returned": rays * vertices * RETURN_BYTES_PER_VERTEX,
+    }
+
+
 def build_memory(
     method,
     width,
@@ -192,7 +251,7 @@ def build_memory(
     max_vertices=0,
     workers=1,
     level_voxels=0,
-    preserved=1.0,
+    preserved=(0.0, 1.0),
 ):
     """Peak memory of building a field, from shapes.
 
@@ -205,8 +264,10 @@ def build_memory(
 
     Parameters
     ----------
-    method : str, "IMAGE_BLEND", "LINEAR", "VECTOR_FIELD", "SCALAR_FIELD" or "AUTO"
-        (IMAGE_BLEND, then SCALAR_FIELD where its rays fold: the larger of the two).
+    method : str, "IMAGE_BLEND", "LINEAR", "VECTOR_FIELD", "SCALAR_FIELD" or "AUTO":
+        its first candidate, IMAGE_BLEND, built and measured as AUTO measures it (the
+        along-ray measure, the fold count's bands: ``measure_memory``); AUTO asks the
+        guard again before it goes on to SCALAR_FIELD (``Diagnostics.guard``).
     width, height : int, pixels. cameras : int.
     voxels : int, the grid's voxels (every nested level's). traced_rays : int, rays the
         lattice traces. vertices : int, vertices of the longest traced ray (what every
@@ -214,8 +275,10 @@ def build_memory(
         worker lays preserved rays out on); ``vertices`` when 0.
     workers : int, worker processes available (1: none).
     level_voxels : int, the largest nested level's voxels (0: one uniform grid).
-    preserved : float in [0, 1], the share of the traced rays that are preserved
-        pixels' (laid out to the step limit; the rest traced to ``vertices``).
+    preserved : sequence of float in [0, 1], each camera's share of the traced rays
+        (its preserved pixels': laid out to the step limit; the rest are traced to
+        ``vertices``), in the rig's order (``share_memory``). Default: every ray a later
+        camera's, the most a share holds.
 
     Returns
     -------
@@ -237,6 +300,11 @@ def build_memory(
     }
     if method in ("IMAGE_BLEND", "LINEAR"):
         return _estimate(image, {}, 0, shapes)
+    if method == "AUTO":  # its first candidate, IMAGE_BLEND, built then measured
+        along, fold, n = measure_memory(width, height, cameras, workers)
+        measured = {"blend weights": pixels * cameras * BLEND_BYTES_PER_CAMERA_PIXEL, **along}
+        main = max(image, measured, key=lambda parts: sum(parts.values()))
+        return _estimate(main, {"interpreter": WORKER_BASE_BYTES, **fold} if n else {}, n, shapes)
     grid_factor = 3 if method == "VECTOR_FIELD" else 1  # three channels of tangents
     max_vertices = max(int(max_vertices), int(vertices))
     rays = int(traced_rays)
@@ -244,10 +312,9 @@ def build_memory(
     n = traced_workers(rays, workers)
     largest = int(np.ceil(LARGEST_ROUND * rays))
     share = min(MAX_RAYS_PER_SHARE, -(-largest // n)) if n else largest
-    preserved = float(np.clip(preserved, 0.0, 1.0))
-    share_bytes = share * (
-        preserved * max_vertices * WORKER_BYTES_PER_PRESERVED_VERTEX
-        + (1.0 - preserved) * int(vertices) * WORKER_BYTES_PER_TRACED_VERTEX
+    preserved = [float(np.clip(f, 0.0, 1.0)) for f in preserved]
+    share_bytes = max(
+        share_memory(share, max_vertices, int(vertices), preserved, bool(level_voxels)).values()
     )
     level = int(level_voxels) or voxels
     per_voxel = (FILL_BYTES_PER_VOXEL + cameras * FILL_BYTES_PER_CAMERA_VOXEL) * grid_factor
@@ -347,13 +414,13 @@ def edge_pixels(masks):
     return int(edge.sum()) * s
 
 
-def preserved_fraction(masks):
-    """float, the share of the image's pixels some camera preserves: of the traced
-    rays, those laid out to the step limit. masks : (N, H, W) bool. Counted on every
-    s-th row and column above ``EDGE_COUNT_PIXELS`` pixels, as ``edge_pixels``."""
+def preserved_fractions(masks):
+    """list of float, each camera's share of the image's pixels: of the traced rays,
+    those it lays out to the step limit. masks : (N, H, W) bool. Counted on every s-th
+    row and column above ``EDGE_COUNT_PIXELS`` pixels, as ``edge_pixels``."""
     masks = np.asarray(masks, dtype=bool)
     s = max(1, int(np.ceil(np.sqrt(masks[0].size / EDGE_COUNT_PIXELS))))
-    return float(masks[:, ::s, ::s].any(axis=0).mean())
+    return [float(m[::s, ::s].mean()) for m in masks]
 
 
 def traced_rays_of(width, height, stride, edges, accuracy_px, ratio=10.0, nested=True):
@@ -393,7 +460,10 @@ def estimate_memory(rig, method, settings, workers=1):
     """
     w, h = rig.size
     n = len(rig.cameras)
-    if method in ("IMAGE_BLEND", "LINEAR") or n < 2:
+    if method == "AUTO" and settings.steady:  # a shot's one method, built unmeasured
+        shot = getattr(settings.shot, "method", None)
+        method = "IMAGE_BLEND" if shot == "IMAGE_BLEND" else "SCALAR_FIELD"
+    if method in ("IMAGE_BLEND", "LINEAR", "AUTO") or n < 2:
         return build_memory(method, w, h, n, workers=workers)
     choice = choose_grid(rig, settings.accuracy_px, settings.max_voxels)
     grids = [choice.grid]
@@ -428,7 +498,7 @@ def estimate_memory(rig, method, settings, workers=1):
         max_vertices=steps + 1,
         workers=workers,
         level_voxels=level,
-        preserved=preserved_fraction(rig.masks),
+        preserved=preserved_fractions(rig.masks),
     )
     estimate.shapes.update(stride=stride, step_limit=steps)
     return estimate
