@@ -73,15 +73,20 @@ def test_image_blend_grows_with_pixels_and_cameras_only():
 
 
 def trace_stage(pixels, cameras, voxels, rays, vertices, share, workers=True):
-    """The trace stage's bytes in the main process, written out from the arrays."""
+    """The trace stage's bytes in the main process, written out from the arrays: the
+    kept grid and the lattice, with the rounds (the rays once, the error estimate's
+    block, a share coming in) or, after them, the merge (the rays twice)."""
     largest = int(np.ceil(mem.LARGEST_ROUND * rays))
-    return (
-        voxels * mem.KEPT_BYTES_PER_VOXEL
-        + pixels * (mem.LATTICE_BYTES_PER_PIXEL + cameras * mem.CELL_TABLE_BYTES_PER_PIXEL)
-        + rays * vertices * mem.RAY_BYTES_PER_VERTEX * mem.RAY_COPIES
+    held = voxels * mem.KEPT_BYTES_PER_VOXEL + pixels * (
+        mem.LATTICE_BYTES_PER_PIXEL + cameras * mem.CELL_TABLE_BYTES_PER_PIXEL
+    )
+    rounds = (
+        rays * vertices * mem.RAY_BYTES_PER_VERTEX
         + min(largest * vertices, mem.DEVIATION_BLOCK_VERTICES) * mem.DEVIATION_BYTES_PER_VERTEX
         + share * vertices * mem.RECEIVE_BYTES_PER_VERTEX
     )
+    merge = rays * vertices * mem.RAY_BYTES_PER_VERTEX * 2
+    return held + max(rounds, merge)
 
 
 def share_reference(rays, limit, length, preserved, nested=False):

@@ -53,7 +53,10 @@ WORKER_BYTES_PER_VOXEL = 4
 LATTICE_BYTES_PER_PIXEL = 9
 CELL_TABLE_BYTES_PER_PIXEL = 8
 # Per vertex of a traced ray kept in the main process (float32 xyz and membership), held
-# twice while the lattice's parts are merged.
+# twice while the lattice's parts are merged, once the rounds (and their error
+# estimates) are done: the rounds' peak and the merge's come one after the other. (They
+# were added up: the nested zoom rig at STANDARD's main process was estimated at 1.45
+# times its peak once the workers' layout no longer hid it, bench/memory.json.)
 RAY_BYTES_PER_VERTEX = 16
 RAY_COPIES = 2
 # The lattice's error estimate weighs ``methods.traced.DEVIATION_BLOCK_VERTICES``
@@ -124,8 +127,13 @@ TRACED_WIDTH_EXPONENT = 0.6
 # calibration rows of bench/memory.py, the same width exponent).
 TRACED_FRACTION_UNIFORM = 0.19
 TRACED_ACCURACY_EXPONENT_UNIFORM = 2.4
-# The longest traced ray over the trace's step limit.
+# The longest traced ray over the trace's step limit: on one grid the limit allows two
+# of its diagonals and the longest ray crosses about 0.7 of one (measured 0.33 to 0.35
+# on the bench rows); on nested grids the limit adds every level's diagonals while a
+# ray crosses only part of each finer level (measured 0.23 to 0.28 on the four nested
+# rows of bench/memory.json: the longest ray of 39 to 147 vertices).
 VERTICES_OF_LIMIT = 0.35
+VERTICES_OF_LIMIT_NESTED = 0.25
 # A render, measured (bench/render_memory.py: the two-camera scene, IMAGE_BLEND, at
 # 480x270, 960x540 and 1920x1080, in-process and with two workers; the peak resident
 # size a render adds to Blender's process and each worker's). Per pixel in Blender's
@@ -200,7 +208,7 @@ def traced_workers(rays, workers):
     return n if n >= 2 else 0
 
 
-def share_memory(rays, max_vertices, vertices, preserved, nested=False):
+def share_memory(rays, max_vertices, vertices, preserved, nested=False, pickled=True):
     """Bytes a share of ``rays`` traced rays holds at its peak, in a worker or in the
     main process: the largest of its stages (see ``WORKER_BLOCK_VERTICES``): each
     camera's preserved rays held to the step limit and laid out a block at a time, the
@@ -212,6 +220,8 @@ def share_memory(rays, max_vertices, vertices, preserved, nested=False):
     vertices : int, the longest ray's (what a share keeps of every ray).
     preserved : sequence of float in [0, 1], each camera's share of the rays (its
         mask's share of the image), in the rig's order. nested : bool, nested grids.
+    pickled : bool, a worker's share, merged and pickled for the trip back; False, the
+        trace in the main process: merged alone (its parts and the result, float32).
 
     Returns
     -------
@@ -236,7 +246,9 @@ def share_memory(rays, max_vertices, vertices, preserved, nested=False):
         "streamlines": held
         + rest * STREAMLINE_BYTES_PER_VERTEX
         + min(rest, WORKER_BLOCK_VERTICES) * completion,
-        "share returned": rays * vertices * RETURN_BYTES_PER_VERTEX,
+        "share returned": rays
+        * vertices
+        * (RETURN_BYTES_PER_VERTEX if pickled else 2 * HELD_BYTES_PER_VERTEX),
     }
 
 
@@ -256,9 +268,11 @@ def build_memory(
     """Peak memory of building a field, from shapes.
 
     The main process's peak is that of its largest stage: the fill (eq. 4), the solve
-    (eq. 5), or the trace on the lattice (the kept grid, the lattice's arrays, the traced
-    rays twice, the error estimate's block, a share received from a worker); each
-    worker's, its interpreter, the grid it samples and its share of rays. On nested
+    (eq. 5), or the trace on the lattice (the kept grid and the lattice's arrays, with
+    the rays traced so far, the error estimate's block and a share received from a
+    worker while the rounds run, then the traced rays twice while they are merged); each
+    worker's, its interpreter, the grid it samples and its share of rays (the largest
+    of the share's stages, ``share_memory``). On nested
     grids (``level_voxels``) the levels are filled in the workers and solved one at a
     time: the fill is a worker's stage, the solve the largest level's.
 
@@ -314,26 +328,33 @@ def build_memory(
     share = min(MAX_RAYS_PER_SHARE, -(-largest // n)) if n else largest
     preserved = [float(np.clip(f, 0.0, 1.0)) for f in preserved]
     share_bytes = max(
-        share_memory(share, max_vertices, int(vertices), preserved, bool(level_voxels)).values()
+        share_memory(
+            share, max_vertices, int(vertices), preserved, bool(level_voxels), pickled=bool(n)
+        ).values()
     )
     level = int(level_voxels) or voxels
     per_voxel = (FILL_BYTES_PER_VOXEL + cameras * FILL_BYTES_PER_CAMERA_VOXEL) * grid_factor
     fill = {"grid fill": FILL_CHUNK_BYTES + level * per_voxel}
     fills_in_workers = bool(level_voxels) and workers > 1
+    held = {  # through the trace
+        "grid": voxels * KEPT_BYTES_PER_VOXEL * grid_factor,
+        "lattice": pixels * (LATTICE_BYTES_PER_PIXEL + cameras * CELL_TABLE_BYTES_PER_PIXEL),
+    }
     stages = [
-        image if method == "AUTO" else {},
         {} if fills_in_workers else fill,
         {"grid solve": level * SOLVE_BYTES_PER_CELL * grid_factor},
+        # the lattice's rounds: the rays traced so far (once, in parts), the error
+        # estimate's block, a share coming in; then, the rounds done, their merge
         {
-            "grid": voxels * KEPT_BYTES_PER_VOXEL * grid_factor,
-            "lattice": pixels * (LATTICE_BYTES_PER_PIXEL + cameras * CELL_TABLE_BYTES_PER_PIXEL),
-            "traced rays": kept * RAY_BYTES_PER_VERTEX * RAY_COPIES,
+            **held,
+            "traced rays": kept * RAY_BYTES_PER_VERTEX,
             "error estimate": min(largest * int(vertices), DEVIATION_BLOCK_VERTICES)
             * DEVIATION_BYTES_PER_VERTEX,
             "shares received" if n else "share of rays": (
                 share * int(vertices) * RECEIVE_BYTES_PER_VERTEX if n else share_bytes
             ),
         },
+        {**held, "traced rays": kept * RAY_BYTES_PER_VERTEX * RAY_COPIES},
     ]
     main = max(stages, key=lambda parts: sum(parts.values()))
     worker = {}
@@ -487,6 +508,7 @@ def estimate_memory(rig, method, settings, workers=1):
     ratio = widths[0] / max(min(widths), 1e-30)
     edges = edge_pixels(rig.masks)
     rays = traced_rays_of(w, h, stride, edges, settings.accuracy_px, ratio, len(grids) > 1)
+    of_limit = VERTICES_OF_LIMIT_NESTED if len(grids) > 1 else VERTICES_OF_LIMIT
     estimate = build_memory(
         method,
         w,
@@ -494,7 +516,7 @@ def estimate_memory(rig, method, settings, workers=1):
         n,
         voxels=voxels,
         traced_rays=rays,
-        vertices=int(np.ceil(VERTICES_OF_LIMIT * (steps + 1))),
+        vertices=int(np.ceil(of_limit * (steps + 1))),
         max_vertices=steps + 1,
         workers=workers,
         level_voxels=level,
