@@ -141,7 +141,7 @@ def test_scalar_field_peak_is_its_largest_stage_and_the_workers_shares():
 # the share's peak under tracemalloc with preserved rays laid out a block at a time
 # (bench/worker_memory.py zoom25_rig:SCALAR_FIELD:STANDARD:480x270), MB.
 ZOOM25_SHARE = (5546, 280, 98, (919, 1207, 408), 40.6)
-THREE_CAMERA_SHARE = (9994, 278, 95, (3240, 3581, 1160), 55.0)
+THREE_CAMERA_SHARE = (9994, 278, 95, (3240, 3581, 1160), 54.8)
 
 
 @pytest.mark.parametrize("measured", [ZOOM25_SHARE, THREE_CAMERA_SHARE])
