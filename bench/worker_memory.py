@@ -12,6 +12,14 @@ the merge of the share's parts, its pickled copy for the trip back) the bytes he
 it starts, the peak during it, and the shapes (rays, vertices). Prints a table and
 the share's composition: rays per camera, the step limit, the preserved rays' kept
 length and the streamlines'. Writes nothing.
+
+    nice -n 10 .venv/bin/python bench/worker_memory.py \
+        zoom_rig:IMAGE_BLEND:STANDARD:1920x1080 --measure
+
+With ``--measure``: AUTO's measure of the row's field instead (built in this process,
+the row's method; core/quality/measure_memory.py), under ``tracemalloc``: three fold
+bands from the middle of the image (``report._fold_bands``, as a worker counts them)
+and the along-ray measure of each camera's measured pixels.
 """
 
 import argparse
@@ -21,6 +29,7 @@ import subprocess
 import sys
 import tempfile
 import tracemalloc
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -162,11 +171,48 @@ def replay(path):
     )
 
 
+def measure(spec):
+    """Peak bytes (under tracemalloc, above the built field) of three fold bands and of
+    each camera's along-ray measure for row ``spec``'s field, printed."""
+    from memory import row_rig
+
+    from multiscale_camera.core.methods import prepare
+    from multiscale_camera.core.quality import metrics
+    from multiscale_camera.core.quality import report as rep
+
+    rig, method, settings = row_rig(spec)
+    fld = prepare(rig, method, replace(settings, processes=1))
+    tracemalloc.start()
+    base = tracemalloc.get_traced_memory()[0]
+    w, h = rig.size
+    xs, ys = np.arange(w), np.arange(h)
+    k = fld.rays(np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64)).vertices.shape[1]
+    rows = max(2, rep.FOLD_CHUNK_VERTICES // (w * k))
+    starts = list(range(0, h - 1, rows - 1))
+    print(f"{len(starts)} fold bands of {rows} rows, {rows * w * k} vertices ({k} a ray)")
+    for r0 in starts[len(starts) // 2 : len(starts) // 2 + 3]:
+        tracemalloc.reset_peak()
+        rep._fold_bands(fld, xs, ys, rows, [r0], None)
+        peak = (tracemalloc.get_traced_memory()[1] - base) / 2**20
+        print(f"fold band at row {r0}: peak {peak:.1f} MB")
+    for i in range(len(rig.cameras)):
+        tracemalloc.reset_peak()
+        ix, iy = metrics.measured_pixels(rig.masks[i])
+        if len(ix):
+            metrics.preserved_error(rig.cameras, i, fld.rays(ix, iy))
+        peak = (tracemalloc.get_traced_memory()[1] - base) / 2**20
+        print(f"along-ray measure, camera {i + 1}: {len(ix)} rays, peak {peak:.1f} MB")
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("row")
     parser.add_argument("--replay", help=argparse.SUPPRESS)
+    parser.add_argument("--measure", action="store_true", help="AUTO's measure, not a share")
     args = parser.parse_args()
+    if args.measure:
+        measure(args.row)
+        return
     if args.replay:
         print(json.dumps(replay(args.replay)))
         return

@@ -5,7 +5,7 @@ processes when there are enough of them. Part of the memory guard's arithmetic
 (``memory``; docs/performance.md, "Peak memory").
 
 Measured with ``tracemalloc`` on the zoom and three-camera rigs at 1920x1080 (IMAGE_BLEND,
-STANDARD; bench/worker_memory.py ``--measure``): the along-ray measure of 20,000 rays
+STANDARD; ``bench/worker_memory.py ROW --measure``): the along-ray measure of 20,000 rays
 held 53 and 93 MB (2 and 3 cameras: 10 and 18 vertices a ray), about 260 bytes a
 vertex (each ray's curves in float64 and the measure's temporaries); a fold band of
 1,036,800 vertices 122 and 145 MB, 118 and 142 bytes a vertex: the band's rays, its
