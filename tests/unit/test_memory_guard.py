@@ -39,6 +39,7 @@ def test_constants_are_the_ones_the_code_uses():
     assert mem.MAX_RAYS_PER_SHARE == tracer.MAX_RAYS_PER_SHARE
     assert mem.MIN_RAYS_PER_PROCESS == tracer.MIN_RAYS_PER_PROCESS
     assert mem.DEVIATION_BLOCK_VERTICES == traced.DEVIATION_BLOCK_VERTICES
+    assert mem.WORKER_BLOCK_VERTICES == tracer.BLOCK_VERTICES
 
 
 @pytest.mark.parametrize("nested", [False, True])

@@ -82,7 +82,7 @@ DEVIATION_BYTES_PER_VERTEX = 110
 # Before, every preserved ray of the share was charged at once, to the step limit, at 70
 # B a vertex: the layout held them all in float64 (130 B a vertex of a later camera),
 # now it holds a block, so the share's preserved rays no longer set a worker's peak.
-WORKER_BLOCK_VERTICES = 1 << 18
+WORKER_BLOCK_VERTICES = 1 << 18  # ``field.tracer.BLOCK_VERTICES`` (the same value, tested)
 HELD_BYTES_PER_VERTEX = 16
 PINHOLE_LAYOUT_BYTES_PER_VERTEX = 48
 CURVED_LAYOUT_BYTES_PER_VERTEX = 130
