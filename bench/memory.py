@@ -53,6 +53,12 @@ HELD_OUT = (
     "zoom25_rig:SCALAR_FIELD:STANDARD:480x270",
     "zoom_rig:SCALAR_FIELD:PREVIEW:480x270:p1",
     "zoom_rig:SCALAR_FIELD:STANDARD:480x270:p3",
+    # the default build (AUTO: IMAGE_BLEND built and measured, its fold count's bands in
+    # workers at 1920x1080, in the main process at 480x270)
+    "zoom_rig:AUTO:STANDARD:1920x1080",
+    "three_camera_rig:AUTO:STANDARD:1920x1080",
+    "zoom25_rig:AUTO:STANDARD:1920x1080",
+    "zoom25_rig:AUTO:PREVIEW:480x270",
 )
 
 
@@ -103,14 +109,27 @@ def estimated(row, estimate, before):
     }
 
 
-def re_estimate(row):
-    """``row`` (measured before) with its estimate columns made again by the
-    committed model, without building."""
+def guarded(rig, method, settings, built=None):
+    """The estimate the memory guard checks for a build of ``method`` that built
+    ``built``: AUTO's first candidate before the build and, when AUTO went on to
+    another (``built``), that one's too before it is built: the larger of the two."""
     from multiscale_camera.core.quality import estimate_memory
     from multiscale_camera.core.runtime import worker_count
 
+    workers = worker_count(settings.processes)
+    estimate = estimate_memory(rig, method, settings, workers)
+    if method == "AUTO" and built not in (None, "IMAGE_BLEND"):
+        estimate = max(
+            estimate, estimate_memory(rig, built, settings, workers), key=lambda e: e.total
+        )
+    return estimate
+
+
+def re_estimate(row):
+    """``row`` (measured before) with its estimate columns made again by the
+    committed model, without building."""
     rig, method, settings = row_rig(row["row"])
-    estimate = estimate_memory(rig, method, settings, worker_count(settings.processes))
+    estimate = guarded(rig, method, settings, row.get("built"))
     return {**row, **estimated(row, estimate, row["before_mb"])}
 
 
@@ -118,12 +137,11 @@ def run_one(spec):
     """Build one field in this process; its row (a dict)."""
     from multiscale_camera.core.field.tracer import FieldTracer
     from multiscale_camera.core.methods import prepare
-    from multiscale_camera.core.quality import estimate_memory
-    from multiscale_camera.core.runtime import runtime, worker_count
+    from multiscale_camera.core.runtime import runtime
 
     rig, method, settings = row_rig(spec)
     before = proc_status_kb("VmRSS") / 1024
-    estimate = estimate_memory(rig, method, settings, worker_count(settings.processes))
+    estimate = guarded(rig, method, settings)
     peaks, done = {}, threading.Event()
 
     def watch():  # every worker's peak, also of one given up (ended) before the build ends
@@ -168,6 +186,8 @@ def run_one(spec):
         "measured_mb": round(measured, 1),
         "held_out": spec in HELD_OUT,
     }
+    if fld.method != "IMAGE_BLEND":  # AUTO went on: the guard checked that one too
+        estimate = guarded(rig, method, settings, fld.method)
     return {
         **row,
         **estimated(row, estimate, before),

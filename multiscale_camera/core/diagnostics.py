@@ -61,6 +61,10 @@ class Diagnostics:
         Wall-clock seconds per stage name, summed over the stage's runs.
     checks : int
         How many times ``check`` was asked (a rough sign of life for a progress bar).
+    guard : callable (str) -> None, or None
+        Asked with a method's name before AUTO builds a further candidate than its
+        first; it raises (a ``RigError``) to refuse that build (the memory guard,
+        which estimates the first candidate before the build starts).
     """
 
     def __init__(
@@ -75,6 +79,7 @@ class Diagnostics:
         self._started: dict[str, float] = {}
         self.seconds: dict[str, float] = {}
         self.checks = 0
+        self.guard: Callable[[str], None] | None = None
 
     # --- messages ------------------------------------------------------------------
 
@@ -157,7 +162,9 @@ class Diagnostics:
     def child(self) -> Diagnostics:
         """A Diagnostics with the same cancel check and progress, and its own messages
         and seconds (for a stage whose messages the caller may keep or drop)."""
-        return Diagnostics(self._should_stop, self._on_progress)
+        out = Diagnostics(self._should_stop, self._on_progress)
+        out.guard = self.guard
+        return out
 
     def merge(self, other: Diagnostics) -> None:
         """Add ``other``'s messages (those not said yet) and seconds to this one."""

@@ -183,6 +183,9 @@ class FieldService:
         self._listeners: list[Callable] = []
         self._build: FieldBuild | None = None
         self.live = None  # the live picture (ui/live_picture.py), made by its register()
+        # (request, method) -> None, raising to refuse AUTO's further candidates: the
+        # memory guard's (render/memory.py sets it), asked through ``Diagnostics.guard``
+        self.candidate_guard: Callable | None = None
 
     # --- requests ------------------------------------------------------------------
 
@@ -516,6 +519,9 @@ def _build(request: FieldRequest, diag: Diagnostics):
     """(RayField, whether worker processes were given up) for ``request``. A rig in
     motion (``Settings.steady``) takes what the frame before left valid (``SERVICE.reuse``)."""
     reuse = SERVICE.reuse if request.settings.steady else None
+    if diag.guard is None and SERVICE.candidate_guard is not None:
+        guard = SERVICE.candidate_guard
+        diag.guard = lambda method: guard(request, method)
     with runtime().journal() as runs, diag.stage("field"):  # what its workers did
         fld = prepare(request.rig, request.method, request.settings, diag, reuse=reuse)
     return fld, gave_up(runs)

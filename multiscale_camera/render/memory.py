@@ -37,6 +37,12 @@ GUARD_OFF = (
 )
 _SAID_OFF = []  # one entry once GUARD_OFF has been said in this session
 
+# The budget each request was last guarded against (its key -> (bytes, where from)),
+# read on the main thread for the candidates AUTO builds after its first, in whichever
+# thread builds them (``guard_candidate``); the last few requests only.
+_BUDGETS = {}
+MAX_BUDGETS_KEPT = 8
+
 
 class MemoryBudgetError(RigError):
     """The work would need more memory than its budget; the message says how much and
@@ -167,6 +173,9 @@ def guard_memory(scene, request, render=False):
             return None
         _SAID_OFF.append(True)
         return GUARD_OFF
+    _BUDGETS[request.key] = (budget, where)  # for AUTO's further candidates
+    while len(_BUDGETS) > MAX_BUDGETS_KEPT:
+        _BUDGETS.pop(next(iter(_BUDGETS)))
     workers = worker_count(request.settings.processes)
     fld = SERVICE.cached(request)
     if fld is None:
@@ -186,3 +195,29 @@ def guard_memory(scene, request, render=False):
         if said:
             raise MemoryBudgetError(said)
     return None
+
+
+def guard_candidate(request, method):
+    """Refuse AUTO's further candidate ``method`` (str) for ``request`` when its build's
+    estimated peak passes the budget ``guard_memory`` found for the request: the guard
+    estimates AUTO's first candidate (IMAGE_BLEND, built and measured) before the build
+    starts, and this one before AUTO goes on to it (``Diagnostics.guard``). Nothing to
+    do for a request the guard did not see (no budget).
+
+    Raises
+    ------
+    MemoryBudgetError with the estimate, the budget and what to lower.
+    """
+    budget = _BUDGETS.get(request.key)
+    if budget is None:
+        return
+    workers = worker_count(request.settings.processes)
+    estimate = estimate_memory(request.rig, method, request.settings, workers)
+    said = budget_message(
+        estimate, budget[0], budget[1], f"AUTO's next candidate, the {method} build,"
+    )
+    if said:
+        raise MemoryBudgetError(said)
+
+
+SERVICE.candidate_guard = guard_candidate

@@ -215,3 +215,27 @@ def test_free_memory_is_read_by_the_platform_s_reader(monkeypatch):
     assert AVAILABLE_BYTES("linux") == 1 << 30
     monkeypatch.setattr(memory, "linux_available", lambda: None)  # no /proc: the free pages
     assert AVAILABLE_BYTES("linux") == os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+
+
+def test_auto_is_guarded_again_before_it_goes_on_to_scalar_field(scene, monkeypatch):
+    """The guard weighs AUTO's first candidate (IMAGE_BLEND, built and measured) before
+    the build; a build of AUTO asks it again, against the same budget, before it goes
+    on to SCALAR_FIELD, and a refusal names that build and its estimate."""
+    scene.multiscale.method = "AUTO"
+    scene.render.resolution_x, scene.render.resolution_y = 480, 270
+    request = fields.SERVICE.request(bpy.context.evaluated_depsgraph_get().scene)
+    workers = memory.worker_count(request.settings.processes)
+    first = memory.estimate_memory(request.rig, "AUTO", request.settings, workers)
+    then = memory.estimate_memory(request.rig, "SCALAR_FIELD", request.settings, workers)
+    assert first.total < then.total
+    scene.multiscale.memory_budget_mb = int((first.total + then.total) / 2 / memory.MB)
+    monkeypatch.setattr(memory.SERVICE, "cached", lambda _request: None)
+    assert memory.guard_memory(scene, request) is None  # the first candidate fits
+    memory.guard_candidate(request, "IMAGE_BLEND")  # fits too: nothing said
+    with pytest.raises(memory.MemoryBudgetError) as info:
+        memory.guard_candidate(request, "SCALAR_FIELD")
+    assert str(info.value).startswith(
+        f"AUTO's next candidate, the SCALAR_FIELD build, would need about "
+        f"{memory.size_text(then.total)} of memory ("
+    ), str(info.value)
+    assert fields.SERVICE.candidate_guard is memory.guard_candidate

@@ -63,8 +63,12 @@ MIN_RAYS_PER_PROCESS = 256
 # ... and in shares of at most this many rays, so that no worker holds more than a few
 # hundred megabytes of rays at once (they come back pickled).
 MAX_RAYS_PER_SHARE = 16384
-# Ray vertices completed (run-on, membership) at a time after a trace.
-BLOCK_VERTICES = 1 << 20
+# Ray vertices completed (run-on, membership) at a time after a trace, and laid out
+# and sampled at a time for preserved pixels' rays: each vertex of a block holds about
+# 140 bytes of float64 temporaries while it is laid out, and a nested domain's sampler
+# about 200 (bench/worker_memory.py), so a block takes a few tens of megabytes whatever
+# a worker's share of rays.
+BLOCK_VERTICES = 1 << 18
 
 
 def blend_weights(nval, count, cubic=False):
@@ -266,39 +270,46 @@ class FieldTracer:
         near plane (docs/architecture.md, "Tracing"). The membership is recorded at
         every vertex all the same.
 
+        The rays are laid out and sampled ``BLOCK_VERTICES`` vertices at a time and kept
+        as float32: the layout's float64 temporaries (about 140 bytes a vertex) of every
+        ray at once took hundreds of megabytes in a worker (bench/worker_memory.py).
+
         Returns
         -------
         ok : (R,) bool, all True. traced : Traced of the R rays.
         """
-        if callable(step):
-            verts = scheduled_rays(self.families[i], u, v, step, vertices, self.contains)
-        else:
-            verts = arc_length_rays(self.families[i], u, v, step, vertices)
-        r, k = verts.shape[:2]
-        on_plane = first_past_near_plane(self.rig.cameras[: i + 1], verts)
-        inside = np.empty((r, k), dtype=bool)
+        r, k = len(u), int(vertices)
+        verts = np.empty((r, k, 3), dtype=np.float32)
         membership = np.empty((r, k), dtype=np.float32)
+        count = np.empty(r, dtype=np.int32)
         block = max(1, BLOCK_VERTICES // k)
-        for s in range(0, r, block):  # N's temporaries at every vertex at once: gigabytes
-            flat = verts[s : s + block].reshape(-1, 3)
-            inside[s : s + block] = self.contains(flat).reshape(-1, k)
-            membership[s : s + block] = self.n_of(flat).reshape(-1, k)
-        # the tracer keeps the first point outside the grid as a ray's last vertex
-        count = np.where(inside.all(axis=1), k, np.argmin(inside, axis=1) + 1)
-        # ... and at least one vertex past the near plane's, so the ray runs on along
-        # camera i's pinhole ray wherever it leaves the grid
-        count = np.minimum(np.maximum(count, on_plane + 2), k).astype(np.int32)
+        for s in range(0, r, block):
+            sl = slice(s, s + block)
+            if callable(step):
+                laid = scheduled_rays(self.families[i], u[sl], v[sl], step, k, self.contains)
+            else:
+                laid = arc_length_rays(self.families[i], u[sl], v[sl], step, k)
+            on_plane = first_past_near_plane(self.rig.cameras[: i + 1], laid)
+            flat = laid.reshape(-1, 3)
+            inside = self.contains(flat).reshape(-1, k)
+            membership[sl] = self.n_of(flat).reshape(-1, k)
+            verts[sl] = laid
+            # the tracer keeps the first point outside the grid as a ray's last vertex
+            last = np.where(inside.all(axis=1), k, np.argmin(inside, axis=1) + 1)
+            # ... and at least one vertex past the near plane's, so the ray runs on along
+            # camera i's pinhole ray wherever it leaves the grid
+            count[sl] = np.minimum(np.maximum(last, on_plane + 2), k)
+            del laid, flat  # before the next block is laid out
         ok = np.ones(r, dtype=bool)
         reason = np.full(r, StopReason.LEFT_GRID, dtype=np.int8)
         reason[count == k] = StopReason.REACHED_LIMIT
-        sel = np.flatnonzero(ok)
         # past the last vertex inside the grid the rays run straight: keep one more
-        keep = min(k, int(count[sel].max()) + 1) if len(sel) else 2
+        keep = min(k, int(count.max()) + 1) if r else 2
         return ok, Traced(
-            verts[sel, :keep].astype(np.float32),
-            membership[sel, :keep],
-            count[sel],
-            reason[sel],
+            verts[:, :keep].copy() if keep < k else verts,
+            membership[:, :keep].copy() if keep < k else membership,
+            count,
+            reason,
             None if callable(step) else step,
         )
 

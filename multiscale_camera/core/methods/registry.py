@@ -126,6 +126,10 @@ def prepare_auto(rig, settings=None, diag=None, reuse=None):
     measured frame by frame could switch it mid-shot): the one ``settings.shot`` holds
     (``shot.choose_shot_method``, made once per shot from a few of its frames), else
     SCALAR_FIELD; either is built with ``reuse`` (``reuse.FrameReuse`` or None).
+
+    Before a candidate after the first, ``diag.guard`` (when set) is asked with its
+    name: the memory guard estimates AUTO's first candidate before the build, and this
+    one here, refusing it (a ``RigError``) when it would not fit.
     """
     settings = settings or Settings()
     diag = diagnostics_of(diag)
@@ -142,6 +146,8 @@ def prepare_auto(rig, settings=None, diag=None, reuse=None):
     for n, name in enumerate(AUTO_CANDIDATES):
         if n:
             diag.check()
+            if diag.guard is not None:  # the memory guard estimated the first alone
+                diag.guard(name)
         fld = METHODS[name](rig, settings, diag)
         cameras, fold_quads, stride = measure_map(fld, settings.processes, diag)
         folds = int(fold_quads.sum())

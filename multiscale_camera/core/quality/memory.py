@@ -23,6 +23,7 @@ from ..field import (
     near_plane_width,
     step_cells,
 )
+from .measure_memory import measure_memory
 
 # Megabytes as Blender counts them (its memory statistics), and as the project says them
 # everywhere (the Memory Budget, the cache limit, ``size_text``): 2**20 bytes.
@@ -52,7 +53,10 @@ WORKER_BYTES_PER_VOXEL = 4
 LATTICE_BYTES_PER_PIXEL = 9
 CELL_TABLE_BYTES_PER_PIXEL = 8
 # Per vertex of a traced ray kept in the main process (float32 xyz and membership), held
-# twice while the lattice's parts are merged.
+# twice while the lattice's parts are merged, once the rounds (and their error
+# estimates) are done: the rounds' peak and the merge's come one after the other. (They
+# were added up: the nested zoom rig at STANDARD's main process was estimated at 1.45
+# times its peak once the workers' layout no longer hid it, bench/memory.json.)
 RAY_BYTES_PER_VERTEX = 16
 RAY_COPIES = 2
 # The lattice's error estimate weighs ``methods.traced.DEVIATION_BLOCK_VERTICES``
@@ -60,17 +64,33 @@ RAY_COPIES = 2
 # and float64 temporaries each: per vertex of a round's rays, up to one block.
 DEVIATION_BLOCK_VERTICES = 1 << 20
 DEVIATION_BYTES_PER_VERTEX = 110
-# A share of rays in a worker: its preserved pixels' rays are laid out analytically on
-# every step up to the step limit (float64, with the temporaries of the layout and of
-# the membership's sampling, and the float32 copy kept), the others (transitions) are
-# streamlines trimmed to their longest ray (float32 xyz and membership). Per preserved
-# ray's vertex at the step limit: measured 65 and 72 B on the largest rounds of the
-# 25x zoom and the three-camera rig at STANDARD (bench/memory.py's ``rounds``: the
-# worker's peak less its interpreter and grid, over its share's preserved rays times
-# the step limit); per other vertex, the streamline's arrays. The parent holds a
-# share's pickled copy and its arrays while it merges it.
-WORKER_BYTES_PER_PRESERVED_VERTEX = 70
-WORKER_BYTES_PER_TRACED_VERTEX = 16
+# A share of rays in a worker (or of the trace in the main process), measured stage by
+# stage with ``tracemalloc`` on one share of the largest lattice round, replayed in a
+# fresh process (bench/worker_memory.py; docs/performance.md, "Peak memory"). The stages
+# come one after the other, so a share's peak is the largest of them, not their sum:
+# 1. each camera's preserved pixels' rays (``FieldTracer.preserved_rays``), one camera
+#    after the other: held as float32 xyz and membership on every step to the step limit
+#    (16 B a vertex), laid out and sampled ``BLOCK_VERTICES`` vertices at a time (the
+#    float64 temporaries of a block: 48 B a vertex for camera 1's pinhole rays, 130 for a
+#    later camera's, whose guides are looked up by arc length; on nested grids 225, the
+#    nested sampler's temporaries as the block is sampled), then trimmed to their length;
+# 2. the other rays (transitions) as streamlines to the longest ray's length: 52 B a
+#    vertex (the vertex buffer grown by doubling, 24; its trimmed and assembled copies,
+#    24; the membership, 4), and a block of them completed at a time (float64 copies and
+#    the sampler's temporaries: 46 B a vertex of the block, 130 on nested grids);
+# 3. the share merged and pickled for the trip back: 50 B a vertex of the longest ray.
+# Before, every preserved ray of the share was charged at once, to the step limit, at 70
+# B a vertex: the layout held them all in float64 (130 B a vertex of a later camera),
+# now it holds a block, so the share's preserved rays no longer set a worker's peak.
+WORKER_BLOCK_VERTICES = 1 << 18  # ``field.tracer.BLOCK_VERTICES`` (the same value, tested)
+HELD_BYTES_PER_VERTEX = 16
+PINHOLE_LAYOUT_BYTES_PER_VERTEX = 48
+CURVED_LAYOUT_BYTES_PER_VERTEX = 130
+NESTED_BLOCK_BYTES_PER_VERTEX = 225
+STREAMLINE_BYTES_PER_VERTEX = 52
+COMPLETION_BYTES_PER_VERTEX = 46
+NESTED_COMPLETION_BYTES_PER_VERTEX = 130
+RETURN_BYTES_PER_VERTEX = 50
 RECEIVE_BYTES_PER_VERTEX = 2 * RAY_BYTES_PER_VERTEX
 # The lattice traces in rounds (the base lattice, then the midpoints of the cells it
 # splits); the largest round holds about this fraction of every traced ray, and is
@@ -84,8 +104,10 @@ MIN_RAYS_PER_PROCESS = 256
 # and the stride and step limit ``estimate_memory`` reads off a rig are those of
 # ``traced.lattice_stride`` and ``traced.trace_field``: tests/unit/test_memory_guard.py).
 MAX_STRIDE = 16
-# IMAGE_BLEND's weights: float64 per camera and pixel while each camera is solved.
+# IMAGE_BLEND's weights: float64 per camera and pixel while each camera is solved; the
+# field keeps them eased, float32 (what AUTO holds while it measures the field).
 WEIGHT_BYTES_PER_CAMERA_PIXEL = 8
+BLEND_BYTES_PER_CAMERA_PIXEL = 4
 # Traced rays over the image's pixels, beyond the base lattice: the lattice splits
 # cells down to single pixels along every preserved region's edge (a band of about
 # this many pixels for each edge pixel), and refines elsewhere as the accuracy target
@@ -105,8 +127,13 @@ TRACED_WIDTH_EXPONENT = 0.6
 # calibration rows of bench/memory.py, the same width exponent).
 TRACED_FRACTION_UNIFORM = 0.19
 TRACED_ACCURACY_EXPONENT_UNIFORM = 2.4
-# The longest traced ray over the trace's step limit.
+# The longest traced ray over the trace's step limit: on one grid the limit allows two
+# of its diagonals and the longest ray crosses about 0.7 of one (measured 0.33 to 0.35
+# on the bench rows); on nested grids the limit adds every level's diagonals while a
+# ray crosses only part of each finer level (measured 0.23 to 0.28 on the four nested
+# rows of bench/memory.json: the longest ray of 39 to 147 vertices).
 VERTICES_OF_LIMIT = 0.35
+VERTICES_OF_LIMIT_NESTED = 0.25
 # A render, measured (bench/render_memory.py: the two-camera scene, IMAGE_BLEND, at
 # 480x270, 960x540 and 1920x1080, in-process and with two workers; the peak resident
 # size a render adds to Blender's process and each worker's). Per pixel in Blender's
@@ -181,6 +208,50 @@ def traced_workers(rays, workers):
     return n if n >= 2 else 0
 
 
+def share_memory(rays, max_vertices, vertices, preserved, nested=False, pickled=True):
+    """Bytes a share of ``rays`` traced rays holds at its peak, in a worker or in the
+    main process: the largest of its stages (see ``WORKER_BLOCK_VERTICES``): each
+    camera's preserved rays held to the step limit and laid out a block at a time, the
+    rest traced as streamlines, the whole share merged and pickled.
+
+    Parameters
+    ----------
+    rays : int. max_vertices : int, the step limit plus one (preserved rays' layout).
+    vertices : int, the longest ray's (what a share keeps of every ray).
+    preserved : sequence of float in [0, 1], each camera's share of the rays (its
+        mask's share of the image), in the rig's order. nested : bool, nested grids.
+    pickled : bool, a worker's share, merged and pickled for the trip back; False, the
+        trace in the main process: merged alone (its parts and the result, float32).
+
+    Returns
+    -------
+    dict str -> float: "preserved rays laid out", "streamlines", "share returned".
+    """
+    held = laid = 0.0
+    for i, fraction in enumerate(preserved):
+        count = float(fraction) * rays * max_vertices
+        if nested:
+            block = NESTED_BLOCK_BYTES_PER_VERTEX
+        else:
+            block = CURVED_LAYOUT_BYTES_PER_VERTEX if i else PINHOLE_LAYOUT_BYTES_PER_VERTEX
+        laid = max(
+            laid,
+            held + count * HELD_BYTES_PER_VERTEX + min(count, WORKER_BLOCK_VERTICES) * block,
+        )
+        held += float(fraction) * rays * vertices * HELD_BYTES_PER_VERTEX
+    rest = max(0.0, 1.0 - float(sum(preserved))) * rays * vertices
+    completion = NESTED_COMPLETION_BYTES_PER_VERTEX if nested else COMPLETION_BYTES_PER_VERTEX
+    return {
+        "preserved rays laid out": laid,
+        "streamlines": held
+        + rest * STREAMLINE_BYTES_PER_VERTEX
+        + min(rest, WORKER_BLOCK_VERTICES) * completion,
+        "share returned": rays
+        * vertices
+        * (RETURN_BYTES_PER_VERTEX if pickled else 2 * HELD_BYTES_PER_VERTEX),
+    }
+
+
 def build_memory(
     method,
     width,
@@ -192,21 +263,25 @@ def build_memory(
     max_vertices=0,
     workers=1,
     level_voxels=0,
-    preserved=1.0,
+    preserved=(0.0, 1.0),
 ):
     """Peak memory of building a field, from shapes.
 
     The main process's peak is that of its largest stage: the fill (eq. 4), the solve
-    (eq. 5), or the trace on the lattice (the kept grid, the lattice's arrays, the traced
-    rays twice, the error estimate's block, a share received from a worker); each
-    worker's, its interpreter, the grid it samples and its share of rays. On nested
+    (eq. 5), or the trace on the lattice (the kept grid and the lattice's arrays, with
+    the rays traced so far, the error estimate's block and a share received from a
+    worker while the rounds run, then the traced rays twice while they are merged); each
+    worker's, its interpreter, the grid it samples and its share of rays (the largest
+    of the share's stages, ``share_memory``). On nested
     grids (``level_voxels``) the levels are filled in the workers and solved one at a
     time: the fill is a worker's stage, the solve the largest level's.
 
     Parameters
     ----------
-    method : str, "IMAGE_BLEND", "LINEAR", "VECTOR_FIELD", "SCALAR_FIELD" or "AUTO"
-        (IMAGE_BLEND, then SCALAR_FIELD where its rays fold: the larger of the two).
+    method : str, "IMAGE_BLEND", "LINEAR", "VECTOR_FIELD", "SCALAR_FIELD" or "AUTO":
+        its first candidate, IMAGE_BLEND, built and measured as AUTO measures it (the
+        along-ray measure, the fold count's bands: ``measure_memory``); AUTO asks the
+        guard again before it goes on to SCALAR_FIELD (``Diagnostics.guard``).
     width, height : int, pixels. cameras : int.
     voxels : int, the grid's voxels (every nested level's). traced_rays : int, rays the
         lattice traces. vertices : int, vertices of the longest traced ray (what every
@@ -214,8 +289,10 @@ def build_memory(
         worker lays preserved rays out on); ``vertices`` when 0.
     workers : int, worker processes available (1: none).
     level_voxels : int, the largest nested level's voxels (0: one uniform grid).
-    preserved : float in [0, 1], the share of the traced rays that are preserved
-        pixels' (laid out to the step limit; the rest traced to ``vertices``).
+    preserved : sequence of float in [0, 1], each camera's share of the traced rays
+        (its preserved pixels': laid out to the step limit; the rest are traced to
+        ``vertices``), in the rig's order (``share_memory``). Default: every ray a later
+        camera's, the most a share holds.
 
     Returns
     -------
@@ -237,6 +314,11 @@ def build_memory(
     }
     if method in ("IMAGE_BLEND", "LINEAR"):
         return _estimate(image, {}, 0, shapes)
+    if method == "AUTO":  # its first candidate, IMAGE_BLEND, built then measured
+        along, fold, n = measure_memory(width, height, cameras, workers)
+        measured = {"blend weights": pixels * cameras * BLEND_BYTES_PER_CAMERA_PIXEL, **along}
+        main = max(image, measured, key=lambda parts: sum(parts.values()))
+        return _estimate(main, {"interpreter": WORKER_BASE_BYTES, **fold} if n else {}, n, shapes)
     grid_factor = 3 if method == "VECTOR_FIELD" else 1  # three channels of tangents
     max_vertices = max(int(max_vertices), int(vertices))
     rays = int(traced_rays)
@@ -244,29 +326,35 @@ def build_memory(
     n = traced_workers(rays, workers)
     largest = int(np.ceil(LARGEST_ROUND * rays))
     share = min(MAX_RAYS_PER_SHARE, -(-largest // n)) if n else largest
-    preserved = float(np.clip(preserved, 0.0, 1.0))
-    share_bytes = share * (
-        preserved * max_vertices * WORKER_BYTES_PER_PRESERVED_VERTEX
-        + (1.0 - preserved) * int(vertices) * WORKER_BYTES_PER_TRACED_VERTEX
+    preserved = [float(np.clip(f, 0.0, 1.0)) for f in preserved]
+    share_bytes = max(
+        share_memory(
+            share, max_vertices, int(vertices), preserved, bool(level_voxels), pickled=bool(n)
+        ).values()
     )
     level = int(level_voxels) or voxels
     per_voxel = (FILL_BYTES_PER_VOXEL + cameras * FILL_BYTES_PER_CAMERA_VOXEL) * grid_factor
     fill = {"grid fill": FILL_CHUNK_BYTES + level * per_voxel}
     fills_in_workers = bool(level_voxels) and workers > 1
+    held = {  # through the trace
+        "grid": voxels * KEPT_BYTES_PER_VOXEL * grid_factor,
+        "lattice": pixels * (LATTICE_BYTES_PER_PIXEL + cameras * CELL_TABLE_BYTES_PER_PIXEL),
+    }
     stages = [
-        image if method == "AUTO" else {},
         {} if fills_in_workers else fill,
         {"grid solve": level * SOLVE_BYTES_PER_CELL * grid_factor},
+        # the lattice's rounds: the rays traced so far (once, in parts), the error
+        # estimate's block, a share coming in; then, the rounds done, their merge
         {
-            "grid": voxels * KEPT_BYTES_PER_VOXEL * grid_factor,
-            "lattice": pixels * (LATTICE_BYTES_PER_PIXEL + cameras * CELL_TABLE_BYTES_PER_PIXEL),
-            "traced rays": kept * RAY_BYTES_PER_VERTEX * RAY_COPIES,
+            **held,
+            "traced rays": kept * RAY_BYTES_PER_VERTEX,
             "error estimate": min(largest * int(vertices), DEVIATION_BLOCK_VERTICES)
             * DEVIATION_BYTES_PER_VERTEX,
             "shares received" if n else "share of rays": (
                 share * int(vertices) * RECEIVE_BYTES_PER_VERTEX if n else share_bytes
             ),
         },
+        {**held, "traced rays": kept * RAY_BYTES_PER_VERTEX * RAY_COPIES},
     ]
     main = max(stages, key=lambda parts: sum(parts.values()))
     worker = {}
@@ -347,13 +435,13 @@ def edge_pixels(masks):
     return int(edge.sum()) * s
 
 
-def preserved_fraction(masks):
-    """float, the share of the image's pixels some camera preserves: of the traced
-    rays, those laid out to the step limit. masks : (N, H, W) bool. Counted on every
-    s-th row and column above ``EDGE_COUNT_PIXELS`` pixels, as ``edge_pixels``."""
+def preserved_fractions(masks):
+    """list of float, each camera's share of the image's pixels: of the traced rays,
+    those it lays out to the step limit. masks : (N, H, W) bool. Counted on every s-th
+    row and column above ``EDGE_COUNT_PIXELS`` pixels, as ``edge_pixels``."""
     masks = np.asarray(masks, dtype=bool)
     s = max(1, int(np.ceil(np.sqrt(masks[0].size / EDGE_COUNT_PIXELS))))
-    return float(masks[:, ::s, ::s].any(axis=0).mean())
+    return [float(m[::s, ::s].mean()) for m in masks]
 
 
 def traced_rays_of(width, height, stride, edges, accuracy_px, ratio=10.0, nested=True):
@@ -393,7 +481,10 @@ def estimate_memory(rig, method, settings, workers=1):
     """
     w, h = rig.size
     n = len(rig.cameras)
-    if method in ("IMAGE_BLEND", "LINEAR") or n < 2:
+    if method == "AUTO" and settings.steady:  # a shot's one method, built unmeasured
+        shot = getattr(settings.shot, "method", None)
+        method = "IMAGE_BLEND" if shot == "IMAGE_BLEND" else "SCALAR_FIELD"
+    if method in ("IMAGE_BLEND", "LINEAR", "AUTO") or n < 2:
         return build_memory(method, w, h, n, workers=workers)
     choice = choose_grid(rig, settings.accuracy_px, settings.max_voxels)
     grids = [choice.grid]
@@ -417,6 +508,7 @@ def estimate_memory(rig, method, settings, workers=1):
     ratio = widths[0] / max(min(widths), 1e-30)
     edges = edge_pixels(rig.masks)
     rays = traced_rays_of(w, h, stride, edges, settings.accuracy_px, ratio, len(grids) > 1)
+    of_limit = VERTICES_OF_LIMIT_NESTED if len(grids) > 1 else VERTICES_OF_LIMIT
     estimate = build_memory(
         method,
         w,
@@ -424,11 +516,11 @@ def estimate_memory(rig, method, settings, workers=1):
         n,
         voxels=voxels,
         traced_rays=rays,
-        vertices=int(np.ceil(VERTICES_OF_LIMIT * (steps + 1))),
+        vertices=int(np.ceil(of_limit * (steps + 1))),
         max_vertices=steps + 1,
         workers=workers,
         level_voxels=level,
-        preserved=preserved_fraction(rig.masks),
+        preserved=preserved_fractions(rig.masks),
     )
     estimate.shapes.update(stride=stride, step_limit=steps)
     return estimate

@@ -1,0 +1,76 @@
+"""Peak memory of measuring an IMAGE_BLEND field as AUTO measures its candidates: the
+along-ray measure of each camera's preserved pixels (``metrics.preserved_error``) in
+the main process, and the fold count's bands (``report.fold_map``), shared among worker
+processes when there are enough of them. Part of the memory guard's arithmetic
+(``memory``; docs/performance.md, "Peak memory").
+
+Measured with ``tracemalloc`` on the zoom and three-camera rigs at 1920x1080 (IMAGE_BLEND,
+STANDARD; ``bench/worker_memory.py ROW --measure``): the along-ray measure of 20,000 rays
+held 53 and 93 MB (2 and 3 cameras: 10 and 18 vertices a ray), about 260 bytes a
+vertex (each ray's curves in float64 and the measure's temporaries); a fold band of
+1,036,800 vertices 122 and 145 MB, 118 and 142 bytes a vertex: the band's rays, its
+vertex grid and ``quad_folds``' planes (about 70 bytes), and each camera's curve of
+every ray blended (float64, 24 bytes a camera).
+"""
+
+from .metrics import MAX_MEASURED
+from .report import FOLD_CHUNK_VERTICES, MIN_SHARED_BANDS
+
+ALONG_BYTES_PER_VERTEX = 260
+FOLD_BYTES_PER_VERTEX = 70
+FOLD_BYTES_PER_CAMERA_VERTEX = 24
+# What a fold worker is sent of the field: the weights (float32) and the rig's masks
+# (bool), per camera and pixel.
+FIELD_BYTES_PER_CAMERA_PIXEL = 4 + 1
+# ``geometry.DEFAULT_SEGMENTS``: IMAGE_BLEND's vertices per stage of a curve (the same
+# value, tests/unit/test_memory_guard.py).
+SEGMENTS = 8
+
+
+def blend_vertices(cameras):
+    """int, vertices of an IMAGE_BLEND ray: 1 + (N - 1) * segments + 1."""
+    return 1 + (int(cameras) - 1) * SEGMENTS + 1
+
+
+def fold_bands(width, height, vertices):
+    """(bands, rows): the fold count's bands of image rows for rays of ``vertices``
+    vertices, as ``report.fold_map`` cuts them (each band's last row is the next one's
+    first)."""
+    rows = max(2, FOLD_CHUNK_VERTICES // (int(width) * int(vertices)))
+    return len(range(0, max(int(height) - 1, 0), rows - 1)), rows
+
+
+def fold_workers(bands, workers):
+    """int, worker processes that share ``bands`` fold bands (0: counted in the main
+    process), as ``report.fold_map`` decides from ``workers`` available."""
+    n = min(int(workers), bands // MIN_SHARED_BANDS)
+    return n if n >= 2 else 0
+
+
+def measure_memory(width, height, cameras, workers=1):
+    """Peak memory of measuring an IMAGE_BLEND field of ``cameras`` cameras at
+    ``width`` x ``height`` pixels with ``workers`` worker processes available.
+
+    Returns
+    -------
+    main : dict str -> int, bytes the main process adds while it measures (beyond the
+        built field: its weights are the build's). worker : dict str -> int, one fold
+        worker's bytes beyond its interpreter (empty when the bands stay here).
+    workers : int, fold workers (0: none).
+    """
+    pixels = int(width) * int(height)
+    k = blend_vertices(cameras)
+    bands, rows = fold_bands(width, height, k)
+    band = (
+        min(rows, int(height))
+        * int(width)
+        * k
+        * (FOLD_BYTES_PER_VERTEX + int(cameras) * FOLD_BYTES_PER_CAMERA_VERTEX)
+    )
+    along = min(MAX_MEASURED, pixels) * k * ALONG_BYTES_PER_VERTEX
+    n = fold_workers(bands, workers)
+    if not n:  # the measure, then the bands, one after the other
+        return ({"along-ray measure": along} if along >= band else {"fold band": band}), {}, 0
+    main = {"along-ray measure": along}
+    field = pixels * int(cameras) * FIELD_BYTES_PER_CAMERA_PIXEL
+    return main, {"field": field, "fold band": band}, n
