@@ -58,10 +58,10 @@ def fold_map(fld, processes=1, should_stop=None):
         k = traced.vertices.shape[1]
     else:  # one ray says how many vertices each has
         k = fld.rays(np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64)).vertices.shape[1]
-    rows = max(2, FOLD_CHUNK_VERTICES // (len(xs) * k))
+    rows = fold_band_rows(w, k)
     out = np.zeros((max(len(ys) - 1, 0), max(len(xs) - 1, 0)), dtype=bool)
     starts = list(range(0, len(ys) - 1, rows - 1))
-    workers = min(worker_count(processes), len(starts) // MIN_SHARED_BANDS)
+    workers = fold_workers((w, h), k, processes)
     if workers < 2:
         shares = [_fold_bands(fld, xs, ys, rows, starts, None)]
         runs = [starts]
@@ -74,6 +74,20 @@ def fold_map(fld, processes=1, should_stop=None):
         for r0, band in zip(run, bands):
             out[r0 : r0 + len(band)] = band
     return out, 1
+
+
+def fold_band_rows(width, k):
+    """int, the image rows of one band of the fold count (``fold_map``) for an image
+    ``width`` pixels wide whose rays have ``k`` vertices."""
+    return max(2, FOLD_CHUNK_VERTICES // (width * k))
+
+
+def fold_workers(size, k, processes=1):
+    """int, the worker processes ``fold_map`` shares the count of an image of ``size``
+    (width, height) among, for rays of ``k`` vertices (below 2: none, it runs here)."""
+    w, h = size
+    bands = len(range(0, h - 1, fold_band_rows(w, k) - 1))
+    return min(worker_count(processes), bands // MIN_SHARED_BANDS)
 
 
 def _fold_bands(fld, xs, ys, rows, starts, context):
