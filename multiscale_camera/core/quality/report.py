@@ -2,10 +2,12 @@
 actually hands to the renderer."""
 
 import json
+from concurrent.futures import ThreadPoolExecutor
 from functools import partial
 
 import numpy as np
 
+from ..diagnostics import check_stop
 from ..runtime import runtime, worker_count
 from .folds import quad_folds
 from .metrics import ERODE_PX, bending_active, measured_pixels, preserved_error
@@ -23,6 +25,15 @@ FOLD_CHUNK_VERTICES = 1 << 20
 # Fewer bands than this per worker are counted in this process: a worker's start and
 # the field's trip through shared memory cost more than they save.
 MIN_SHARED_BANDS = 4
+# Runs of bands a worker is handed, about (each run goes to the next idle worker).
+SHARES_PER_WORKER = 4
+# A count kept in this process runs in threads, one a core (numpy lets go of the
+# interpreter in its array operations), on bands small enough for about this many a
+# thread.
+THREAD_BANDS = 4
+# Smaller images are counted in one thread (threads' start and their interleaving cost
+# more than they save).
+THREAD_MIN_PIXELS = 1 << 16
 
 
 def fold_map(fld, processes=1, should_stop=None):
@@ -30,11 +41,14 @@ def fold_map(fld, processes=1, should_stop=None):
 
     The image's rows go in bands of at most ``FOLD_CHUNK_VERTICES`` vertices (each
     band's last row is the next one's first); with more than ``MIN_SHARED_BANDS`` bands
-    they are shared among worker processes (``processes``: ``runtime.worker_count``'s
-    request: 0 one per core, 1 keeps them here), each taking a run of consecutive
-    bands; ``should_stop`` (callable () -> bool) cancels the shared count. The bands are
-    the same either way, so is the map (every quad is counted from its four rays
-    alone); a share whose worker is given up runs here.
+    a worker they are shared among worker processes (``processes``:
+    ``runtime.worker_count``'s request: 0 one per core, 1 keeps them here), each taking
+    runs of consecutive bands; fewer, they are counted in this process, in threads where
+    ``processes`` allows and the image has ``THREAD_MIN_PIXELS`` (smaller bands then,
+    about ``THREAD_BANDS`` a thread); ``should_stop`` (callable
+    () -> bool) cancels the shared count. The map is the same whatever the bands and
+    wherever they are counted (every quad is counted from its four rays alone); a share
+    whose worker is given up runs here.
 
     What cannot fold is not checked (``kept_limits``): where the field lays kept
     pixels' rays out as their camera's curve R_i exactly (``exact_kept``:
@@ -60,16 +74,25 @@ def fold_map(fld, processes=1, should_stop=None):
         k = fld.rays(np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64)).vertices.shape[1]
     rows = fold_band_rows(w, k)
     out = np.zeros((max(len(ys) - 1, 0), max(len(xs) - 1, 0)), dtype=bool)
-    starts = list(range(0, len(ys) - 1, rows - 1))
     workers = fold_workers((w, h), k, processes)
-    if workers < 2:
-        shares = [_fold_bands(fld, xs, ys, rows, starts, None)]
-        runs = [starts]
-    else:
-        # consecutive bands to each share: a share's rays lie together in the image
-        runs = [list(r) for r in np.array_split(np.asarray(starts), workers)]
+    threads = worker_count(processes) if workers < 2 and w * h >= THREAD_MIN_PIXELS else 1
+    if threads >= 2:  # smaller bands, so that the threads' shares come out even
+        rows = min(rows, max(2, (len(ys) - 1) // (threads * THREAD_BANDS) + 2))
+    starts = list(range(0, len(ys) - 1, rows - 1))
+    if workers >= 2:
+        # runs of consecutive bands (a run's rays lie together in the image), a few a
+        # worker, so that a worker given less of the machine takes fewer
+        runs = [list(r) for r in np.array_split(np.asarray(starts), workers * SHARES_PER_WORKER)]
         task = partial(_fold_bands, fld, xs, ys, rows)
         shares = runtime().map(task, runs, workers, should_stop).results
+    elif threads >= 2:
+        runs = [[r0] for r0 in starts]
+        stop = partial(check_stop, should_stop)
+        with ThreadPoolExecutor(threads, thread_name_prefix="fold count") as pool:
+            shares = list(pool.map(lambda r: _fold_bands(fld, xs, ys, rows, r, stop), runs))
+    else:
+        shares = [_fold_bands(fld, xs, ys, rows, starts, None)]
+        runs = [starts]
     for run, bands in zip(runs, shares):
         for r0, band in zip(run, bands):
             out[r0 : r0 + len(band)] = band
@@ -181,7 +204,23 @@ def measure(fld, processes=1, should_stop=None):
 
 def measure_map(fld, processes=1, should_stop=None):
     """``measure`` with the fold map itself: cameras (list of dict), folds ((Hy - 1,
-    Wx - 1) bool, ``fold_map``'s) and the map's stride (int)."""
+    Wx - 1) bool, ``fold_map``'s) and the map's stride (int). Where ``processes``
+    allows two or more, the preserved errors are measured in a thread while the fold
+    count runs (each reads the field alone)."""
+    if worker_count(processes) < 2:
+        cameras = measure_cameras(fld)
+        folds, stride = fold_map(fld, processes, should_stop)
+        return cameras, folds, stride
+    with ThreadPoolExecutor(1, thread_name_prefix="preserved error") as pool:
+        cameras = pool.submit(measure_cameras, fld)
+        folds, stride = fold_map(fld, processes, should_stop)
+        return cameras.result(), folds, stride
+
+
+def measure_cameras(fld):
+    """list of dict, the report's "cameras" entries of a prepared RayField: each
+    camera's preserved error along the whole ray (``metrics.preserved_error``), or
+    why it has none."""
     rig = fld.rig
     cameras = []
     for i, cam in enumerate(rig.cameras):
@@ -196,8 +235,7 @@ def measure_map(fld, processes=1, should_stop=None):
         if missed:
             entry["unmeasured"] = NEVER_CROSS.format(missed=missed, pixels=pres.pixels)
         cameras.append(entry)
-    folds, stride = fold_map(fld, processes, should_stop)
-    return cameras, folds, stride
+    return cameras
 
 
 def _quad_owners(masks, ys, xs):
