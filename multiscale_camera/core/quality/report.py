@@ -19,9 +19,13 @@ VERSION = 2
 
 
 # Ray vertices per chunk when counting folds: bounds memory (quad_folds holds about a
-# dozen float64 planes of one value per vertex: about 100 MB at this size, whatever K
-# is; the band's rays and their bending stretch as much again).
-FOLD_CHUNK_VERTICES = 1 << 20
+# dozen float64 planes of one value per vertex: about 50 MB at this size, whatever K
+# is; the band's rays and their bending stretch as much again). Half what it was: the
+# band's largest arrays (its curves, 3 x 12 MB on a three-camera rig) then stay under
+# the allocator's 32 MB threshold for mapping fresh pages, whose faults took 1.2 to 1.5
+# s of system time on the three-camera 6x rig at 1920x1080 (0.05 to 0.2 s now), for
+# 13.4 to 14.0 user s against 14.0 to 14.7 (bench: docs/performance.md, The fold count).
+FOLD_CHUNK_VERTICES = 1 << 19
 # Fewer bands than this per worker are counted in this process: a worker's start and
 # the field's trip through shared memory cost more than they save.
 MIN_SHARED_BANDS = 4
