@@ -7,6 +7,7 @@ from fixtures.masks import disk_masks
 from fixtures.rigs import demo_rig
 from multiscale_camera.core.errors import RigError
 from multiscale_camera.core.field import harmonic, mask_weights
+from multiscale_camera.core.runtime import runtime
 
 
 def dense_reference(masks):
@@ -86,3 +87,17 @@ def test_weights_started_from_the_coarse_solve_match_the_direct_solve():
     got = mask_weights(masks)
     assert got.converged
     np.testing.assert_allclose(got.x, ref, atol=1e-4)
+
+
+def test_weights_solved_in_workers_are_the_bits_solved_here(monkeypatch):
+    """The demo's three masks at 240x135 with the size threshold lowered: the two solves
+    run at once in worker processes, and the weights are those solved in this process,
+    bit for bit (the fold map and the rays depend on them)."""
+    _cams, masks = demo_rig(240, 135)
+    here = mask_weights(masks, processes=1)
+    monkeypatch.setattr(harmonic, "SHARED_MIN_PIXELS", 1)
+    with runtime().journal() as runs:
+        shared = mask_weights(masks, processes=2)
+    assert [run.where for run in runs] and all(pid > 0 for pid in runs[0].where)
+    assert shared.iterations == here.iterations
+    assert np.array_equal(shared.x.view(np.uint32), here.x.view(np.uint32))

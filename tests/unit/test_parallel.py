@@ -1,6 +1,7 @@
 """The trace shared among worker processes: the same rays as traced in one, and worker
 processes that import the core alone."""
 
+import threading
 from dataclasses import replace
 
 import numpy as np
@@ -127,7 +128,9 @@ def test_folds_counted_in_two_processes_equal_those_counted_in_one(monkeypatch):
     assert alone_runs == [] and stride == 1
     with runtime().journal() as runs:
         two, _ = fold_map(fld, processes=2)
-    assert runs and all(r.in_workers == len(r.where) == 2 for r in runs)
+    # 16 bands in runs of two, a few a worker: every run in a worker
+    shares = 2 * report_module.SHARES_PER_WORKER
+    assert runs and all(r.in_workers == len(r.where) == shares for r in runs)
     expected = brute_force_fold_map(fld)
     assert expected.any()  # the turned rig's IMAGE_BLEND folds: the maps say where
     np.testing.assert_array_equal(one, expected)
@@ -147,5 +150,28 @@ def test_build_report_keeps_the_fold_count_in_one_process_when_threads_say_one(m
     assert runs == []
     with runtime().journal() as runs:
         shared = build_report(fld, "STANDARD", processes=2)
-    assert runs and all(r.in_workers == 2 for r in runs)
+    assert runs and all(r.in_workers == 2 * report_module.SHARES_PER_WORKER for r in runs)
     assert alone["folds"] == shared["folds"] > 0
+
+
+def test_folds_counted_in_threads_equal_the_brute_force_count(monkeypatch):
+    """Too few bands for workers, an image above the threads' threshold: the count runs
+    in two threads of this process, on smaller bands, and the map is every quad's."""
+    cams, masks = turned_rig(64, 48)
+    fld = prepare(Rig(cams, masks), "IMAGE_BLEND", settings_for("STANDARD"))
+    monkeypatch.setattr(report_module, "THREAD_MIN_PIXELS", 64 * 48)
+    names = set()
+    count = report_module._fold_bands
+
+    def counting(*args):
+        names.add(threading.current_thread().name)
+        return count(*args)
+
+    monkeypatch.setattr(report_module, "_fold_bands", counting)
+    with runtime().journal() as runs:
+        two, _ = fold_map(fld, processes=2)
+    assert runs == []  # no worker process
+    assert len(names) == 2 and all(n.startswith("fold count") for n in names)
+    expected = brute_force_fold_map(fld)
+    assert expected.any()
+    np.testing.assert_array_equal(two, expected)

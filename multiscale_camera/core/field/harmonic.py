@@ -15,9 +15,12 @@ pixel in each direction, held on each pixel's COARSE x COARSE block: the full so
 then stops at the same relative residual, in fewer iterations (a start, not an answer).
 """
 
+from functools import partial
+
 import numpy as np
 
 from ..errors import RigError, SolverDidNotConverge
+from ..runtime import runtime, worker_count
 from .solvers import SolveResult, solve_membership
 
 # Relative residual of each solve: weights then err by ~1e-6, far below what moves a
@@ -29,18 +32,28 @@ TOLERANCE = 1e-6
 COARSE = 4
 COARSE_MIN_PX = 8 * COARSE
 COARSE_TOLERANCE = 1e-4
+# Images of at least this many pixels solve their weights in worker processes, one
+# solve each, when there are two or more solves and ``processes`` allows: a solve of
+# 1920x1080 takes about 1 s, a worker's start about 0.4 s (and the fold count that
+# follows finds the workers started).
+SHARED_MIN_PIXELS = 1 << 20
 
 
-def mask_weights(masks, tol=TOLERANCE, should_stop=None):
+def mask_weights(masks, tol=TOLERANCE, processes=1, should_stop=None):
     """Per-pixel camera weights: one-hot in the masks, harmonic in between.
 
     Parameters
     ----------
     masks : (N, H, W) bool array, at most one True per pixel, at least one True overall.
     tol : float, relative residual of each solve.
-    should_stop : callable () -> bool or None, asked before each solve, its coarse
+    processes : int, ``runtime.worker_count``'s request (0: one per core, 1: every solve
+        in this process). With two or more solves on an image of ``SHARED_MIN_PIXELS``
+        or more, they run at once in worker processes; each is the same function of the
+        same arrays as here, so the weights are the same bits either way (a solve whose
+        worker is given up runs here).
+    should_stop : callable () -> bool or None: here, asked before each solve, its coarse
         start and each of its iterations (``solve_membership``: at most about 0.5 s
-        apart at 1920x1080).
+        apart at 1920x1080); shared, it cancels the workers' solves.
 
     Returns
     -------
@@ -60,14 +73,16 @@ def mask_weights(masks, tol=TOLERANCE, should_stop=None):
     x = np.zeros((n, h, w), dtype=np.float64)
     slowest = SolveResult(None, True, 0, ())
     kept = [i for i in range(n) if masks[i].any()]
-    for i in kept[:-1]:
-        result = solve_membership(
-            masks[i][..., None].astype(np.float32),
-            owned[..., None],
-            tol=tol,
-            x0=coarse_start(masks[i], owned, should_stop),
-            should_stop=should_stop,
-        )
+    solves = kept[:-1]
+    workers = min(worker_count(processes), len(solves)) if h * w >= SHARED_MIN_PIXELS else 1
+    if workers < 2:
+        results = []
+        for i in solves:
+            results.append(_solve_weight(masks, owned, tol, i, should_stop=should_stop))
+    else:
+        task = partial(_solve_weight, masks, owned, tol)
+        results = runtime().map(task, solves, workers, should_stop).results
+    for i, result in zip(solves, results):
         if not result.converged:
             raise SolverDidNotConverge(
                 f"Mask weights did not converge: relative residual {result.residuals[-1]:.2e} "
@@ -81,6 +96,19 @@ def mask_weights(masks, tol=TOLERANCE, should_stop=None):
     x = np.clip(x, 0.0, 1.0)
     x /= np.maximum(x.sum(axis=0, keepdims=True), 1e-12)
     return SolveResult(x.astype(np.float32), True, slowest.iterations, slowest.residuals)
+
+
+def _solve_weight(masks, owned, tol, i, context=None, should_stop=None):
+    """The SolveResult of camera ``i``'s weight (``mask_weights``), here or in a worker
+    (``context``: the worker's beat, unused: one solve is one item; the pool cancels
+    it). ``should_stop``: the cancel check of a solve run here (``solve_membership``)."""
+    return solve_membership(
+        masks[i][..., None].astype(np.float32),
+        owned[..., None],
+        tol=tol,
+        x0=coarse_start(masks[i], owned, should_stop),
+        should_stop=should_stop,
+    )
 
 
 def coarse_start(mask, owned, should_stop=None):

@@ -106,35 +106,61 @@ def curved_rays(guides, segments=DEFAULT_SEGMENTS, which=None):
     (len(which), P, K, 3) float64 array, K = 1 + (N - 1) * segments + 1, world units.
     The last segment of R_i points along v_i (its length is the last stage's chord, or
     one world unit for a single camera) and is meant to be extended.
+
+    The curves are made as coordinate planes (len(which), 3, K, P), so that every
+    operation runs along the pixels, and laid out once at the end. Each value is the
+    same float64 operations on the same operands as ``bezier`` and ``start + v_i (chord
+    t)`` written per pixel (elementwise, whatever the layout; products and sums of two
+    operands commute bit for bit).
     """
     pts, dirs = guides.points, guides.directions
     n, p = pts.shape[:2]
     which = list(range(n)) if which is None else [int(i) for i in which]
     t = np.arange(1, segments + 1) / segments
-    rays = np.empty((len(which), p, 1 + (n - 1) * segments + 1, 3))
-    rays[:, :, 0] = pts[0]
+    k = 1 + (n - 1) * segments + 1
+    planes = np.empty((len(which), 3, k, p))
+    planes[:, :, 0] = pts[0].T
+    dir_planes = np.ascontiguousarray(dirs.transpose(0, 2, 1))[:, :, None]  # (N, 3, 1, P)
     for j in range(n - 1):
         chord = np.linalg.norm(pts[j + 1] - pts[j], axis=-1)
         sl = slice(1 + j * segments, 1 + (j + 1) * segments)
-        start = rays[:, :, j * segments]
         # the curves still bending follow guide B_j (they stand at p_j here): one
         # evaluation serves them all
         guide = None
         if max(which) > j:
-            guide = bezier(
+            guide = _bezier_planes(
                 pts[j],
                 pts[j] + dirs[j] * guides.handles_out[j][:, None],
                 pts[j + 1] - dirs[j + 1] * guides.handles_in[j][:, None],
                 pts[j + 1],
                 t,
             )
+        along = None
         for r, i in enumerate(which):
             if i > j:
-                rays[r, :, sl] = guide
-            else:
-                rays[r, :, sl] = start[r][:, None] + dirs[i][:, None] * (
-                    chord[:, None, None] * t[None, :, None]
-                )
+                planes[r, :, sl] = guide
+                continue
+            if along is None:
+                along = t[:, None] * chord[None, :]  # (segments, P): chord t
+            here = planes[r, :, sl]
+            np.multiply(dir_planes[i], along, out=here)
+            here += planes[r, :, j * segments][:, None]
     tail = np.linalg.norm(pts[-1] - pts[-2], axis=-1) if n > 1 else np.ones(p)
-    rays[:, :, -1] = rays[:, :, -2] + dirs[which] * tail[None, :, None]
+    planes[:, :, -1] = planes[:, :, -2] + dir_planes[which][:, :, 0] * tail
+    rays = np.empty((len(which), p, k, 3))
+    rays[...] = planes.transpose(0, 3, 2, 1)
     return rays
+
+
+def _bezier_planes(q0, q1, q2, q3, t):
+    """``bezier(q0, q1, q2, q3, t)`` as coordinate planes (3, K, P): the same products
+    and sums, in the same order, of the same operands."""
+    t = np.asarray(t, dtype=np.float64)[None, :, None]
+    s = 1.0 - t
+    weights = [(s**3), (3 * s * s * t), (3 * s * t * t), (t**3)]  # (1, K, 1), as bezier's
+    out = np.multiply(weights[0][0], q0.T[:, None])
+    term = np.empty_like(out)
+    for w, q in zip(weights[1:], (q1, q2, q3)):
+        np.multiply(w[0], q.T[:, None], out=term)
+        out += term
+    return out

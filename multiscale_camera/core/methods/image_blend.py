@@ -1,5 +1,6 @@
 """IMAGE_BLEND: each pixel's ray is its curves R_i blended by eased harmonic mask weights."""
 
+import threading
 import time
 from dataclasses import dataclass
 from typing import ClassVar
@@ -9,8 +10,9 @@ import numpy as np
 from ..diagnostics import diagnostics_of
 from ..field import mask_weights
 from ..geometry import DEFAULT_SEGMENTS, Guides, build_guides, curved_rays
-from ..quality import check_rig
-from .base import RayField, guard_warnings, record_seconds
+from ..quality import check_rig, fold_workers
+from ..runtime import runtime
+from .base import RayField, Settings, guard_warnings, record_seconds
 
 
 @dataclass
@@ -55,6 +57,32 @@ class CurveBlendField(RayField):
                 verts[mine] = curved_rays(_subset(g, mine), self.segments, [i])[0]
         m = np.arange(1, n + 1, dtype=np.float64) @ w
         return self._bundle(ix, iy, verts, np.repeat(m[:, None], verts.shape[1], axis=1))
+
+
+class _warming:
+    """A block during which the fold count's workers start (``quality.fold_workers``),
+    on the core the weight solve leaves idle, when that solve is one (a rig of two
+    cameras): the report's fold count then finds them started. Two or more solves
+    start them themselves (``harmonic.mask_weights``). Waits for them at the end."""
+
+    def __init__(self, rig, processes):
+        n = len(rig.cameras)
+        solves = int(np.asarray(rig.masks).reshape(n, -1).any(axis=1).sum()) - 1
+        k = 1 + (n - 1) * DEFAULT_SEGMENTS + 1
+        self.count = fold_workers(rig.size, k, processes) if solves < 2 else 0
+        self.thread = None
+
+    def __enter__(self):
+        if self.count >= 2:
+            self.thread = threading.Thread(
+                target=runtime().warm, args=(self.count,), name="fold workers", daemon=True
+            )
+            self.thread.start()
+        return self
+
+    def __exit__(self, *exc):
+        if self.thread is not None:
+            self.thread.join()
 
 
 def _subset(guides, rows):
@@ -114,8 +142,9 @@ def prepare_image_blend(rig, settings=None, diag=None, reuse=None):
     if kept is not None:
         weights, solver = kept
     else:
-        with run.stage("solve"):
-            solve = mask_weights(rig.masks, should_stop=run.should_stop)
+        processes = (settings or Settings()).processes
+        with run.stage("solve"), _warming(rig, processes):
+            solve = mask_weights(rig.masks, processes=processes, should_stop=run.should_stop)
         weights = eased(solve.x)
         solver = {
             "iterations": solve.iterations,

@@ -31,6 +31,7 @@ from .metrics import (
 from .report import (
     build_report,
     fold_map,
+    fold_workers,
     headline,
     kept_folds,
     measure,
@@ -76,6 +77,7 @@ __all__ = [
     "estimate_memory",
     "far_depth",
     "fold_map",
+    "fold_workers",
     "guard_message",
     "guard_messages",
     "guard_pairs",

@@ -2,6 +2,7 @@
 actually hands to the renderer."""
 
 import json
+from concurrent.futures import ThreadPoolExecutor
 from functools import partial
 
 import numpy as np
@@ -18,12 +19,25 @@ VERSION = 2
 
 
 # Ray vertices per chunk when counting folds: bounds memory (quad_folds holds about a
-# dozen float64 planes of one value per vertex: about 100 MB at this size, whatever K
-# is; the band's rays and their bending stretch as much again).
-FOLD_CHUNK_VERTICES = 1 << 20
+# dozen float64 planes of one value per vertex: about 50 MB at this size, whatever K
+# is; the band's rays and their bending stretch as much again). Half what it was: the
+# band's largest arrays (its curves, 3 x 12 MB on a three-camera rig) then stay under
+# the allocator's 32 MB threshold for mapping fresh pages, whose faults took 1.2 to 1.5
+# s of system time on the three-camera 6x rig at 1920x1080 (0.05 to 0.2 s now), for
+# 13.4 to 14.0 user s against 14.0 to 14.7 (bench: docs/performance.md, The fold count).
+FOLD_CHUNK_VERTICES = 1 << 19
 # Fewer bands than this per worker are counted in this process: a worker's start and
 # the field's trip through shared memory cost more than they save.
 MIN_SHARED_BANDS = 4
+# Runs of bands a worker is handed, about (each run goes to the next idle worker).
+SHARES_PER_WORKER = 4
+# A count kept in this process runs in threads, one a core (numpy lets go of the
+# interpreter in its array operations), on bands small enough for about this many a
+# thread.
+THREAD_BANDS = 4
+# Smaller images are counted in one thread (threads' start and their interleaving cost
+# more than they save).
+THREAD_MIN_PIXELS = 1 << 16
 
 
 def fold_map(fld, processes=1, should_stop=None):
@@ -31,12 +45,15 @@ def fold_map(fld, processes=1, should_stop=None):
 
     The image's rows go in bands of at most ``FOLD_CHUNK_VERTICES`` vertices (each
     band's last row is the next one's first); with more than ``MIN_SHARED_BANDS`` bands
-    they are shared among worker processes (``processes``: ``runtime.worker_count``'s
-    request: 0 one per core, 1 keeps them here), each taking a run of consecutive
-    bands; ``should_stop`` (callable () -> bool) cancels the count, here or shared,
-    asked before every band (at most about 0.4 s of work at 1920x1080). The bands are
-    the same either way, so is the map (every quad is counted from its four rays
-    alone); a share whose worker is given up runs here.
+    a worker they are shared among worker processes (``processes``:
+    ``runtime.worker_count``'s request: 0 one per core, 1 keeps them here), each taking
+    runs of consecutive bands; fewer, they are counted in this process, in threads where
+    ``processes`` allows and the image has ``THREAD_MIN_PIXELS`` (smaller bands then,
+    about ``THREAD_BANDS`` a thread). ``should_stop`` (callable () -> bool) cancels the
+    count, here or shared, asked before every band (at most about 0.4 s of work at
+    1920x1080). The map is the same whatever the bands and wherever they are counted
+    (every quad is counted from its four rays alone); a share whose worker is given up
+    runs here.
 
     What cannot fold is not checked (``kept_limits``): where the field lays kept
     pixels' rays out as their camera's curve R_i exactly (``exact_kept``:
@@ -64,22 +81,44 @@ def fold_map(fld, processes=1, should_stop=None):
         k = traced.vertices.shape[1]
     else:  # one ray says how many vertices each has
         k = fld.rays(np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64)).vertices.shape[1]
-    rows = max(2, FOLD_CHUNK_VERTICES // (len(xs) * k))
+    rows = fold_band_rows(w, k)
     out = np.zeros((max(len(ys) - 1, 0), max(len(xs) - 1, 0)), dtype=bool)
+    workers = fold_workers((w, h), k, processes)
+    threads = worker_count(processes) if workers < 2 and w * h >= THREAD_MIN_PIXELS else 1
+    if threads >= 2:  # smaller bands, so that the threads' shares come out even
+        rows = min(rows, max(2, (len(ys) - 1) // (threads * THREAD_BANDS) + 2))
     starts = list(range(0, len(ys) - 1, rows - 1))
-    workers = min(worker_count(processes), len(starts) // MIN_SHARED_BANDS)
-    if workers < 2:
-        shares = [_fold_bands(fld, xs, ys, rows, starts, should_stop)]
-        runs = [starts]
-    else:
-        # consecutive bands to each share: a share's rays lie together in the image
-        runs = [list(r) for r in np.array_split(np.asarray(starts), workers)]
+    if workers >= 2:
+        # runs of consecutive bands (a run's rays lie together in the image), a few a
+        # worker, so that a worker given less of the machine takes fewer
+        runs = [list(r) for r in np.array_split(np.asarray(starts), workers * SHARES_PER_WORKER)]
         task = partial(_fold_bands, fld, xs, ys, rows)
         shares = runtime().map(task, runs, workers, should_stop).results
+    elif threads >= 2:
+        runs = [[r0] for r0 in starts]
+        with ThreadPoolExecutor(threads, thread_name_prefix="fold count") as pool:
+            shares = list(pool.map(lambda r: _fold_bands(fld, xs, ys, rows, r, should_stop), runs))
+    else:
+        shares = [_fold_bands(fld, xs, ys, rows, starts, should_stop)]
+        runs = [starts]
     for run, bands in zip(runs, shares):
         for r0, band in zip(run, bands):
             out[r0 : r0 + len(band)] = band
     return out, 1
+
+
+def fold_band_rows(width, k):
+    """int, the image rows of one band of the fold count (``fold_map``) for an image
+    ``width`` pixels wide whose rays have ``k`` vertices."""
+    return max(2, FOLD_CHUNK_VERTICES // (width * k))
+
+
+def fold_workers(size, k, processes=1):
+    """int, the worker processes ``fold_map`` shares the count of an image of ``size``
+    (width, height) among, for rays of ``k`` vertices (below 2: none, it runs here)."""
+    w, h = size
+    bands = len(range(0, h - 1, fold_band_rows(w, k) - 1))
+    return min(worker_count(processes), bands // MIN_SHARED_BANDS)
 
 
 def _fold_bands(fld, xs, ys, rows, starts, context):
