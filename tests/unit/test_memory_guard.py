@@ -20,10 +20,12 @@ from multiscale_camera.core.field import tracer
 from multiscale_camera.core.geometry import DEFAULT_SEGMENTS, Rig
 from multiscale_camera.core.methods import prepare, registry, settings_for, traced
 from multiscale_camera.core.quality import (
+    MAX_MEASURED,
     budget_message,
     build_memory,
     estimate_memory,
     render_memory,
+    report,
     size_text,
 )
 from multiscale_camera.core.quality import measure_memory as mm
@@ -220,20 +222,45 @@ def test_auto_estimates_image_blend_built_then_measured_with_its_fold_bands():
     guard when AUTO goes on to it (``Diagnostics.guard``)."""
     assert mm.SEGMENTS == DEFAULT_SEGMENTS and mm.blend_vertices(3) == 18
     big = build_memory("AUTO", 1920, 1080, 2, workers=2)
-    rows = (1 << 20) // (1920 * 10)  # 54 rows of 10-vertex rays a band
+    rows = report.FOLD_CHUNK_VERTICES // (1920 * 10)  # rows of 10-vertex rays a band
     bands = len(range(0, 1079, rows - 1))
-    assert bands == 21 and big.workers == 2  # 21 // 4 would be 5 workers: 2 there are
+    assert bands >= 2 * report.MIN_SHARED_BANDS and big.workers == 2  # 2 there are
     assert big.worker == (
         mem.WORKER_BASE_BYTES + 1920 * 1080 * 2 * 5 + rows * 1920 * 10 * (70 + 2 * 24)
     )
     assert big.main == 1920 * 1080 * (2 * 8 + mem.SOLVE_BYTES_PER_CELL)  # the solve
     assert "traced rays" not in big.parts and big.shapes["traced_rays"] == 0
-    small = build_memory("AUTO", 480, 270, 3, workers=2)  # 3 bands: counted here
+    # a count too small for workers runs here in a thread a core, on smaller bands
+    small = build_memory("AUTO", 480, 270, 3, workers=2)
     assert small.workers == 0
-    band = (1 << 20) // (480 * 18) * 480 * 18 * (70 + 3 * 24)
+    rows = min(report.FOLD_CHUNK_VERTICES // (480 * 18), 269 // (2 * report.THREAD_BANDS) + 2)
+    bands_here = 2 * rows * 480 * 18 * (70 + 3 * 24)
+    along = min(MAX_MEASURED, 480 * 270) * 18 * 260  # the measure, then the bands
     assert small.main == max(
-        480 * 270 * (3 * 8 + mem.SOLVE_BYTES_PER_CELL), 480 * 270 * 3 * 4 + band
+        480 * 270 * (3 * 8 + mem.SOLVE_BYTES_PER_CELL),
+        480 * 270 * 3 * 4 + max(along, bands_here),
     )
+
+
+def test_weight_solves_in_workers_are_estimated_there():
+    """At 1920x1080 a three-camera rig's two weight solves run at once in two workers
+    (``harmonic.mask_weights``): each worker holds one solve and the masks, and the
+    build's process the weights alone; a worker's peak is the larger of its solve and
+    its fold band. This process then eases the weights (float64 temporaries)."""
+    pixels = 1920 * 1080
+    three = build_memory("IMAGE_BLEND", 1920, 1080, 3, workers=2)
+    solve = pixels * mem.SOLVE_BYTES_PER_CELL + pixels * 3
+    assert three.workers == 2 and three.worker == mem.WORKER_BASE_BYTES + solve
+    assert three.main == pixels * 3 * mem.EASE_BYTES_PER_CAMERA_PIXEL  # then eased here
+    alone = build_memory("IMAGE_BLEND", 1920, 1080, 3, workers=1)  # one process: here
+    assert alone.workers == 0 and alone.main == pixels * (3 * 8 + mem.SOLVE_BYTES_PER_CELL)
+    # one solve: the fold count's workers start meanwhile, on the idle core
+    two = build_memory("IMAGE_BLEND", 1920, 1080, 2, workers=2)
+    assert two.workers == 2 and two.worker == mem.WORKER_BASE_BYTES
+    auto = build_memory("AUTO", 1920, 1080, 3, workers=2)
+    rows = report.FOLD_CHUNK_VERTICES // (1920 * 18)
+    band = pixels * 3 * 5 + rows * 1920 * 18 * (70 + 3 * 24)
+    assert auto.workers == 2 and auto.worker == mem.WORKER_BASE_BYTES + max(solve, band)
 
 
 def test_auto_asks_the_guard_before_it_builds_scalar_field(monkeypatch):

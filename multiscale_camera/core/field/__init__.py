@@ -19,7 +19,7 @@ from .fill import (
     straight_claims,
 )
 from .grid import FieldSampler, Grid, sample
-from .harmonic import mask_weights
+from .harmonic import SHARED_MIN_PIXELS, mask_weights
 from .layout import (
     SNAP_CELLS,
     ShotLayout,
@@ -76,6 +76,7 @@ __all__ = [
     "RK4",
     "SNAP_CELLS",
     "STEP_CELLS",
+    "SHARED_MIN_PIXELS",
     "STEP_WIDTH_GAIN",
     "ShotLayout",
     "FieldSampler",

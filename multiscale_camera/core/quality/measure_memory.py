@@ -10,11 +10,13 @@ held 53 and 93 MB (2 and 3 cameras: 10 and 18 vertices a ray), about 260 bytes a
 vertex (each ray's curves in float64 and the measure's temporaries); a fold band of
 1,036,800 vertices 122 and 145 MB, 118 and 142 bytes a vertex: the band's rays, its
 vertex grid and ``quad_folds``' planes (about 70 bytes), and each camera's curve of
-every ray blended (float64, 24 bytes a camera).
+every ray blended (float64, 24 bytes a camera). Bands are cut as ``report.fold_map``
+cuts them (``report.fold_band_rows``; smaller, one a thread, where a count too small
+for workers runs in threads), so the bytes a vertex carry over to any band size.
 """
 
 from .metrics import MAX_MEASURED
-from .report import FOLD_CHUNK_VERTICES, MIN_SHARED_BANDS
+from .report import MIN_SHARED_BANDS, THREAD_BANDS, THREAD_MIN_PIXELS, fold_band_rows
 
 ALONG_BYTES_PER_VERTEX = 260
 FOLD_BYTES_PER_VERTEX = 70
@@ -36,7 +38,7 @@ def fold_bands(width, height, vertices):
     """(bands, rows): the fold count's bands of image rows for rays of ``vertices``
     vertices, as ``report.fold_map`` cuts them (each band's last row is the next one's
     first)."""
-    rows = max(2, FOLD_CHUNK_VERTICES // (int(width) * int(vertices)))
+    rows = fold_band_rows(int(width), int(vertices))
     return len(range(0, max(int(height) - 1, 0), rows - 1)), rows
 
 
@@ -61,6 +63,11 @@ def measure_memory(width, height, cameras, workers=1):
     pixels = int(width) * int(height)
     k = blend_vertices(cameras)
     bands, rows = fold_bands(width, height, k)
+    n = fold_workers(bands, workers)
+    # counted here, in a thread a core on smaller bands (``report.fold_map``)
+    threads = int(workers) if not n and int(workers) >= 2 and pixels >= THREAD_MIN_PIXELS else 1
+    if threads >= 2:
+        rows = min(rows, max(2, (int(height) - 1) // (threads * THREAD_BANDS) + 2))
     band = (
         min(rows, int(height))
         * int(width)
@@ -68,9 +75,9 @@ def measure_memory(width, height, cameras, workers=1):
         * (FOLD_BYTES_PER_VERTEX + int(cameras) * FOLD_BYTES_PER_CAMERA_VERTEX)
     )
     along = min(MAX_MEASURED, pixels) * k * ALONG_BYTES_PER_VERTEX
-    n = fold_workers(bands, workers)
-    if not n:  # the measure, then the bands, one after the other
-        return ({"along-ray measure": along} if along >= band else {"fold band": band}), {}, 0
+    if not n:  # the measure, then the bands (``threads`` at once), one after the other
+        bands_here = {"fold bands": threads * band} if threads >= 2 else {"fold band": band}
+        return ({"along-ray measure": along} if along >= threads * band else bands_here), {}, 0
     main = {"along-ray measure": along}
     field = pixels * int(cameras) * FIELD_BYTES_PER_CAMERA_PIXEL
     return main, {"field": field, "fold band": band}, n

@@ -18,6 +18,7 @@ import numpy as np
 from ..field import (
     CELLS_ACROSS_NEAR_PER_PX,
     MIN_CELLS_ACROSS_NEAR,
+    SHARED_MIN_PIXELS,
     choose_grid,
     choose_levels,
     near_plane_width,
@@ -54,9 +55,7 @@ LATTICE_BYTES_PER_PIXEL = 9
 CELL_TABLE_BYTES_PER_PIXEL = 8
 # Per vertex of a traced ray kept in the main process (float32 xyz and membership), held
 # twice while the lattice's parts are merged, once the rounds (and their error
-# estimates) are done: the rounds' peak and the merge's come one after the other. (They
-# were added up: the nested zoom rig at STANDARD's main process was estimated at 1.45
-# times its peak once the workers' layout no longer hid it, bench/memory.json.)
+# estimates) are done: the rounds' peak and the merge's come one after the other.
 RAY_BYTES_PER_VERTEX = 16
 RAY_COPIES = 2
 # The lattice's error estimate weighs ``methods.traced.DEVIATION_BLOCK_VERTICES``
@@ -79,9 +78,6 @@ DEVIATION_BYTES_PER_VERTEX = 110
 #    24; the membership, 4), and a block of them completed at a time (float64 copies and
 #    the sampler's temporaries: 46 B a vertex of the block, 130 on nested grids);
 # 3. the share merged and pickled for the trip back: 50 B a vertex of the longest ray.
-# Before, every preserved ray of the share was charged at once, to the step limit, at 70
-# B a vertex: the layout held them all in float64 (130 B a vertex of a later camera),
-# now it holds a block, so the share's preserved rays no longer set a worker's peak.
 WORKER_BLOCK_VERTICES = 1 << 18  # ``field.tracer.BLOCK_VERTICES`` (the same value, tested)
 HELD_BYTES_PER_VERTEX = 16
 PINHOLE_LAYOUT_BYTES_PER_VERTEX = 48
@@ -96,8 +92,7 @@ RECEIVE_BYTES_PER_VERTEX = 2 * RAY_BYTES_PER_VERTEX
 # splits); the largest round holds about this fraction of every traced ray, and is
 # what the workers share at once.
 LARGEST_ROUND = 0.45
-# ``field.tracer.MAX_RAYS_PER_SHARE`` and ``MIN_RAYS_PER_PROCESS`` (the same values,
-# tests/unit/test_memory_guard.py).
+# ``field.tracer.MAX_RAYS_PER_SHARE``, ``MIN_RAYS_PER_PROCESS`` (tests check the values)
 MAX_RAYS_PER_SHARE = 16384
 MIN_RAYS_PER_PROCESS = 256
 # ``methods.traced.MAX_STRIDE``, the lattice's widest stride in pixels (the same value,
@@ -107,6 +102,8 @@ MAX_STRIDE = 16
 # IMAGE_BLEND's weights: float64 per camera and pixel while each camera is solved; the
 # field keeps them eased, float32 (what AUTO holds while it measures the field).
 WEIGHT_BYTES_PER_CAMERA_PIXEL = 8
+# Easing the weights (float32, a float64 copy, temporaries): 38 B a camera-pixel measured.
+EASE_BYTES_PER_CAMERA_PIXEL = 36
 BLEND_BYTES_PER_CAMERA_PIXEL = 4
 # Traced rays over the image's pixels, beyond the base lattice: the lattice splits
 # cells down to single pixels along every preserved region's edge (a band of about
@@ -199,6 +196,24 @@ def _estimate(main_parts, worker_parts, workers, shapes):
         parts.update({f"workers: {k}": v * workers for k, v in worker_parts.items()})
     parts = dict(sorted(((k, int(v)) for k, v in parts.items() if v), key=lambda kv: -kv[1]))
     return MemoryEstimate(main, worker, workers if worker else 0, parts, dict(shapes))
+
+
+def image_solves(pixels, cameras, workers):
+    """(main parts, a worker's parts, workers) of the weight solves (``harmonic.
+    mask_weights``, one a camera but the last): two or more on ``SHARED_MIN_PIXELS`` run
+    at once in workers, each holding one and the masks; else here, one at a time. The
+    main process then eases the weights (``image_blend.eased``), the larger if so."""
+    weights = {"mask weights": pixels * cameras * WEIGHT_BYTES_PER_CAMERA_PIXEL}
+    solve = {"image solve": pixels * SOLVE_BYTES_PER_CELL}
+    easing = {"weights eased": pixels * cameras * EASE_BYTES_PER_CAMERA_PIXEL}
+    n = min(int(workers), int(cameras) - 1)
+    if pixels < SHARED_MIN_PIXELS or n < 2:
+        return max({**weights, **solve}, easing, key=_total), {}, 0
+    return max(weights, easing, key=_total), {**solve, "masks": pixels * int(cameras)}, n
+
+
+def _total(parts):
+    return sum(parts.values())
 
 
 def traced_workers(rays, workers):
@@ -308,17 +323,17 @@ def build_memory(
         traced_rays=int(traced_rays),
         vertices=int(vertices),
     )
-    image = {
-        "mask weights": pixels * cameras * WEIGHT_BYTES_PER_CAMERA_PIXEL,
-        "image solve": pixels * SOLVE_BYTES_PER_CELL,
-    }
-    if method in ("IMAGE_BLEND", "LINEAR"):
-        return _estimate(image, {}, 0, shapes)
+    image, solving, n_solve = image_solves(pixels, cameras, workers)
+    along, fold, n_fold = measure_memory(width, height, cameras, workers)
+    if method in ("IMAGE_BLEND", "LINEAR"):  # with one solve, the fold workers start
+        n = n_solve or (n_fold if method == "IMAGE_BLEND" else 0)
+        return _estimate(image, {"interpreter": WORKER_BASE_BYTES, **solving}, n, shapes)
     if method == "AUTO":  # its first candidate, IMAGE_BLEND, built then measured
-        along, fold, n = measure_memory(width, height, cameras, workers)
         measured = {"blend weights": pixels * cameras * BLEND_BYTES_PER_CAMERA_PIXEL, **along}
-        main = max(image, measured, key=lambda parts: sum(parts.values()))
-        return _estimate(main, {"interpreter": WORKER_BASE_BYTES, **fold} if n else {}, n, shapes)
+        main = max(image, measured, key=_total)
+        worker = max(solving, fold if n_fold else {}, key=_total)  # solves, then counts folds
+        n = max(n_fold, n_solve)
+        return _estimate(main, {"interpreter": WORKER_BASE_BYTES, **worker} if n else {}, n, shapes)
     grid_factor = 3 if method == "VECTOR_FIELD" else 1  # three channels of tangents
     max_vertices = max(int(max_vertices), int(vertices))
     rays = int(traced_rays)
