@@ -186,6 +186,9 @@ class FieldService:
         # (request, method) -> None, raising to refuse AUTO's further candidates: the
         # memory guard's (render/memory.py sets it), asked through ``Diagnostics.guard``
         self.candidate_guard: Callable | None = None
+        # request key -> (bytes, where from): the budget the memory guard last found
+        # for a request, for AUTO's further candidates (render/memory.py), a few kept
+        self.budgets: dict = {}
 
     # --- requests ------------------------------------------------------------------
 

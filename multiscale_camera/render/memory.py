@@ -37,10 +37,9 @@ GUARD_OFF = (
 )
 _SAID_OFF = []  # one entry once GUARD_OFF has been said in this session
 
-# The budget each request was last guarded against (its key -> (bytes, where from)),
-# read on the main thread for the candidates AUTO builds after its first, in whichever
-# thread builds them (``guard_candidate``); the last few requests only.
-_BUDGETS = {}
+# The budgets kept for AUTO's further candidates (``SERVICE.budgets``: the budget each
+# request was last guarded against, read by ``guard_candidate`` in whichever thread
+# builds them): the last this many requests.
 MAX_BUDGETS_KEPT = 8
 
 
@@ -173,9 +172,11 @@ def guard_memory(scene, request, render=False):
             return None
         _SAID_OFF.append(True)
         return GUARD_OFF
-    _BUDGETS[request.key] = (budget, where)  # for AUTO's further candidates
-    while len(_BUDGETS) > MAX_BUDGETS_KEPT:
-        _BUDGETS.pop(next(iter(_BUDGETS)))
+    budgets = SERVICE.budgets  # for AUTO's further candidates
+    budgets.pop(request.key, None)  # the newest last
+    budgets[request.key] = (budget, where)
+    while len(budgets) > MAX_BUDGETS_KEPT:
+        budgets.pop(next(iter(budgets)))
     workers = worker_count(request.settings.processes)
     fld = SERVICE.cached(request)
     if fld is None:
@@ -208,7 +209,7 @@ def guard_candidate(request, method):
     ------
     MemoryBudgetError with the estimate, the budget and what to lower.
     """
-    budget = _BUDGETS.get(request.key)
+    budget = SERVICE.budgets.get(request.key)
     if budget is None:
         return
     workers = worker_count(request.settings.processes)
