@@ -12,17 +12,17 @@ here; a second for Cycles, whose sync comes first) xdotool presses Escape over t
 window. A stage too short for that (``HELD``: the measure along the rays, the ray
 simplification) has Escape pressed as it starts, and its work waits (at most
 ``HOLD_SECONDS``) until the render job's ``test_break`` says the key arrived, so that
-the stage's own cancel check is what hears it. Logged per step: ``key_to_end``, the time from the key to the end of
-the render job (``bpy.app.is_job_running('RENDER')``), and ``heard_to_end``, from the
-first time the engine's cancel check said stop (``heard``: the render job's
-``test_break``, asked at least every 0.1 s; during Cycles' own render, which asks it
-from C, a thread asks it every 10 ms from the key on) to that end. The second is what
-the extension controls and is bounded at 2 s; the first adds the key's way in (xdotool,
-the X server, Blender's event loop), which took up to 1.5 s at load average 13 on 2
-cores while the engine was asking every 0.1 s (the threads' stacks half a second after
-an unheard key are logged). A render whose engine never hears the key fails the step,
-as does one that hears it outside the stage (``heard_in``: the stages open when it
-first did).
+the stage's own cancel check is what hears it. Logged per step: ``key_to_end``, the time
+from the key to the end of the render job (``bpy.app.is_job_running('RENDER')``), and
+``heard_to_end``, from the first time the engine's cancel check said stop (``heard``:
+the render job's ``test_break``, asked at least every 0.1 s; during Cycles' own render,
+which asks it from C, a thread asks it every 10 ms from the key on) to that end. The
+second is what the extension controls and is bounded at 2 s; the first adds the key's
+way in (xdotool, the X server, Blender's event loop), which took up to 1.5 s at load
+average 13 on 2 cores while the engine was asking every 0.1 s (the threads' stacks half
+a second after an unheard key are logged). A render whose engine never hears the key
+fails the step, as does one that hears it outside the stage (``heard_in``: the stages
+open when it first did).
 
 Started by ``make e2e-real`` (tools/e2e_real/run.sh) in a real Blender window with the
 demo scene open, ``E2E_LOG`` naming the log file.
