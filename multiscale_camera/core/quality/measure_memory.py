@@ -11,12 +11,12 @@ vertex (each ray's curves in float64 and the measure's temporaries); a fold band
 1,036,800 vertices 122 and 145 MB, 118 and 142 bytes a vertex: the band's rays, its
 vertex grid and ``quad_folds``' planes (about 70 bytes), and each camera's curve of
 every ray blended (float64, 24 bytes a camera). Bands are cut as ``report.fold_map``
-cuts them (``report.fold_band_rows``; smaller, one a thread, where a count too small
+cuts them (``report.fold_plan``; smaller, one a thread, where a count too small
 for workers runs in threads), so the bytes a vertex carry over to any band size.
 """
 
 from .metrics import MAX_MEASURED
-from .report import MIN_SHARED_BANDS, THREAD_BANDS, THREAD_MIN_PIXELS, fold_band_rows
+from .report import fold_plan
 
 ALONG_BYTES_PER_VERTEX = 260
 FOLD_BYTES_PER_VERTEX = 70
@@ -34,21 +34,6 @@ def blend_vertices(cameras):
     return 1 + (int(cameras) - 1) * SEGMENTS + 1
 
 
-def fold_bands(width, height, vertices):
-    """(bands, rows): the fold count's bands of image rows for rays of ``vertices``
-    vertices, as ``report.fold_map`` cuts them (each band's last row is the next one's
-    first)."""
-    rows = fold_band_rows(int(width), int(vertices))
-    return len(range(0, max(int(height) - 1, 0), rows - 1)), rows
-
-
-def fold_workers(bands, workers):
-    """int, worker processes that share ``bands`` fold bands (0: counted in the main
-    process), as ``report.fold_map`` decides from ``workers`` available."""
-    n = min(int(workers), bands // MIN_SHARED_BANDS)
-    return n if n >= 2 else 0
-
-
 def measure_memory(width, height, cameras, workers=1):
     """Peak memory of measuring an IMAGE_BLEND field of ``cameras`` cameras at
     ``width`` x ``height`` pixels with ``workers`` worker processes available.
@@ -62,12 +47,7 @@ def measure_memory(width, height, cameras, workers=1):
     """
     pixels = int(width) * int(height)
     k = blend_vertices(cameras)
-    bands, rows = fold_bands(width, height, k)
-    n = fold_workers(bands, workers)
-    # counted here, in a thread a core on smaller bands (``report.fold_map``)
-    threads = int(workers) if not n and int(workers) >= 2 and pixels >= THREAD_MIN_PIXELS else 1
-    if threads >= 2:
-        rows = min(rows, max(2, (int(height) - 1) // (threads * THREAD_BANDS) + 2))
+    n, threads, rows = fold_plan(width, height, k, workers)  # as ``report.fold_map``
     band = (
         min(rows, int(height))
         * int(width)

@@ -81,12 +81,8 @@ def fold_map(fld, processes=1, should_stop=None):
         k = traced.vertices.shape[1]
     else:  # one ray says how many vertices each has
         k = fld.rays(np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64)).vertices.shape[1]
-    rows = fold_band_rows(w, k)
+    workers, threads, rows = fold_plan(w, h, k, worker_count(processes))
     out = np.zeros((max(len(ys) - 1, 0), max(len(xs) - 1, 0)), dtype=bool)
-    workers = fold_workers((w, h), k, processes)
-    threads = worker_count(processes) if workers < 2 and w * h >= THREAD_MIN_PIXELS else 1
-    if threads >= 2:  # smaller bands, so that the threads' shares come out even
-        rows = min(rows, max(2, (len(ys) - 1) // (threads * THREAD_BANDS) + 2))
     starts = list(range(0, len(ys) - 1, rows - 1))
     if workers >= 2:
         # runs of consecutive bands (a run's rays lie together in the image), a few a
@@ -107,18 +103,29 @@ def fold_map(fld, processes=1, should_stop=None):
     return out, 1
 
 
-def fold_band_rows(width, k):
-    """int, the image rows of one band of the fold count (``fold_map``) for an image
-    ``width`` pixels wide whose rays have ``k`` vertices."""
-    return max(2, FOLD_CHUNK_VERTICES // (width * k))
+def fold_plan(width, height, k, available):
+    """How ``fold_map`` counts an image ``width`` x ``height`` whose rays have ``k``
+    vertices with ``available`` (int) processes: (workers, threads, rows), the worker
+    processes sharing the bands (0: none, they are counted here), the threads counting
+    them here (1: none) and the image rows of a band. Bands hold at most
+    ``FOLD_CHUNK_VERTICES`` vertices; workers take them when each gets
+    ``MIN_SHARED_BANDS``; else an image of ``THREAD_MIN_PIXELS`` is counted in a thread a
+    process, on bands small enough for about ``THREAD_BANDS`` a thread."""
+    rows = max(2, FOLD_CHUNK_VERTICES // (int(width) * int(k)))
+    bands = len(range(0, int(height) - 1, rows - 1))
+    workers = min(int(available), bands // MIN_SHARED_BANDS)
+    if workers >= 2:
+        return workers, 1, rows
+    if int(available) < 2 or int(width) * int(height) < THREAD_MIN_PIXELS:
+        return 0, 1, rows
+    threads = int(available)  # smaller bands, so that the threads' shares come out even
+    return 0, threads, min(rows, max(2, (int(height) - 1) // (threads * THREAD_BANDS) + 2))
 
 
 def fold_workers(size, k, processes=1):
     """int, the worker processes ``fold_map`` shares the count of an image of ``size``
-    (width, height) among, for rays of ``k`` vertices (below 2: none, it runs here)."""
-    w, h = size
-    bands = len(range(0, h - 1, fold_band_rows(w, k) - 1))
-    return min(worker_count(processes), bands // MIN_SHARED_BANDS)
+    (width, height) among, for rays of ``k`` vertices (0: none, it runs here)."""
+    return fold_plan(*size, k, worker_count(processes))[0]
 
 
 def _fold_bands(fld, xs, ys, rows, starts, context):
