@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from fixtures.rigs import three_camera_rig, turned_rig
+from multiscale_camera.core.errors import Cancelled
 from multiscale_camera.core.field import tracer as field_module
 from multiscale_camera.core.geometry import Rig
 from multiscale_camera.core.methods import prepare, settings_for
@@ -123,6 +124,7 @@ def test_folds_counted_in_two_processes_equal_those_counted_in_one(monkeypatch):
     fld = prepare(Rig(cams, masks), "IMAGE_BLEND", settings_for("STANDARD"))
     # bands of 4 lattice rows: 16 of them at 64x48, shared between two workers
     monkeypatch.setattr(report_module, "FOLD_CHUNK_VERTICES", 64 * vertices_per_ray(fld) * 4)
+    monkeypatch.setattr(report_module, "SHARED_MIN_PIXELS", 64 * 48)
     with runtime().journal() as alone_runs:
         one, stride = fold_map(fld, processes=1)
     assert alone_runs == [] and stride == 1
@@ -145,6 +147,7 @@ def test_build_report_keeps_the_fold_count_in_one_process_when_threads_say_one(m
     cams, masks = turned_rig(64, 48)
     fld = prepare(Rig(cams, masks), "IMAGE_BLEND", settings_for("STANDARD"))
     monkeypatch.setattr(report_module, "FOLD_CHUNK_VERTICES", 64 * vertices_per_ray(fld) * 4)
+    monkeypatch.setattr(report_module, "SHARED_MIN_PIXELS", 64 * 48)
     with runtime().journal() as runs:
         alone = build_report(fld, "STANDARD", processes=1)
     assert runs == []
@@ -154,24 +157,65 @@ def test_build_report_keeps_the_fold_count_in_one_process_when_threads_say_one(m
     assert alone["folds"] == shared["folds"] > 0
 
 
-def test_folds_counted_in_threads_equal_the_brute_force_count(monkeypatch):
-    """Too few bands for workers, an image above the threads' threshold: the count runs
-    in two threads of this process, on smaller bands, and the map is every quad's."""
+def test_folds_of_an_image_with_few_bands_are_shared_on_smaller_bands(monkeypatch):
+    """Too few full bands for two workers (a 480x270 image has 5): the count was kept
+    in two threads of this process, which gained nothing (its many small array
+    operations hold the interpreter between them). The bands are cut smaller and the
+    workers share them; the map is every quad's."""
     cams, masks = turned_rig(64, 48)
     fld = prepare(Rig(cams, masks), "IMAGE_BLEND", settings_for("STANDARD"))
-    monkeypatch.setattr(report_module, "THREAD_MIN_PIXELS", 64 * 48)
-    names = set()
-    count = report_module._fold_bands
-
-    def counting(*args):
-        names.add(threading.current_thread().name)
-        return count(*args)
-
-    monkeypatch.setattr(report_module, "_fold_bands", counting)
+    k = vertices_per_ray(fld)
+    monkeypatch.setattr(report_module, "FOLD_CHUNK_VERTICES", 64 * k * 16)  # 4 full bands
+    monkeypatch.setattr(report_module, "SHARED_MIN_PIXELS", 64 * 48)
+    workers, rows = report_module.fold_plan(64, 48, k, 2)
+    assert workers == 2 and rows == 47 // (2 * report_module.SMALL_BANDS) + 2 == 7
     with runtime().journal() as runs:
         two, _ = fold_map(fld, processes=2)
-    assert runs == []  # no worker process
-    assert len(names) == 2 and all(n.startswith("fold count") for n in names)
+    assert len(runs) == 1 and runs[0].in_workers == len(runs[0].where) == 8
+    assert not [t for t in threading.enumerate() if t.name == "fold count"]  # it ended
     expected = brute_force_fold_map(fld)
     assert expected.any()
     np.testing.assert_array_equal(two, expected)
+
+
+def test_the_measure_runs_while_workers_count_the_folds(monkeypatch):
+    """``measure_map`` begins the shared fold count before it measures the preserved
+    rays, so that the workers count while this process measures: the count's workers
+    are handed their bands before the measure ends, and both results are those of the
+    measure and the count made one after the other."""
+    cams, masks = turned_rig(64, 48)
+    fld = prepare(Rig(cams, masks), "IMAGE_BLEND", settings_for("STANDARD"))
+    monkeypatch.setattr(report_module, "SHARED_MIN_PIXELS", 64 * 48)
+    alone_cameras = report_module.measure_cameras(fld)
+    alone_folds, _ = fold_map(fld, processes=1)
+    seen = []
+    measure = report_module.measure_cameras
+
+    def measuring(*args):
+        seen.append([t.name for t in threading.enumerate() if t.name == "fold count"])
+        return measure(*args)
+
+    monkeypatch.setattr(report_module, "measure_cameras", measuring)
+    with runtime().journal() as runs:
+        cameras, folds, _ = report_module.measure_map(fld, processes=2)
+    assert seen == [["fold count"]]  # the count was under way while it measured
+    assert len(runs) == 1 and runs[0].in_workers == len(runs[0].where)
+    assert cameras == alone_cameras
+    np.testing.assert_array_equal(folds, alone_folds)
+
+
+def test_a_cancelled_measure_stops_the_shared_fold_count(monkeypatch):
+    """Esc during the measure: the fold count its workers had begun stops too (its run
+    cancelled, its thread ended), and ``Cancelled`` reaches the caller."""
+    cams, masks = turned_rig(192, 108)  # bands of tens of milliseconds each
+    fld = prepare(Rig(cams, masks), "IMAGE_BLEND", settings_for("STANDARD"))
+    monkeypatch.setattr(report_module, "SHARED_MIN_PIXELS", 192 * 108)
+
+    def cancelled(*args):
+        raise Cancelled()
+
+    monkeypatch.setattr(report_module, "measure_cameras", cancelled)
+    with runtime().journal() as runs, pytest.raises(Cancelled):
+        report_module.measure_map(fld, processes=2)
+    assert len(runs) == 1 and runs[0].cancelled
+    assert not [t for t in threading.enumerate() if t.name == "fold count"]

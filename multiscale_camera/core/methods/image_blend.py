@@ -1,6 +1,5 @@
 """IMAGE_BLEND: each pixel's ray is its curves R_i blended by eased harmonic mask weights."""
 
-import threading
 import time
 from dataclasses import dataclass
 from typing import ClassVar
@@ -8,7 +7,7 @@ from typing import ClassVar
 import numpy as np
 
 from ..diagnostics import diagnostics_of
-from ..field import mask_weights
+from ..field import SHARED_MIN_PIXELS, mask_weights
 from ..geometry import DEFAULT_SEGMENTS, Guides, build_guides, curved_rays
 from ..quality import check_rig, fold_workers
 from ..runtime import runtime
@@ -55,34 +54,34 @@ class CurveBlendField(RayField):
             mine = np.flatnonzero(one & (owner == i))
             if len(mine):
                 verts[mine] = curved_rays(_subset(g, mine), self.segments, [i])[0]
-        m = np.arange(1, n + 1, dtype=np.float64) @ w
+        # einsum's own loop: a matrix product would wake BLAS's threads, which spin on
+        # the cores the fold count's threads and workers need
+        m = np.einsum("n,np->p", np.arange(1, n + 1, dtype=np.float64), w)
         return self._bundle(ix, iy, verts, np.repeat(m[:, None], verts.shape[1], axis=1))
 
 
 class _warming:
-    """A block during which the fold count's workers start (``quality.fold_workers``),
-    on the core the weight solve leaves idle, when that solve is one (a rig of two
-    cameras): the report's fold count then finds them started. Two or more solves
-    start them themselves (``harmonic.mask_weights``). Waits for them at the end."""
+    """A block at whose start the fold count's workers start (``quality.fold_workers``),
+    on the core the weight solve leaves idle, when that solve runs in this process (one
+    solve, a rig of two cameras, or an image below ``SHARED_MIN_PIXELS``): the report's
+    fold count then finds them started, or starting (it hands them their bands as they
+    come ready). Two or more solves in workers start them themselves
+    (``harmonic.mask_weights``)."""
 
     def __init__(self, rig, processes):
         n = len(rig.cameras)
         solves = int(np.asarray(rig.masks).reshape(n, -1).any(axis=1).sum()) - 1
         k = 1 + (n - 1) * DEFAULT_SEGMENTS + 1
-        self.count = fold_workers(rig.size, k, processes) if solves < 2 else 0
-        self.thread = None
+        here = solves < 2 or rig.size[0] * rig.size[1] < SHARED_MIN_PIXELS
+        self.count = fold_workers(rig.size, k, processes) if here else 0
 
     def __enter__(self):
-        if self.count >= 2:
-            self.thread = threading.Thread(
-                target=runtime().warm, args=(self.count,), name="fold workers", daemon=True
-            )
-            self.thread.start()
+        if self.count >= 2:  # started, not waited for: their start overlaps the solve
+            runtime().warm(self.count, wait=False)
         return self
 
     def __exit__(self, *exc):
-        if self.thread is not None:
-            self.thread.join()
+        return False
 
 
 def _subset(guides, rows):

@@ -11,8 +11,9 @@ vertex (each ray's curves in float64 and the measure's temporaries); a fold band
 1,036,800 vertices 122 and 145 MB, 118 and 142 bytes a vertex: the band's rays, its
 vertex grid and ``quad_folds``' planes (about 70 bytes), and each camera's curve of
 every ray blended (float64, 24 bytes a camera). Bands are cut as ``report.fold_map``
-cuts them (``report.fold_plan``; smaller, one a thread, where a count too small
-for workers runs in threads), so the bytes a vertex carry over to any band size.
+cuts them (``report.fold_plan``; smaller where an image has too few full bands for
+its workers), so the bytes a vertex carry over to any band size. Shared, the count runs
+while the main process measures (``report.measure_map``): the two add up.
 """
 
 from .metrics import MAX_MEASURED
@@ -47,7 +48,7 @@ def measure_memory(width, height, cameras, workers=1):
     """
     pixels = int(width) * int(height)
     k = blend_vertices(cameras)
-    n, threads, rows = fold_plan(width, height, k, workers)  # as ``report.fold_map``
+    n, rows = fold_plan(width, height, k, workers)  # as ``report.fold_map``
     band = (
         min(rows, int(height))
         * int(width)
@@ -55,9 +56,8 @@ def measure_memory(width, height, cameras, workers=1):
         * (FOLD_BYTES_PER_VERTEX + int(cameras) * FOLD_BYTES_PER_CAMERA_VERTEX)
     )
     along = min(MAX_MEASURED, pixels) * k * ALONG_BYTES_PER_VERTEX
-    if not n:  # the measure, then the bands (``threads`` at once), one after the other
-        bands_here = {"fold bands": threads * band} if threads >= 2 else {"fold band": band}
-        return ({"along-ray measure": along} if along >= threads * band else bands_here), {}, 0
+    if not n:  # the measure, then the bands, one after the other
+        return ({"along-ray measure": along} if along >= band else {"fold band": band}), {}, 0
     main = {"along-ray measure": along}
     field = pixels * int(cameras) * FIELD_BYTES_PER_CAMERA_PIXEL
     return main, {"field": field, "fold band": band}, n

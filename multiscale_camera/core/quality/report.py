@@ -1,8 +1,9 @@
 """The build report (docs/report.md, schema version 2), measured on the rays a field
 actually hands to the renderer."""
 
+import contextvars
 import json
-from concurrent.futures import ThreadPoolExecutor
+import threading
 from functools import partial
 
 import numpy as np
@@ -26,30 +27,31 @@ VERSION = 2
 # s of system time on the three-camera 6x rig at 1920x1080 (0.05 to 0.2 s now), for
 # 13.4 to 14.0 user s against 14.0 to 14.7 (bench: docs/performance.md, The fold count).
 FOLD_CHUNK_VERTICES = 1 << 19
-# Fewer bands than this per worker are counted in this process: a worker's start and
-# the field's trip through shared memory cost more than they save.
+# Fewer bands than this per worker are cut smaller (``SMALL_BANDS`` a worker) so that
+# the workers still share them.
 MIN_SHARED_BANDS = 4
 # Runs of bands a worker is handed, about (each run goes to the next idle worker).
 SHARES_PER_WORKER = 4
-# A count kept in this process runs in threads, one a core (numpy lets go of the
-# interpreter in its array operations), on bands small enough for about this many a
-# thread.
-THREAD_BANDS = 4
-# Smaller images are counted in one thread (threads' start and their interleaving cost
-# more than they save).
-THREAD_MIN_PIXELS = 1 << 16
+# Bands a worker of an image too small for ``MIN_SHARED_BANDS`` full bands a worker.
+# (Threads of this process gained nothing there: the count's many small array
+# operations hold the interpreter between them; 0.79 to 1.1 s in two threads against
+# 0.9 s in one on the three-camera 6x rig at 480x270, 0.49 to 0.68 s in two started
+# workers.)
+SMALL_BANDS = 4
+# Smaller images are counted in this process: a worker's share of them is worth less
+# than the trip of the field to it.
+SHARED_MIN_PIXELS = 1 << 16
 
 
 def fold_map(fld, processes=1, should_stop=None):
     """Folds among the rendered rays: every quad of neighbouring pixels, at every size.
 
     The image's rows go in bands of at most ``FOLD_CHUNK_VERTICES`` vertices (each
-    band's last row is the next one's first); with more than ``MIN_SHARED_BANDS`` bands
-    a worker they are shared among worker processes (``processes``:
-    ``runtime.worker_count``'s request: 0 one per core, 1 keeps them here), each taking
-    runs of consecutive bands; fewer, they are counted in this process, in threads where
-    ``processes`` allows and the image has ``THREAD_MIN_PIXELS`` (smaller bands then,
-    about ``THREAD_BANDS`` a thread). ``should_stop`` (callable () -> bool) cancels the
+    band's last row is the next one's first), shared among worker processes
+    (``processes``: ``runtime.worker_count``'s request: 0 one per core, 1 keeps them
+    here) in runs of consecutive bands, a few a worker, on images of
+    ``SHARED_MIN_PIXELS`` (bands cut smaller where there are too few: ``fold_plan``);
+    smaller images are counted here. ``should_stop`` (callable () -> bool) cancels the
     count, here or shared, asked before every band (at most about 0.4 s of work at
     1920x1080). The map is the same whatever the bands and wherever they are counted
     (every quad is counted from its four rays alone); a share whose worker is given up
@@ -74,52 +76,98 @@ def fold_map(fld, processes=1, should_stop=None):
     ------
     Cancelled when ``should_stop`` says so.
     """
-    w, h = fld.rig.size
-    xs, ys = np.arange(w), np.arange(h)
-    traced = getattr(fld, "traced", None)
-    if traced is not None:
-        k = traced.vertices.shape[1]
-    else:  # one ray says how many vertices each has
-        k = fld.rays(np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64)).vertices.shape[1]
-    workers, threads, rows = fold_plan(w, h, k, worker_count(processes))
-    out = np.zeros((max(len(ys) - 1, 0), max(len(xs) - 1, 0)), dtype=bool)
-    starts = list(range(0, len(ys) - 1, rows - 1))
-    if workers >= 2:
-        # runs of consecutive bands (a run's rays lie together in the image), a few a
-        # worker, so that a worker given less of the machine takes fewer
-        runs = [list(r) for r in np.array_split(np.asarray(starts), workers * SHARES_PER_WORKER)]
-        task = partial(_fold_bands, fld, xs, ys, rows)
-        shares = runtime().map(task, runs, workers, should_stop).results
-    elif threads >= 2:
-        runs = [[r0] for r0 in starts]
-        with ThreadPoolExecutor(threads, thread_name_prefix="fold count") as pool:
-            shares = list(pool.map(lambda r: _fold_bands(fld, xs, ys, rows, r, should_stop), runs))
-    else:
-        shares = [_fold_bands(fld, xs, ys, rows, starts, should_stop)]
-        runs = [starts]
-    for run, bands in zip(runs, shares):
-        for r0, band in zip(run, bands):
-            out[r0 : r0 + len(band)] = band
-    return out, 1
+    return FoldCount(fld, processes, should_stop).result()
+
+
+class FoldCount:
+    """``fold_map`` begun: a count shared among workers runs while this process does
+    something else (``measure_map`` measures the preserved rays meanwhile), a thread of
+    this process waiting on the workers; ``result`` waits for the map. A count kept here
+    runs in ``result``. ``close`` stops a count whose map is not wanted (its workers
+    return to the pool) and waits for it."""
+
+    def __init__(self, fld, processes=1, should_stop=None):
+        w, h = fld.rig.size
+        self.xs, self.ys = np.arange(w), np.arange(h)
+        self.fld, self.should_stop = fld, should_stop
+        traced = getattr(fld, "traced", None)
+        if traced is not None:
+            k = traced.vertices.shape[1]
+        else:  # one ray says how many vertices each has
+            one = np.zeros(1, dtype=np.int64)
+            k = fld.rays(one, one).vertices.shape[1]
+        workers, self.rows = fold_plan(w, h, k, worker_count(processes))
+        self.starts = list(range(0, len(self.ys) - 1, self.rows - 1))
+        self.map = None
+        self._stop, self._error, self._thread = False, None, None
+        if workers >= 2:
+            # runs of consecutive bands (a run's rays lie together in the image), a few a
+            # worker, so that a worker given less of the machine takes fewer
+            split = np.array_split(np.asarray(self.starts), workers * SHARES_PER_WORKER)
+            self.runs = [list(r) for r in split if len(r)]
+            # in the caller's context: the runtime's journals (what ran where) see the run
+            context = contextvars.copy_context()
+            self._thread = threading.Thread(
+                target=context.run, args=(self._shared, workers), name="fold count", daemon=True
+            )
+            self._thread.start()
+
+    def _asked(self):
+        return self._stop or (self.should_stop is not None and self.should_stop())
+
+    def _shared(self, workers):
+        task = partial(_fold_bands, self.fld, self.xs, self.ys, self.rows)
+        try:
+            shares = runtime().map(task, self.runs, workers, self._asked).results
+            self.map = self._assemble(self.runs, shares)
+        except BaseException as err:  # handed to ``result``
+            self._error = err
+
+    def _assemble(self, runs, shares):
+        out = np.zeros((max(len(self.ys) - 1, 0), max(len(self.xs) - 1, 0)), dtype=bool)
+        for run, bands in zip(runs, shares):
+            for r0, band in zip(run, bands):
+                out[r0 : r0 + len(band)] = band
+        return out
+
+    def result(self):
+        """(folds, stride), as ``fold_map`` returns them.
+
+        Raises
+        ------
+        Cancelled when ``should_stop`` says so.
+        """
+        if self._thread is None:
+            stop = self.should_stop
+            bands = _fold_bands(self.fld, self.xs, self.ys, self.rows, self.starts, stop)
+            return self._assemble([self.starts], [bands]), 1
+        self._thread.join()
+        if self._error is not None:
+            raise self._error
+        return self.map, 1
+
+    def close(self):
+        """Stop the count if it still runs and wait for it to end."""
+        if self._thread is not None and self._thread.is_alive():
+            self._stop = True
+            self._thread.join()
 
 
 def fold_plan(width, height, k, available):
     """How ``fold_map`` counts an image ``width`` x ``height`` whose rays have ``k``
-    vertices with ``available`` (int) processes: (workers, threads, rows), the worker
-    processes sharing the bands (0: none, they are counted here), the threads counting
-    them here (1: none) and the image rows of a band. Bands hold at most
-    ``FOLD_CHUNK_VERTICES`` vertices; workers take them when each gets
-    ``MIN_SHARED_BANDS``; else an image of ``THREAD_MIN_PIXELS`` is counted in a thread a
-    process, on bands small enough for about ``THREAD_BANDS`` a thread."""
+    vertices with ``available`` (int) processes: (workers, rows), the worker processes
+    sharing the bands (0: none, they are counted here) and the image rows of a band.
+    Bands hold at most ``FOLD_CHUNK_VERTICES`` vertices; an image of
+    ``SHARED_MIN_PIXELS`` or more is shared among the ``available`` workers, on bands
+    cut small enough for ``SMALL_BANDS`` a worker where full ones would give a worker
+    fewer than ``MIN_SHARED_BANDS``."""
     rows = max(2, FOLD_CHUNK_VERTICES // (int(width) * int(k)))
-    bands = len(range(0, int(height) - 1, rows - 1))
-    workers = min(int(available), bands // MIN_SHARED_BANDS)
-    if workers >= 2:
-        return workers, 1, rows
-    if int(available) < 2 or int(width) * int(height) < THREAD_MIN_PIXELS:
-        return 0, 1, rows
-    threads = int(available)  # smaller bands, so that the threads' shares come out even
-    return 0, threads, min(rows, max(2, (int(height) - 1) // (threads * THREAD_BANDS) + 2))
+    if int(available) < 2 or int(width) * int(height) < SHARED_MIN_PIXELS:
+        return 0, rows
+    workers = int(available)
+    if len(range(0, int(height) - 1, rows - 1)) < workers * MIN_SHARED_BANDS:
+        rows = min(rows, max(2, (int(height) - 1) // (workers * SMALL_BANDS) + 2))
+    return workers, rows
 
 
 def fold_workers(size, k, processes=1):
@@ -222,15 +270,22 @@ def measure_map(fld, processes=1, diag=None):
     """``measure`` with the fold map itself: cameras (list of dict), folds ((Hy - 1,
     Wx - 1) bool, ``fold_map``'s) and the map's stride (int).
 
-    ``diag`` (core.diagnostics.Diagnostics or None) gets the seconds of the preserved
-    errors along the rays (stage "measure") and of the fold count (stage "folds"); its
-    cancel check is asked before each camera, each block of ``along_ray`` and each band
-    of the fold count (raises ``Cancelled``)."""
+    A count shared among workers (``FoldCount``) runs while this process measures the
+    preserved errors, so that both cores work through both. ``diag``
+    (core.diagnostics.Diagnostics or None) gets the seconds of the preserved errors
+    along the rays (stage "measure") and of the fold count after them (stage "folds":
+    what is left of it); its cancel check is asked before each camera, each block of
+    ``along_ray`` and each band of the fold count (raises ``Cancelled``, the count
+    stopped either way)."""
     diag = diagnostics_of(diag)
-    with diag.stage("measure"):
-        cameras = measure_cameras(fld, diag.should_stop)
-    with diag.stage("folds"):
-        folds, stride = fold_map(fld, processes, diag.should_stop)
+    count = FoldCount(fld, processes, diag.should_stop)
+    try:
+        with diag.stage("measure"):
+            cameras = measure_cameras(fld, diag.should_stop)
+        with diag.stage("folds"):
+            folds, stride = count.result()
+    finally:
+        count.close()
     return cameras, folds, stride
 
 

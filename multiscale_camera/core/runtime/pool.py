@@ -496,13 +496,16 @@ class Runtime:
             results[index] = result
         return Mapped(results, run.outcome)
 
-    def warm(self, processes, launcher=None):
+    def warm(self, processes, launcher=None, wait=True):
         """Start workers of ``launcher``'s kind (default: plain Python) until the pool has
-        ``processes``, and wait until they are ready (``START_SECONDS`` at most), so that
-        the next run finds them; list of their pids."""
+        ``processes``, and, with ``wait``, wait until they are ready (``START_SECONDS`` at
+        most), so that the next run finds them; list of their pids (without ``wait``,
+        of those started or idle: the next run waits for them as they come ready)."""
         pool = self.pool(python_launcher() if launcher is None else launcher)
         workers, _started, _errors = pool.checkout(processes, None)
         try:
+            if not wait:
+                return [w.pid for w in workers if w.alive]
             deadline = time.monotonic() + START_SECONDS
             for w in workers:
                 while w.alive and not w.ready.wait(POLL_SECONDS):
