@@ -132,6 +132,13 @@ def _along_block(vertices, cam, px, py, earlier):
     end = v[:, -1] + last * run[:, None]
     v = np.concatenate([v, end[:, None]], axis=1)
     s = np.concatenate([s, dot3(end - cam.eye, f)[:, None]], axis=1)
+    # from where the ray enters the camera's view on (inf: never)
+    entry = near_plane_entries(v, earlier + (cam,))[-1][:, None]
+    # segments wholly before every ray's entry cannot count (their piece starts past
+    # their end): they are left out, one kept before (an entry on a vertex)
+    first = entry[np.isfinite(entry)]
+    j0 = min(max(int(np.floor(first.min())) - 1, 0), v.shape[1] - 2) if len(first) else 0
+    v, s = v[:, j0:], s[:, j0:]
     a, b = v[:, :-1], v[:, 1:]
     sa, ds = s[:, :-1], s[:, 1:] - s[:, :-1]
     lo = np.where((sa >= near) & (sa <= far), 0.0, 1.0)
@@ -141,9 +148,7 @@ def _along_block(vertices, cam, px, py, earlier):
     up, down = ds > 0, ds < 0
     lo = np.where(up, np.maximum(tn, 0.0), np.where(down, np.maximum(tf, 0.0), lo))
     hi = np.where(up, np.minimum(tf, 1.0), np.where(down, np.minimum(tn, 1.0), hi))
-    # from where the ray enters the camera's view on (inf: never)
-    entry = near_plane_entries(v, earlier + (cam,))[-1][:, None]
-    seg_index = np.arange(v.shape[1] - 1)[None, :]
+    seg_index = np.arange(j0, j0 + v.shape[1] - 1)[None, :]
     with np.errstate(invalid="ignore"):
         lo = np.maximum(lo, entry - seg_index)
     valid = lo <= hi
