@@ -145,6 +145,12 @@ def run_one(rig_name, method, quality, width, height):
     total = time.perf_counter() - start
     peak_main = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
     workers = _workers_peaks_mb()
+    again = None
+    if quality == "PREVIEW":  # a redraw while a mask is painted: the workers are up
+        start = time.perf_counter()
+        more = prepare(Rig(cams, masks), method.replace("_DEFAULT", ""), settings)
+        build_report(more, quality, time.perf_counter() - start)
+        again = round(time.perf_counter() - start, 3)
     return {
         "rig": rig_name,
         "method": method,
@@ -155,6 +161,9 @@ def run_one(rig_name, method, quality, width, height):
         "report_seconds": round(total - build, 3),
         # what Compute Field takes: the build and its report
         "compute_field_seconds": round(total, 3),
+        # PREVIEW: the same Compute Field again in this process (no cache), its workers
+        # started by the first, as the live picture rebuilds while a mask is painted
+        "again_seconds": again,
         "auto": fld.stats.get("auto"),
         "seconds": {k: round(v, 3) for k, v in report["seconds"].items()},
         "grids": report["grids"],
@@ -644,11 +653,20 @@ def preview_acceptance(results, source):
         f"<= {t['build']:g} s,",
         f"zero folds, every camera's along-ray p95 <= {t['p95']:g} px (max <= {t['max']:g} px).",
         "",
+        "The verdict holds the first Compute Field of a fresh process (its workers",
+        "started by it) to the target; \"again\" is the same build once more in that",
+        "process, as the live picture rebuilds while a mask is painted.",
+        "",
         "| rig | method (built) | Compute Field s | load | p95/max px per camera | folds "
-        "| commit | meets the targets |",
-        "|---|---|---|---|---|---|---|---|",
+        "| again s | commit | meets the targets |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
-    lines += _verdict_lines(rows, lambda r: t["build"], t)
+    lines += _verdict_lines(
+        rows,
+        lambda r: t["build"],
+        t,
+        (1, lambda r: [f"{r['again_seconds']:.3g}" if r.get("again_seconds") else ""]),
+    )
     _replace_generated(ACCEPTANCE, "preview 480x270", "\n".join(lines))
 
 
