@@ -124,7 +124,7 @@ def test_folds_counted_in_two_processes_equal_those_counted_in_one(monkeypatch):
     fld = prepare(Rig(cams, masks), "IMAGE_BLEND", settings_for("STANDARD"))
     # bands of 4 lattice rows: 16 of them at 64x48, shared between two workers
     monkeypatch.setattr(report_module, "FOLD_CHUNK_VERTICES", 64 * vertices_per_ray(fld) * 4)
-    monkeypatch.setattr(report_module, "SHARED_MIN_PIXELS", 64 * 48)
+    monkeypatch.setattr(report_module, "FOLD_SHARED_MIN_PIXELS", 64 * 48)
     with runtime().journal() as alone_runs:
         one, stride = fold_map(fld, processes=1)
     assert alone_runs == [] and stride == 1
@@ -147,7 +147,7 @@ def test_build_report_keeps_the_fold_count_in_one_process_when_threads_say_one(m
     cams, masks = turned_rig(64, 48)
     fld = prepare(Rig(cams, masks), "IMAGE_BLEND", settings_for("STANDARD"))
     monkeypatch.setattr(report_module, "FOLD_CHUNK_VERTICES", 64 * vertices_per_ray(fld) * 4)
-    monkeypatch.setattr(report_module, "SHARED_MIN_PIXELS", 64 * 48)
+    monkeypatch.setattr(report_module, "FOLD_SHARED_MIN_PIXELS", 64 * 48)
     with runtime().journal() as runs:
         alone = build_report(fld, "STANDARD", processes=1)
     assert runs == []
@@ -166,7 +166,7 @@ def test_folds_of_an_image_with_few_bands_are_shared_on_smaller_bands(monkeypatc
     fld = prepare(Rig(cams, masks), "IMAGE_BLEND", settings_for("STANDARD"))
     k = vertices_per_ray(fld)
     monkeypatch.setattr(report_module, "FOLD_CHUNK_VERTICES", 64 * k * 16)  # 4 full bands
-    monkeypatch.setattr(report_module, "SHARED_MIN_PIXELS", 64 * 48)
+    monkeypatch.setattr(report_module, "FOLD_SHARED_MIN_PIXELS", 64 * 48)
     workers, rows = report_module.fold_plan(64, 48, k, 2)
     assert workers == 2 and rows == 47 // (2 * report_module.SMALL_BANDS) + 2 == 7
     with runtime().journal() as runs:
@@ -185,7 +185,7 @@ def test_the_measure_runs_while_workers_count_the_folds(monkeypatch):
     measure and the count made one after the other."""
     cams, masks = turned_rig(64, 48)
     fld = prepare(Rig(cams, masks), "IMAGE_BLEND", settings_for("STANDARD"))
-    monkeypatch.setattr(report_module, "SHARED_MIN_PIXELS", 64 * 48)
+    monkeypatch.setattr(report_module, "FOLD_SHARED_MIN_PIXELS", 64 * 48)
     alone_cameras = report_module.measure_cameras(fld)
     alone_folds, _ = fold_map(fld, processes=1)
     seen = []
@@ -209,7 +209,7 @@ def test_a_cancelled_measure_stops_the_shared_fold_count(monkeypatch):
     cancelled, its thread ended), and ``Cancelled`` reaches the caller."""
     cams, masks = turned_rig(192, 108)  # bands of tens of milliseconds each
     fld = prepare(Rig(cams, masks), "IMAGE_BLEND", settings_for("STANDARD"))
-    monkeypatch.setattr(report_module, "SHARED_MIN_PIXELS", 192 * 108)
+    monkeypatch.setattr(report_module, "FOLD_SHARED_MIN_PIXELS", 192 * 108)
 
     def cancelled(*args):
         raise Cancelled()

@@ -55,7 +55,7 @@ class CurveBlendField(RayField):
             if len(mine):
                 verts[mine] = curved_rays(_subset(g, mine), self.segments, [i])[0]
         # einsum's own loop: a matrix product would wake BLAS's threads, which spin on
-        # the cores the fold count's threads and workers need
+        # the cores the fold count's workers need
         m = np.einsum("n,np->p", np.arange(1, n + 1, dtype=np.float64), w)
         return self._bundle(ix, iy, verts, np.repeat(m[:, None], verts.shape[1], axis=1))
 

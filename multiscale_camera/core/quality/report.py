@@ -40,7 +40,7 @@ SHARES_PER_WORKER = 4
 SMALL_BANDS = 4
 # Smaller images are counted in this process: a worker's share of them is worth less
 # than the trip of the field to it.
-SHARED_MIN_PIXELS = 1 << 16
+FOLD_SHARED_MIN_PIXELS = 1 << 16
 
 
 def fold_map(fld, processes=1, should_stop=None):
@@ -50,7 +50,7 @@ def fold_map(fld, processes=1, should_stop=None):
     band's last row is the next one's first), shared among worker processes
     (``processes``: ``runtime.worker_count``'s request: 0 one per core, 1 keeps them
     here) in runs of consecutive bands, a few a worker, on images of
-    ``SHARED_MIN_PIXELS`` (bands cut smaller where there are too few: ``fold_plan``);
+    ``FOLD_SHARED_MIN_PIXELS`` (bands cut smaller where there are too few: ``fold_plan``);
     smaller images are counted here. ``should_stop`` (callable () -> bool) cancels the
     count, here or shared, asked before every band (at most about 0.4 s of work at
     1920x1080). The map is the same whatever the bands and wherever they are counted
@@ -158,11 +158,11 @@ def fold_plan(width, height, k, available):
     vertices with ``available`` (int) processes: (workers, rows), the worker processes
     sharing the bands (0: none, they are counted here) and the image rows of a band.
     Bands hold at most ``FOLD_CHUNK_VERTICES`` vertices; an image of
-    ``SHARED_MIN_PIXELS`` or more is shared among the ``available`` workers, on bands
+    ``FOLD_SHARED_MIN_PIXELS`` or more is shared among the ``available`` workers, on bands
     cut small enough for ``SMALL_BANDS`` a worker where full ones would give a worker
     fewer than ``MIN_SHARED_BANDS``."""
     rows = max(2, FOLD_CHUNK_VERTICES // (int(width) * int(k)))
-    if int(available) < 2 or int(width) * int(height) < SHARED_MIN_PIXELS:
+    if int(available) < 2 or int(width) * int(height) < FOLD_SHARED_MIN_PIXELS:
         return 0, rows
     workers = int(available)
     if len(range(0, int(height) - 1, rows - 1)) < workers * MIN_SHARED_BANDS:
