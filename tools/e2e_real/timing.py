@@ -33,6 +33,11 @@ def parse():
     # another engine for a baseline (BLENDER_WORKBENCH): the file's scene rendered by one
     # of Blender's own, no field built, to show what the window costs any engine
     parser.add_argument("--engine", default=None)
+    # where F12 shows the render (Preferences > Interface > Temporary Editors): WINDOW,
+    # Blender's default, opens a window; AREA shows it in the 3D view's place
+    parser.add_argument(
+        "--render-display", default=None, choices=("WINDOW", "AREA", "SCREEN", "NONE")
+    )
     return parser.parse_args(argv)
 
 
@@ -101,7 +106,14 @@ def thread_delta(before):
     return {k: round(v, 2) for k, v in spent.items() if v > 0.01}
 
 
+def mark(name):
+    """Print ``name`` with CLOCK_MONOTONIC seconds, the clock of ``perf record -k
+    CLOCK_MONOTONIC`` (tools/e2e_real/perf_window.sh)."""
+    print(f"E2E_MARK {name} {time.clock_gettime(time.CLOCK_MONOTONIC):.6f}", flush=True)
+
+
 def render_started():
+    mark(f"render_start {len(RESULT.get('renders', [])) + 1}")
     STATE["t1"] = time.perf_counter()
     STATE["cpu"] = cpu_now()
     STATE["threads"] = thread_cpu()
@@ -109,6 +121,7 @@ def render_started():
 
 def render_ended(end):
     """Record the render that started at ``render_started``, ended at ``end``."""
+    mark(f"render_end {len(RESULT.get('renders', [])) + 1}")
     main, workers = cpu_now()
     RESULT.setdefault("renders", []).append(
         {
@@ -132,6 +145,7 @@ def write():
     with open(ARGS.out, "w") as f:
         json.dump(RESULT, f, indent=1)
     print("E2E_TIMING", json.dumps(RESULT), flush=True)
+    mark("end")
 
 
 def report():
@@ -141,12 +155,14 @@ def report():
 
 def on_render_done(_scene, _depsgraph=None):
     STATE["render_end"] = time.perf_counter()
+    mark("render_complete")
 
 
 def override():
     win = bpy.context.window_manager.windows[0]
     area = max(
-        (a for a in win.screen.areas if a.type == "VIEW_3D"), key=lambda a: a.width * a.height
+        (a for a in win.screen.areas if a.type in ("VIEW_3D", "IMAGE_EDITOR")),
+        key=lambda a: (a.type == "VIEW_3D", a.width * a.height),
     )
     region = next(r for r in area.regions if r.type == "WINDOW")
     return bpy.context.temp_override(window=win, area=area, region=region)
@@ -200,6 +216,7 @@ def window_steps():
             bpy.ops.multiscale.cache_clear()
             scene.multiscale.report = ""
             STATE["t0"] = time.perf_counter()
+            mark("compute_start")
             STATE["threads"] = thread_cpu()
             bpy.ops.multiscale.compute_field("INVOKE_DEFAULT")
         STATE["step"] = "building"
@@ -213,6 +230,7 @@ def window_steps():
                 return None
             return 0.05
         RESULT["compute_seconds"] = round(time.perf_counter() - STATE["t0"], 2)
+        mark("compute_end")
         RESULT["compute_threads_cpu_seconds"] = thread_delta(STATE["threads"])
         RESULT["report"] = report()
         bpy.app.handlers.render_complete.append(on_render_done)
@@ -246,6 +264,9 @@ def window_steps():
 if ARGS.engine:
     bpy.context.scene.render.engine = ARGS.engine
     RESULT["engine"] = ARGS.engine
+if ARGS.render_display:
+    bpy.context.preferences.view.render_display_type = ARGS.render_display
+    RESULT["render_display"] = ARGS.render_display
 if bpy.app.background:
     background()
 else:
