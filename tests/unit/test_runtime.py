@@ -248,6 +248,21 @@ def test_warm_starts_the_workers_a_run_will_find(rt):
         assert "multiscale_camera.core.runtime.worker" in loaded
 
 
+def test_warm_without_waiting_starts_workers_the_next_run_takes_as_they_come_ready():
+    """IMAGE_BLEND starts the fold count's workers as its solve starts and does not wait
+    for them (``warm(wait=False)``): the run that follows takes those workers, starting
+    none of its own, and hands them its items once they are ready."""
+    fresh = Runtime()
+    try:
+        pids = fresh.warm(2, wait=False)
+        assert len(set(pids)) == 2 and set(pids) == set(fresh.pids())
+        mapped = fresh.map(probe, range(4), 2)
+        assert mapped.outcome.started == 0 and mapped.outcome.in_workers == 4
+        assert {r[1] for r in mapped.results} <= set(pids)
+    finally:
+        fresh.shutdown()
+
+
 def test_the_python_launcher_starts_this_interpreter_isolated():
     launcher = python_launcher()
     command = launcher.command("control")
