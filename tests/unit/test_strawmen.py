@@ -4,17 +4,23 @@ describes (folds; deviated projections), measured against SCALAR_FIELD."""
 import dataclasses
 
 import numpy as np
+import pytest
 from scipy import ndimage
 
 from fixtures.rigs import zoom_rig
-from multiscale_camera.core.geometry import Rig, pixel_centres
+from multiscale_camera.core.errors import Cancelled
+from multiscale_camera.core.field import fill_membership
+from multiscale_camera.core.geometry import Family, Rig, pixel_centres
 from multiscale_camera.core.methods import (
+    constraint_tangents,
     nearest_mask_pixels,
     prepare_linear,
     prepare_scalar_field,
     prepare_vector_field,
     settings_for,
 )
+from multiscale_camera.core.methods import vector_field as vf
+from multiscale_camera.core.methods.traced import TracedField, field_grid
 from multiscale_camera.core.quality import build_report
 
 
@@ -152,3 +158,28 @@ def test_linear_with_one_painted_mask_copies_its_nearest_rays():
     _ix, _iy, bundle = all_rays(fld)
     assert np.isfinite(bundle.vertices).all()
     assert (bundle.membership == 2).all() and (fld.lam == 0).all()
+
+
+def test_vector_field_tangents_ask_before_each_chunk(monkeypatch):
+    """VECTOR_FIELD's tangents stage never asked the cancel check: Esc in it, in a real
+    window, was heard only in the solve after it (tools/e2e_real/cancel_steps.py), and a
+    large grid's constraint voxels are inverted a chunk at a time for seconds. It now
+    asks before each chunk; the tangents are the same whatever the chunks."""
+    cams, masks = zoom_rig(64, 48)
+    rig = Rig(cams, masks)
+    grid = field_grid(TracedField(rig=rig, method="VECTOR_FIELD"), settings_for("PREVIEW"))
+    families = [Family(rig.cameras, i, rig.beta) for i in range(len(cams))]
+    fill = fill_membership(rig, grid, families)
+    whole, lost = constraint_tangents(grid, families, fill)
+    claimed = [int((fill.values == i + 1).sum()) for i in range(len(cams))]
+    chunk = 1000
+    assert all(c > chunk for c in claimed)  # several chunks a camera
+    monkeypatch.setattr(vf, "TANGENT_CHUNK", chunk)
+    chunks = sum(-(-c // chunk) for c in claimed)
+    asked = []
+    with pytest.raises(Cancelled):
+        constraint_tangents(grid, families, fill, lambda: asked.append(1) or len(asked) >= 3)
+    assert len(asked) == 3 < chunks  # two chunks inverted, stopped before the third
+    chunked, lost_chunked = constraint_tangents(grid, families, fill, lambda: False)
+    np.testing.assert_array_equal(chunked, whole)
+    np.testing.assert_array_equal(lost_chunked, lost)

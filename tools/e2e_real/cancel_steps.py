@@ -43,19 +43,23 @@ import bpy
 
 LOG = os.environ.get("E2E_LOG", "cancel_log.json")
 # METHOD:stage, or a stage alone (SCALAR_FIELD's); CYCLES: the hand-off (AUTO's field)
-STEPS = "fill,solve,trace,simplify,render,AUTO:solve,AUTO:measure,AUTO:folds,CYCLES:cycles"
+STEPS = (
+    "fill,solve,trace,simplify,render,VECTOR_FIELD:tangents,"
+    "AUTO:solve,AUTO:measure,AUTO:folds,CYCLES:cycles"
+)
 STAGES = tuple(os.environ.get("CANCEL_STAGES", STEPS).split(","))
 # the render size (percent of the demo's 640x360) per method, 300 for those not named:
 # IMAGE_BLEND's stages last long enough to press a key in at 1920x1080 (the solve about
 # 2 s, the fold count several seconds), a fraction of a second at 640x360
-PERCENT = {"SCALAR_FIELD": 100, "CYCLES": 100}
+PERCENT = {"SCALAR_FIELD": 100, "VECTOR_FIELD": 100, "CYCLES": 100}
 DELAY = 0.25  # seconds into the stage
 CYCLES_DELAY = 1.0  # seconds into Cycles' own render (its sync takes a fraction of that)
 CYCLES_SAMPLES = 1024  # minutes of Cycles' work uncancelled
 # Escape as the stage starts, its work held until the key is heard: the measure (about
-# 0.4 s at 1920x1080) and the simplification (under the key's 0.25 s delay on an idle
-# machine: its Escape came after it had ended, and the tile loop heard it)
-HELD = {"measure", "simplify"}
+# 0.4 s at 1920x1080), the simplification (under the key's 0.25 s delay on an idle
+# machine: its Escape came after it had ended, and the tile loop heard it) and
+# VECTOR_FIELD's tangents at 640x360 (its Escape was heard in the solve after it)
+HELD = {"measure", "simplify", "tangents"}
 HOLD_SECONDS = 5.0
 BOUND = 2.0
 log = {"version": bpy.app.version_string, "steps": []}

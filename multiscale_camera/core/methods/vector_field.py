@@ -8,7 +8,7 @@ Figure 7).
 
 import numpy as np
 
-from ..diagnostics import diagnostics_of
+from ..diagnostics import check_stop, diagnostics_of
 from ..errors import SolverDidNotConverge
 from ..field import (
     FieldSampler,
@@ -61,16 +61,22 @@ def unit_tangents(family, points):
     return out, lost
 
 
-def constraint_tangents(grid, families, fill):
+def constraint_tangents(grid, families, fill, should_stop=None):
     """The constraint field X of eq. 2 on the voxels of ``fill`` (eq. 4's support).
 
     Each voxel that camera i's preserved rays claim alone holds the unit tangent of R_i
     through its centre, exact at any grid resolution; voxels two cameras claim are free.
+    ``should_stop`` (callable () -> bool or None) is asked before each chunk of
+    ``TANGENT_CHUNK`` voxels.
 
     Returns
     -------
     (nx, ny, nz, 3) float32, zero off the constraints. lost : (N,) int, per camera the
     voxels whose tangent Newton missed (camera 1's direction stands in).
+
+    Raises
+    ------
+    Cancelled when ``should_stop`` says so.
     """
     out = np.zeros((*grid.shape, 3), dtype=np.float32)
     flat = out.reshape(-1, 3)
@@ -79,6 +85,7 @@ def constraint_tangents(grid, families, fill):
     for i, fam in enumerate(families):
         idx = np.flatnonzero(owner == i + 1)
         for s in range(0, len(idx), TANGENT_CHUNK):
+            check_stop(should_stop)
             sel = idx[s : s + TANGENT_CHUNK]
             pts = grid.origin + grid.cell * np.stack(np.unravel_index(sel, grid.shape), axis=-1)
             flat[sel], missed = unit_tangents(fam, pts)
@@ -140,7 +147,7 @@ def prepare_vector_field(rig, settings=None, diag=None):
         families = [Family(rig.cameras, i, rig.beta) for i in range(len(rig.cameras))]
         fill = fill_membership(rig, grid, families)
     with run.stage("tangents"):
-        tangents, lost = constraint_tangents(grid, families, fill)
+        tangents, lost = constraint_tangents(grid, families, fill, run.should_stop)
     solves = []
     with run.stage("solve"):
         for values in (fill.values, tangents[..., 0], tangents[..., 1], tangents[..., 2]):
