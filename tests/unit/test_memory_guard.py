@@ -243,7 +243,7 @@ def test_auto_estimates_image_blend_built_then_measured_with_its_fold_bands():
     assert small.main == max(
         480 * 270 * (3 * 8 + mem.SOLVE_BYTES_PER_CELL), 480 * 270 * 3 * 4 + along
     )
-    # below ``SHARED_MIN_PIXELS`` the count stays here, after the measure
+    # below ``report.FOLD_SHARED_MIN_PIXELS`` the count stays here, after the measure
     tiny = build_memory("AUTO", 160, 90, 3, workers=2)
     band = min(report.FOLD_CHUNK_VERTICES // (160 * 18), 90) * 160 * 18 * (70 + 3 * 24)
     along = min(MAX_MEASURED, 160 * 90) * 18 * 260
@@ -451,10 +451,9 @@ def test_estimate_is_within_30_percent_of_the_measured_peak_on_a_held_out_row(sp
     """Rows the constants were not calibrated on (bench/memory.py HELD_OUT): the zoom rig
     at 480x270, STANDARD, SCALAR_FIELD with three workers, and the default build (AUTO:
     IMAGE_BLEND built and measured, its fold count in two workers) of the 25x zoom at
-    PREVIEW. The
-    peak resident size of a fresh process plus its workers' against the estimate made
-    before, in all and for the largest worker. (It measured a calibration row:
-    in-sample.)"""
+    PREVIEW. The peak resident size of a fresh process plus its workers' against the
+    estimate made before, in all and for the largest worker. (It measured a calibration
+    row: in-sample.)"""
     done = subprocess.run(
         [sys.executable, str(ROOT / "bench" / "memory.py"), "--one", spec],
         capture_output=True,
