@@ -2,7 +2,8 @@
 render, through the window's own escape path, and the render's end timed.
 
 For each step, a method and one of its stages (SCALAR_FIELD's fill, solve and trace at
-the demo's size, then the simplification and the tile loop; AUTO's, which builds
+the demo's size, then the simplification and the tile loop; VECTOR_FIELD's tangents at
+the demo's size; AUTO's, which builds
 IMAGE_BLEND on the demo and measures it, at 1920x1080: the weight solve, the measure
 along the rays and the fold count; Cycles' own render of the hand-off at 1024 samples,
 ``CYCLES:cycles``), a render is started as F12 starts it (``render.render`` invoked: a
@@ -10,7 +11,7 @@ render job whose ``test_break`` hears Esc), and a quarter of a second after the 
 enters the stage (``Diagnostics.stage``, or the hand-off's ``_run_cycles``, patched
 here; a second for Cycles, whose sync comes first) xdotool presses Escape over the
 window. A stage too short for that (``HELD``: the measure along the rays, the ray
-simplification) has Escape pressed as it starts, and its work waits (at most
+simplification, the tangents) has Escape pressed as it starts, and its work waits (at most
 ``HOLD_SECONDS``) until the render job's ``test_break`` says the key arrived, so that
 the stage's own cancel check is what hears it. Logged per step: ``key_to_end``, the time
 from the key to the end of the render job (``bpy.app.is_job_running('RENDER')``), and
