@@ -19,7 +19,7 @@ from .fill import (
     straight_claims,
 )
 from .grid import FieldSampler, Grid, sample
-from .harmonic import SHARED_MIN_PIXELS, mask_weights
+from .harmonic import mask_weights, solve_workers
 from .layout import (
     SNAP_CELLS,
     ShotLayout,
@@ -76,7 +76,6 @@ __all__ = [
     "RK4",
     "SNAP_CELLS",
     "STEP_CELLS",
-    "SHARED_MIN_PIXELS",
     "STEP_WIDTH_GAIN",
     "ShotLayout",
     "FieldSampler",
@@ -112,6 +111,7 @@ __all__ = [
     "scheduled_rays",
     "solve_levels",
     "solve_membership",
+    "solve_workers",
     "shot_layout",
     "steady_boxes",
     "steady_grid",

@@ -39,6 +39,15 @@ COARSE_TOLERANCE = 1e-4
 SHARED_MIN_PIXELS = 1 << 20
 
 
+def solve_workers(pixels, solves, available):
+    """int, the worker processes that share ``solves`` weight solves of an image of
+    ``pixels`` pixels with ``available`` processes (``runtime.worker_count``'s answer):
+    one a solve, when there are two or more and the image has ``SHARED_MIN_PIXELS``;
+    0 when they run in this process, one after the other."""
+    n = min(int(available), int(solves))
+    return n if n >= 2 and int(pixels) >= SHARED_MIN_PIXELS else 0
+
+
 def mask_weights(masks, tol=TOLERANCE, processes=1, should_stop=None):
     """Per-pixel camera weights: one-hot in the masks, harmonic in between.
 
@@ -74,8 +83,8 @@ def mask_weights(masks, tol=TOLERANCE, processes=1, should_stop=None):
     slowest = SolveResult(None, True, 0, ())
     kept = [i for i in range(n) if masks[i].any()]
     solves = kept[:-1]
-    workers = min(worker_count(processes), len(solves)) if h * w >= SHARED_MIN_PIXELS else 1
-    if workers < 2:
+    workers = solve_workers(h * w, len(solves), worker_count(processes))
+    if not workers:
         results = []
         for i in solves:
             results.append(_solve_weight(masks, owned, tol, i, should_stop=should_stop))

@@ -7,10 +7,10 @@ from typing import ClassVar
 import numpy as np
 
 from ..diagnostics import diagnostics_of
-from ..field import SHARED_MIN_PIXELS, mask_weights
+from ..field import mask_weights, solve_workers
 from ..geometry import DEFAULT_SEGMENTS, Guides, build_guides, curved_rays
 from ..quality import check_rig, fold_workers
-from ..runtime import runtime
+from ..runtime import runtime, worker_count
 from .base import RayField, Settings, guard_warnings, record_seconds
 
 
@@ -60,28 +60,21 @@ class CurveBlendField(RayField):
         return self._bundle(ix, iy, verts, np.repeat(m[:, None], verts.shape[1], axis=1))
 
 
-class _warming:
-    """A block at whose start the fold count's workers start (``quality.fold_workers``),
-    on the core the weight solve leaves idle, when that solve runs in this process (one
-    solve, a rig of two cameras, or an image below ``SHARED_MIN_PIXELS``): the report's
-    fold count then finds them started, or starting (it hands them their bands as they
-    come ready). Two or more solves in workers start them themselves
-    (``harmonic.mask_weights``)."""
-
-    def __init__(self, rig, processes):
-        n = len(rig.cameras)
-        solves = int(np.asarray(rig.masks).reshape(n, -1).any(axis=1).sum()) - 1
-        k = 1 + (n - 1) * DEFAULT_SEGMENTS + 1
-        here = solves < 2 or rig.size[0] * rig.size[1] < SHARED_MIN_PIXELS
-        self.count = fold_workers(rig.size, k, processes) if here else 0
-
-    def __enter__(self):
-        if self.count >= 2:  # started, not waited for: their start overlaps the solve
-            runtime().warm(self.count, wait=False)
-        return self
-
-    def __exit__(self, *exc):
-        return False
+def _start_fold_workers(rig, processes):
+    """Start the fold count's workers (``quality.fold_workers``), not waiting for them,
+    when the weight solves run in this process (``field.solve_workers``: one solve, a
+    rig of two cameras, or a small image), so that their start overlaps the solve on the
+    core it leaves idle: the report's fold count then finds them started, or starting
+    (it hands them their bands as they come ready). Solves shared among workers start
+    them themselves (``harmonic.mask_weights``)."""
+    n = len(rig.cameras)
+    solves = int(np.asarray(rig.masks).reshape(n, -1).any(axis=1).sum()) - 1
+    available = worker_count(processes)
+    if solve_workers(rig.size[0] * rig.size[1], solves, available):
+        return
+    count = fold_workers(rig.size, 1 + (n - 1) * DEFAULT_SEGMENTS + 1, processes)
+    if count >= 2:
+        runtime().warm(count, wait=False)
 
 
 def _subset(guides, rows):
@@ -142,7 +135,8 @@ def prepare_image_blend(rig, settings=None, diag=None, reuse=None):
         weights, solver = kept
     else:
         processes = (settings or Settings()).processes
-        with run.stage("solve"), _warming(rig, processes):
+        with run.stage("solve"):
+            _start_fold_workers(rig, processes)
             solve = mask_weights(rig.masks, processes=processes, should_stop=run.should_stop)
         weights = eased(solve.x)
         solver = {

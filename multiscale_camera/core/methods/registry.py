@@ -87,8 +87,8 @@ def accuracy_misses(cameras, accuracy_px):
 def not_measured(cameras):
     """What AUTO's word adds for the cameras it could not measure (``cameras``: the
     report's entries; those with no measured pixel carry an "unmeasured" reason):
-    "; not measured: camera 'X' (why)", or "" when every camera was measured. The
-    target then holds on the others alone, and the word says so."""
+    "; not measured, so not held to the target: camera 'X' (why), ...", or "" when
+    every camera was measured. The target then holds on the others alone."""
     out = [f"camera '{c['name']}' ({c['unmeasured']})" for c in cameras if not c["pixels"]]
     return "; not measured, so not held to the target: " + ", ".join(out) if out else ""
 

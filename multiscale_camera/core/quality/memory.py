@@ -18,10 +18,10 @@ import numpy as np
 from ..field import (
     CELLS_ACROSS_NEAR_PER_PX,
     MIN_CELLS_ACROSS_NEAR,
-    SHARED_MIN_PIXELS,
     choose_grid,
     choose_levels,
     near_plane_width,
+    solve_workers,
     step_cells,
 )
 from .measure_memory import measure_memory
@@ -200,14 +200,14 @@ def _estimate(main_parts, worker_parts, workers, shapes):
 
 def image_solves(pixels, cameras, workers):
     """(main parts, a worker's parts, workers) of the weight solves (``harmonic.
-    mask_weights``, one a camera but the last): two or more on ``SHARED_MIN_PIXELS`` run
-    at once in workers, each holding one and the masks; else here, one at a time. The
+    mask_weights``, one a camera but the last): in workers as ``field.solve_workers``
+    shares them, each holding one and the masks; else here, one at a time. The
     main process then eases the weights (``image_blend.eased``), the larger if so."""
     weights = {"mask weights": pixels * cameras * WEIGHT_BYTES_PER_CAMERA_PIXEL}
     solve = {"image solve": pixels * SOLVE_BYTES_PER_CELL}
     easing = {"weights eased": pixels * cameras * EASE_BYTES_PER_CAMERA_PIXEL}
-    n = min(int(workers), int(cameras) - 1)
-    if pixels < SHARED_MIN_PIXELS or n < 2:
+    n = solve_workers(pixels, int(cameras) - 1, workers)
+    if not n:
         return max({**weights, **solve}, easing, key=_total), {}, 0
     return max(weights, easing, key=_total), {**solve, "masks": pixels * int(cameras)}, n
 
