@@ -187,7 +187,7 @@ def measure(spec):
     w, h = rig.size
     xs, ys = np.arange(w), np.arange(h)
     k = fld.rays(np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64)).vertices.shape[1]
-    rows = max(2, rep.FOLD_CHUNK_VERTICES // (w * k))
+    _workers, rows = rep.fold_plan(w, h, k, 1)  # full bands, as one process cuts them
     starts = list(range(0, h - 1, rows - 1))
     print(f"{len(starts)} fold bands of {rows} rows, {rows * w * k} vertices ({k} a ray)")
     for r0 in starts[len(starts) // 2 : len(starts) // 2 + 3]:
