@@ -19,13 +19,13 @@ compared there flag crossings that do not exist.
 Every quad of the lattice is checked, at every image size, in float64 throughout, or,
 given a per-quad ``limit``, its first ``limit`` sections (``report.kept_limits``: what
 provably cannot fold is not checked); the windows then follow each row's runs of quads
-to check. The
-walk's start is the last vertex of q at or before a's arc length; section k is settled
-at once where that start is segment j0 = min(k, K - 2) or j0 - 1 and the walk stops
-within one step (rays of one band share their vertices' order, so this is nearly every
-section); the others walk in ``section_points``. Per-ray quantities (arc lengths,
-tangents, segments) are computed once per band and shared by the three roles b, c and
-d; coordinates are held as three (Hy, Wx, K) planes, the vertices around j0 are read
+to check. The walk's start is the last vertex of q at or before a's arc length; section
+k is settled at once where that start is segment j0 = min(k, K - 2) or j0 - 1 and the
+walk stops within one step (rays of one band share their vertices' order, so this is
+nearly every section); the others walk in ``section_points``. Per-ray quantities (arc
+lengths, tangents, segments) are computed once per band and shared by the three roles
+b, c and d, whose windows are stacked so that one numpy call serves all three;
+coordinates are held as three (Hy, Wx, K) planes, the vertices around j0 are read
 through slices, and the sections go in chunks of ``CHUNK_SECTIONS``, so that the
 arithmetic runs over contiguous memory in a core's cache. Sides, points and areas are
 the same float64 operations in the same order as ``dot3`` and ``cross3`` on (..., 3)
@@ -209,11 +209,13 @@ class _Rays:
         cum = np.zeros(vertex.shape[1:])
         np.cumsum(np.sqrt(dot_planes(steps, steps)), axis=-1, out=cum[..., 1:])
         self.cum, self.end = cum, cum[..., -1:]
-        self.cum_m, self.cum_0, self.cum_1 = (np.take(cum, j, axis=-1) for j in (jm, j0, j0 + 1))
-        self.cum_m[..., j0 == 0] = np.inf  # no segment before the first
-        self.cum_1[..., j0 == k - 2] = np.inf  # a's arc length past vertex K - 2
+        # (3, Hy, Wx, K): the arc lengths at jm, j0 and j0 + 1
+        self.cums = np.stack([np.take(cum, j, axis=-1) for j in (jm, j0, j0 + 1)])
+        self.cums[0][..., j0 == 0] = np.inf  # no segment before the first
+        self.cums[2][..., j0 == k - 2] = np.inf  # a's arc length past vertex K - 2
         self.active = active
-        self.active_m, self.active_0 = np.take(active, jm, axis=-1), np.take(active, j0, axis=-1)
+        # (2, Hy, Wx, K): the activity at jm and j0
+        self.actives = np.stack([np.take(active, j, axis=-1) for j in (jm, j0)])
         a = vertex[:, :-1, :-1]
         t = np.empty(a.shape)
         t[..., 1:-1] = a[..., 2:] - a[..., :-2]
@@ -240,32 +242,46 @@ def _chunk_folds(rays, window, kmax, limit):
     live = rays.active[ys, xs, :kmax].copy()
     if limit is not None:
         live &= np.arange(kmax) < limit[..., None]
-    points = []
-    for dy, dx in ROLES:
-        q = (slice(ys.start + dy, ys.stop + dy), slice(xs.start + dx, xs.stop + dx))
-        pt, alive = _sections(rays, q, a, normal, ref)
-        points.append(pt)
-        live &= alive
-    return _flipped(points, normal, live)
+    point, alive = _sections(rays, window, a, normal, ref)
+    live &= alive.all(axis=0)
+    return _flipped((point[:, 0], point[:, 1], point[:, 2]), normal, live)
 
 
-def _sections(rays, q, a, normal, ref):
-    """Where role ``q``'s rays (row, column slices) cross a's sections: the points
-    relative to a's vertices (three planes) and whether each point's segment is active.
-    ``section_points``' walk, from the segment at a's arc length, settled at once where
-    it takes at most one step from segment j0 or j0 - 1; the other sections walk there."""
+def _roles(x, window, lead=0):
+    """The three roles' (``ROLES``) windows of a per-ray array ``x`` (``lead`` axes
+    before its (Hy, Wx) ones), stacked on a new axis after the leading ones."""
+    ys, xs = window
+    pre = (slice(None),) * lead
+    return np.stack(
+        [
+            x[(*pre, slice(ys.start + dy, ys.stop + dy), slice(xs.start + dx, xs.stop + dx))]
+            for dy, dx in ROLES
+        ],
+        axis=lead,
+    )
+
+
+def _sections(rays, window, a, normal, ref):
+    """Where the three roles' rays (``ROLES``, offset from the quads ``window``) cross
+    a's sections: the points relative to a's vertices (3, 3, rows, cols, kmax: the
+    coordinates, then the roles) and whether each point's segment is active (3, rows,
+    cols, kmax). ``section_points``' walk, from the segment at a's arc length, settled
+    at once where it takes at most one step from segment j0 or j0 - 1; the other
+    sections walk there. The roles go together: the same float64 operations, in one
+    numpy call each instead of three."""
     kmax = ref.shape[-1]
     inner0, inner1, inner_m = (x[:kmax] for x in rays.inner)
     runs = [_upto(r, kmax) for r in rays.runs]
-    qk = (*q, slice(0, kmax))
-    vq = rays.vertex[:, q[0], q[1]]
-    d_m, d_0, d_1 = ([_minus(vq[i], a[i], r) for i in range(3)] for r in runs)
+    a, normal = a[:, None], normal[:, None]
+    vq = _roles(rays.vertex, window, 1)
+    d_m, d_0, d_1 = (_minus(vq, a, r) for r in runs)  # (3, 3, rows, cols, kmax) each
     s_m = dot_planes(d_m, normal)
     s_0 = dot_planes(d_0, normal)
     s_1 = dot_planes(d_1, normal)
-    want = np.clip(ref, 0.0, rays.end[q])
-    start_0 = (rays.cum_0[qk] <= want) & (want < rays.cum_1[qk])
-    start_m = (rays.cum_m[qk] <= want) & (want < rays.cum_0[qk])
+    cum = _roles(rays.cums[..., :kmax], window, 1)
+    want = np.clip(ref, 0.0, _roles(rays.end, window))
+    start_0 = (cum[1] <= want) & (want < cum[2])
+    start_m = (cum[0] <= want) & (want < cum[1])
     pos, neg = s_0 > 0, s_0 < 0
     # segments j0 and j0 - 1 hold the plane (a walk stops there)
     stop_0 = ~((pos & (s_1 > 0) & inner0) | (neg & (s_1 < 0) & inner1))
@@ -275,17 +291,22 @@ def _sections(rays, q, a, normal, ref):
     s_a = np.where(back, s_m, s_0)
     den = s_a - np.where(back, s_0, s_1)
     w = np.where(den != 0, s_a / np.where(den != 0, den, 1.0), 0.0)
-    sq = rays.steps[:, q[0], q[1]]
+    sq = _roles(rays.steps, window, 1)
     runs_m, runs_0 = runs[:2]
-    point = [
-        np.where(back, d_m[i], d_0[i])
-        + np.where(back, _gather(sq[i], runs_m, w.shape), _gather(sq[i], runs_0, w.shape)) * w
-        for i in range(3)
-    ]
-    alive = np.where(back, rays.active_m[qk], rays.active_0[qk])
-    slow = np.nonzero(~(back | here))
-    if len(slow[0]):
-        _walk(rays, q, (a, normal, ref), slow, point, alive)
+    shape = (3, *w.shape)
+    point = (
+        np.where(back, d_m, d_0)
+        + np.where(back, _gather(sq, runs_m, shape), _gather(sq, runs_0, shape)) * w
+    )
+    act = _roles(rays.actives[..., :kmax], window, 1)
+    alive = np.where(back, act[0], act[1])
+    slow = ~(back | here)
+    for r, (dy, dx) in enumerate(ROLES if slow.any() else ()):
+        where = np.nonzero(slow[r])
+        if len(where[0]):
+            ys, xs = window
+            q = (slice(ys.start + dy, ys.stop + dy), slice(xs.start + dx, xs.stop + dx))
+            _walk(rays, q, (a[:, 0], normal[:, 0], ref), where, point[:, r], alive[r])
     return point, alive
 
 
@@ -311,7 +332,7 @@ def _upto(runs, kmax):
 
 def _minus(q, a, runs):
     """``q[..., index] - a`` for the index array whose ``runs`` are given."""
-    out = np.empty(a.shape)
+    out = np.empty(np.broadcast_shapes((*q.shape[:-1], a.shape[-1]), a.shape))
     for dst, src in runs:
         np.subtract(q[..., src], a[..., dst], out=out[..., dst])
     return out
@@ -349,9 +370,7 @@ def _flipped(points, normal, live):
     ``dot3`` make of the triangles' edges, bit for bit, up to a triangle's sign (an
     edge from a is a point, or a point negated; an area negated keeps its flips)."""
     p1, p2, p3 = points
-    e21 = [p2[i] - p1[i] for i in range(3)]
-    e31 = [p3[i] - p1[i] for i in range(3)]
-    e32 = [p3[i] - p2[i] for i in range(3)]
+    e21, e31, e32 = p2 - p1, p3 - p1, p3 - p2
     # a b c: (P1, P2); b c d: (P2 - P1, P3 - P1); c d a: (P3 - P2, -P2); d a b: (-P3, P1 - P3)
     flips = np.zeros(live.shape, dtype=bool)
     for e, f in ((p1, p2), (e21, e31), (e32, p2), (p3, e31)):
