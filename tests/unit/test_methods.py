@@ -119,8 +119,11 @@ def test_auto_says_so_when_no_method_meets_the_target():
 
 
 def test_auto_keeps_the_candidate_with_fewer_folds_when_none_meets_the_target(monkeypatch):
-    """The choice among misses, on made-up measurements: fewer folds first, then fewer
-    cameras off the target, then the cheaper method."""
+    """The choice among misses, on made-up measurements: a fold-free candidate first;
+    among candidates that all fold, fewer cameras off the target, then fewer folds,
+    then the cheaper method. Both folding, AUTO once kept the one with fewer folds
+    whatever its cameras: SCALAR_FIELD on the turned rig, two cameras 6 px off at
+    480x270 where IMAGE_BLEND kept every camera exact."""
     from multiscale_camera.core.methods import registry
 
     def cam(p95):
@@ -138,9 +141,11 @@ def test_auto_keeps_the_candidate_with_fewer_folds_when_none_meets_the_target(mo
     monkeypatch.setattr(registry, "kept_folds", lambda *a: (0, []))
     cams, masks = zoom_rig(32, 24)
     for ib, sf, chosen in (
-        (([cam(0.1)], 5), ([cam(0.9)], 2), "SCALAR_FIELD"),
+        (([cam(0.1)], 5), ([cam(0.9)], 0), "SCALAR_FIELD"),
+        (([cam(0.1)], 5), ([cam(0.9)], 2), "IMAGE_BLEND"),
         (([cam(0.1)], 2), ([cam(0.9)], 2), "IMAGE_BLEND"),
         (([cam(0.9)], 2), ([cam(0.1)], 2), "SCALAR_FIELD"),
+        (([cam(0.9)], 5), ([cam(0.9)], 2), "SCALAR_FIELD"),
         (([cam(0.9)], 3), ([cam(0.9)], 3), "IMAGE_BLEND"),
     ):
         figures.update(IMAGE_BLEND=ib, SCALAR_FIELD=sf)

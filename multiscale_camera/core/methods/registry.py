@@ -105,6 +105,19 @@ def seam_message(folds, pairs):
     )
 
 
+def least_miss(kept):
+    """The field that misses AUTO's target least among ``kept``, a list of (folds,
+    cameras off the target, rank among the candidates, field): a fold-free one first (a
+    fold is a tear in the picture); among those that all fold, the one with the fewest
+    cameras off the target, then the fewest folds, then the cheapest. The masks say
+    what the artist asked to keep: where every candidate tears somewhere, the one that
+    keeps the cameras exact is kept (on a rig turned 41 and 50 degrees, IMAGE_BLEND
+    with every camera exact rather than SCALAR_FIELD with two cameras 6 px off, both
+    folding: docs/methods.md)."""
+    *_, fld = min(kept, key=lambda k: (k[0] > 0, k[1], k[0], k[2]))
+    return fld
+
+
 def prepare_auto(rig, settings=None, diag=None, reuse=None):
     """AUTO: the cheapest method whose rays meet the accuracy target on this rig.
 
@@ -116,9 +129,10 @@ def prepare_auto(rig, settings=None, diag=None, reuse=None):
     wrong. Folds that every method would have (``quality.kept_folds``: quads across a
     seam where masks touch) send it no further: its rays are kept and a warning names the
     cameras. When no candidate meets the target, the one that misses it least is kept
-    (fewest folds, then fewest cameras off the target, then the cheapest) and the report
-    says why. A camera with no pixel to measure (an empty mask, or one too thin once
-    eroded: ``quality.unmeasured_camera``) is held to nothing, and the word names it.
+    (``least_miss``: a fold-free one, else the fewest cameras off the target, then the
+    fewest folds, then the cheapest) and the report says why. A camera with no pixel to
+    measure (an empty mask, or one too thin once eroded: ``quality.unmeasured_camera``)
+    is held to nothing, and the word names it.
     The choice and why are in ``stats["auto"]``; the measurement stays with the field
     (``measured``), so the report does not measure it again.
 
@@ -176,9 +190,8 @@ def prepare_auto(rig, settings=None, diag=None, reuse=None):
                 return fld
         misses.append(f"{name} would miss it: {shortfall(cameras, folds, settings.accuracy_px)}")
         kept.append((folds, len(off), n, fld))
-    # none meets it: the one that misses least (fewest folds: a fold is a visible tear;
-    # then fewest cameras off the target; then the cheapest)
-    *_, fld = min(kept, key=lambda k: k[:3])
+    # none meets it: the one that misses least (``least_miss``)
+    fld = least_miss(kept)
     name = fld.method
     fld.stats["auto"] = f"{name}: no method meets the target on this rig; " + "; ".join(misses)
     fld.warnings.append(
