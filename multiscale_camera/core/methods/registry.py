@@ -14,7 +14,7 @@ gets its seconds per stage.
 
 from ..diagnostics import diagnostics_of
 from ..errors import RigError
-from ..quality import kept_folds, measure_map
+from ..quality import kept_folds, measure_map, transition_folds
 from .base import Settings
 from .image_blend import prepare_image_blend
 from .linear import prepare_linear
@@ -105,6 +105,21 @@ def seam_message(folds, pairs):
     )
 
 
+def transition_message(folds, pairs, names):
+    """The warning for IMAGE_BLEND's folds in transitions, its cameras exact: ``folds``
+    int, ``pairs`` ``quality.transition_folds``' list, ``names`` the rig's cameras."""
+    where = "; ".join(f"'{a}' and '{b}' ({c})" for (a, b), c in pairs)
+    inner = [f"'{b}'" for b in sorted({b for (_a, b), _c in pairs}, key=names.index)]
+    near = " and ".join(inner)
+    planes = "its near plane" if len(inner) == 1 else "their near planes"
+    return (
+        f"{folds} folded quads in the transitions between {where}: the rays there turn "
+        "further than the gap between the masks leaves room for (every camera is "
+        f"exact). Raise the Clip Start of {near} ({planes} nearer the subject), widen the "
+        "gap between those masks, or turn the cameras less (docs/failures.md)."
+    )
+
+
 def least_miss(kept):
     """The field that misses AUTO's target least among ``kept``, a list of (folds,
     cameras off the target, rank among the candidates, field): a fold-free one first (a
@@ -113,7 +128,7 @@ def least_miss(kept):
     what the artist asked to keep: where every candidate tears somewhere, the one that
     keeps the cameras exact is kept (on a rig turned 41 and 50 degrees, IMAGE_BLEND
     with every camera exact rather than SCALAR_FIELD with two cameras 6 px off, both
-    folding: docs/methods.md)."""
+    folding: docs/architecture.md, "Where IMAGE_BLEND folds")."""
     *_, fld = min(kept, key=lambda k: (k[0] > 0, k[1], k[0], k[2]))
     return fld
 
@@ -130,7 +145,9 @@ def prepare_auto(rig, settings=None, diag=None, reuse=None):
     seam where masks touch) send it no further: its rays are kept and a warning names the
     cameras. When no candidate meets the target, the one that misses it least is kept
     (``least_miss``: a fold-free one, else the fewest cameras off the target, then the
-    fewest folds, then the cheapest) and the report says why. A camera with no pixel to
+    fewest folds, then the cheapest) and the report says why; where that is IMAGE_BLEND
+    with every camera exact, a warning names its folding transitions and what to change
+    (``transition_message``). A camera with no pixel to
     measure (an empty mask, or one too thin once eroded: ``quality.unmeasured_camera``)
     is held to nothing, and the word names it.
     The choice and why are in ``stats["auto"]``; the measurement stays with the field
@@ -155,7 +172,7 @@ def prepare_auto(rig, settings=None, diag=None, reuse=None):
             out = prepare_scalar_field(rig, settings, diag, reuse)
         out.stats["auto"] = choice.why if choice is not None else UNMEASURED_SHOT
         return out
-    misses, kept = [], []
+    misses, kept, maps = [], [], {}
     names = [cam.name for cam in rig.cameras]
     for n, name in enumerate(AUTO_CANDIDATES):
         if n:
@@ -190,6 +207,7 @@ def prepare_auto(rig, settings=None, diag=None, reuse=None):
                 return fld
         misses.append(f"{name} would miss it: {shortfall(cameras, folds, settings.accuracy_px)}")
         kept.append((folds, len(off), n, fld))
+        maps[name] = fold_quads
     # none meets it: the one that misses least (``least_miss``)
     fld = least_miss(kept)
     name = fld.method
@@ -199,6 +217,11 @@ def prepare_auto(rig, settings=None, diag=None, reuse=None):
         f"{name} is used, the one that misses it least. Move the masks' edges apart or "
         "turn the cameras less."
     )
+    cameras, folds = fld.measured
+    if name == "IMAGE_BLEND" and folds and not accuracy_misses(cameras, settings.accuracy_px):
+        turns = transition_folds(fld.weights, rig.masks, maps[name], names)
+        if turns:
+            fld.warnings.append(transition_message(sum(c for _p, c in turns), turns, names))
     return fld
 
 

@@ -38,6 +38,7 @@ from .report import (
     measure_map,
     readable,
     to_json,
+    transition_folds,
 )
 from .validate import (
     MAX_TURN_DEG,
@@ -83,6 +84,7 @@ __all__ = [
     "guard_pairs",
     "headline",
     "kept_folds",
+    "transition_folds",
     "measure",
     "measure_map",
     "measured_pixels",

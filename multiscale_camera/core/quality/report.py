@@ -350,6 +350,36 @@ def kept_folds(masks, folds, stride, names):
     return int(fixed.sum()), [(names[a], names[b]) for a, b in pairs]
 
 
+def transition_folds(weights, masks, folds, names):
+    """The folds in transitions, by the two cameras whose transition holds them.
+
+    Parameters
+    ----------
+    weights : (N, H, W) float, each pixel's camera weights (IMAGE_BLEND's). masks : (N,
+        H, W) bool, at most one True per pixel. folds : (H - 1, W - 1) bool,
+        ``fold_map``'s (stride 1). names : N str.
+
+    Returns
+    -------
+    list of ((str, str), int): for each pair of cameras, in rig order, the folded quads
+    not kept whole by masks (``kept_folds`` has those) whose two largest weights, summed
+    over the quad's four pixels, are that pair's; most folds first.
+    """
+    n, h, w = masks.shape
+    corners = _quad_owners(masks, np.arange(h), np.arange(w))
+    open_ = folds & ~(corners >= 0).all(axis=0)
+    if not open_.any():
+        return []
+    wt = np.asarray(weights, dtype=np.float64)
+    iy, ix = np.nonzero(open_)
+    quad = wt[:, iy, ix] + wt[:, iy, ix + 1] + wt[:, iy + 1, ix] + wt[:, iy + 1, ix + 1]
+    top = np.argsort(-quad, axis=0, kind="stable")[:2]
+    low, high = top.min(axis=0), top.max(axis=0)
+    pairs, counts = np.unique(np.stack([low, high], axis=1), axis=0, return_counts=True)
+    out = [((names[a], names[b]), int(c)) for (a, b), c in zip(pairs, counts)]
+    return sorted(out, key=lambda pc: -pc[1])
+
+
 # Why a camera's figures are null (schema key "unmeasured" of a camera).
 EMPTY_MASK = "its mask is empty: no preserved pixel to measure"
 THIN_MASK = (
