@@ -51,7 +51,7 @@ sys.path.insert(0, str(ROOT))
 
 import fixtures.rigs as rigs  # noqa: E402
 import multiscale_camera.core.methods.scalar_field as scalar_field  # noqa: E402
-from bench.methods import _commit, _worst  # noqa: E402
+from bench.methods import _commit, _run, _worst  # noqa: E402
 from fixtures.masks import radius  # noqa: E402
 from multiscale_camera.core.field import choose_grid, fill_membership  # noqa: E402
 from multiscale_camera.core.geometry import (  # noqa: E402
@@ -442,23 +442,13 @@ def run_conflicts(size, quality, out, timeout, variants=False):
         ]
     for name, cmd in jobs:
         start = time.perf_counter()
-        with subprocess.Popen(
-            ["nice", "-n", "10", sys.executable, *cmd],
-            cwd=ROOT,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-            start_new_session=True,
-        ) as proc:
-            try:
-                stdout, _err = proc.communicate(timeout=timeout)
-                row = json.loads(stdout.strip().splitlines()[-1])
-            except subprocess.TimeoutExpired:
-                os.killpg(proc.pid, 9)
-                proc.communicate()
-                row = {"rig": name, "size": [width, height], "quality": quality}
-                row["timed_out"] = timeout
-                row["load_1min"] = round(os.getloadavg()[0], 2)
+        try:
+            done = _run(["nice", "-n", "10", sys.executable, *cmd], timeout)
+            row = json.loads(done.stdout.strip().splitlines()[-1])
+        except subprocess.TimeoutExpired:
+            row = {"rig": name, "size": [width, height], "quality": quality}
+            row["timed_out"] = timeout
+            row["load_1min"] = round(os.getloadavg()[0], 2)
         row["wall_seconds"] = round(time.perf_counter() - start, 1)
         if not variants:
             cams, masks = getattr(rigs, name)(width, height)
