@@ -147,11 +147,10 @@ def prepare_auto(rig, settings=None, diag=None, reuse=None):
     (``least_miss``: a fold-free one, else the fewest cameras off the target, then the
     fewest folds, then the cheapest) and the report says why; where that is IMAGE_BLEND
     with every camera exact, a warning names its folding transitions and what to change
-    (``transition_message``). A camera with no pixel to
-    measure (an empty mask, or one too thin once eroded: ``quality.unmeasured_camera``)
-    is held to nothing, and the word names it.
-    The choice and why are in ``stats["auto"]``; the measurement stays with the field
-    (``measured``), so the report does not measure it again.
+    (``transition_message``). A camera with no pixel to measure (an empty mask, or one
+    too thin once eroded: ``quality.unmeasured_camera``) is held to nothing, and the word
+    names it. The choice and why are in ``stats["auto"]``; the measurement stays with
+    the field (``measured``), so the report does not measure it again.
 
     A rig in motion (``settings.steady``) keeps one method for the whole shot (a choice
     measured frame by frame could switch it mid-shot): the one ``settings.shot`` holds

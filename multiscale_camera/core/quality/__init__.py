@@ -84,7 +84,6 @@ __all__ = [
     "guard_pairs",
     "headline",
     "kept_folds",
-    "transition_folds",
     "measure",
     "measure_map",
     "measured_pixels",
@@ -98,5 +97,6 @@ __all__ = [
     "section_points",
     "size_text",
     "to_json",
+    "transition_folds",
     "turn_deg",
 ]
