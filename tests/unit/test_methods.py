@@ -116,10 +116,9 @@ def test_auto_says_so_when_no_method_meets_the_target():
         "the one that misses it least. Move the masks' edges apart or turn the cameras less."
     )
     assert fld.warnings[-1] == (
-        "12 folded quads in the transitions between 'C1' and 'C2' (12): the rays there "
-        "turn further than the gap between the masks leaves room for (every camera is "
-        "exact). Raise the Clip Start of 'C2' (its near plane nearer the subject), widen "
-        "the gap between those masks, or turn the cameras less (docs/failures.md)."
+        "12 quads fold in the transitions ('C1'-'C2' 12), every camera exact: raise the "
+        "Clip Start of 'C2' (nearer the subject), widen the gaps between their masks or "
+        "turn the cameras less (docs/failures.md)."
     )
     assert fld.measured == (fld.measured[0], 12)
 
@@ -243,11 +242,9 @@ def test_auto_keeps_exact_image_blend_on_the_turned_rig_and_names_its_transition
     assert "SCALAR_FIELD would miss it: " in fld.stats["auto"]
     assert fld.warnings[-2].startswith("No method meets the accuracy target on this rig")
     assert fld.warnings[-1] == (
-        "185 folded quads in the transitions between 'C2' and 'C3' (128); 'C1' and 'C2' "
-        "(57): the rays there turn further than the gap between the masks leaves room for "
-        "(every camera is exact). Raise the Clip Start of 'C2' and 'C3' (their near planes "
-        "nearer the subject), widen the gap between those masks, or turn the cameras less "
-        "(docs/failures.md)."
+        "185 quads fold in the transitions ('C2'-'C3' 128, 'C1'-'C2' 57), every camera "
+        "exact: raise the Clip Start of 'C2' and 'C3' (nearer the subject), widen the gaps "
+        "between their masks or turn the cameras less (docs/failures.md)."
     )
 
 

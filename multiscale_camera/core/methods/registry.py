@@ -107,16 +107,14 @@ def seam_message(folds, pairs):
 
 def transition_message(folds, pairs, names):
     """The warning for IMAGE_BLEND's folds in transitions, its cameras exact: ``folds``
-    int, ``pairs`` ``quality.transition_folds``' list, ``names`` the rig's cameras."""
-    where = "; ".join(f"'{a}' and '{b}' ({c})" for (a, b), c in pairs)
+    int, ``pairs`` ``quality.transition_folds``' list, ``names`` the rig's cameras. What
+    to change comes early: the panel shows a warning's first four lines."""
+    where = ", ".join(f"'{a}'-'{b}' {c}" for (a, b), c in pairs)
     inner = [f"'{b}'" for b in sorted({b for (_a, b), _c in pairs}, key=names.index)]
-    near = " and ".join(inner)
-    planes = "its near plane" if len(inner) == 1 else "their near planes"
     return (
-        f"{folds} folded quads in the transitions between {where}: the rays there turn "
-        "further than the gap between the masks leaves room for (every camera is "
-        f"exact). Raise the Clip Start of {near} ({planes} nearer the subject), widen the "
-        "gap between those masks, or turn the cameras less (docs/failures.md)."
+        f"{folds} quads fold in the transitions ({where}), every camera exact: raise the "
+        f"Clip Start of {' and '.join(inner)} (nearer the subject), widen the gaps between "
+        "their masks or turn the cameras less (docs/failures.md)."
     )
 
 
