@@ -64,7 +64,12 @@ from multiscale_camera.core.geometry import (  # noqa: E402
     dot3,
 )
 from multiscale_camera.core.methods import prepare, settings_for  # noqa: E402
-from multiscale_camera.core.quality import bending_active, build_report  # noqa: E402
+from multiscale_camera.core.quality import (  # noqa: E402
+    bending_active,
+    build_report,
+    kept_folds,
+    transition_folds,
+)
 from multiscale_camera.core.quality.report import fold_map  # noqa: E402
 
 # Half the step of the curves' central differences, pixels.
@@ -237,21 +242,16 @@ def needed_gap(cams, beta, inner, outer, px, py):
 
 def by_pair(fld, quads):
     """Counts of the quads ``quads`` ((H - 1, W - 1) bool) by where they lie: "kept"
-    (one camera keeps all four pixels), else the two cameras of largest weight over the
-    quad's pixels ("2-3": cameras 2 and 3)."""
+    (masks keep all four pixels: ``quality.kept_folds``), else the two cameras of
+    largest weight over the quad's pixels ("2-3": cameras 2 and 3;
+    ``quality.transition_folds``, which AUTO's warning names them by)."""
     masks = fld.rig.masks
-    owner = np.where(masks.any(axis=0), masks.argmax(axis=0), -1)
-    corners = np.stack([owner[:-1, :-1], owner[:-1, 1:], owner[1:, :-1], owner[1:, 1:]])
-    kept = (corners[0] >= 0) & (corners == corners[0]).all(axis=0)
-    w = np.asarray(fld.weights, dtype=np.float64)
-    s = w[:, :-1, :-1] + w[:, 1:, :-1] + w[:, :-1, 1:] + w[:, 1:, 1:]
-    top = np.argsort(-s, axis=0, kind="stable")
-    a, b = np.minimum(top[0], top[1]), np.maximum(top[0], top[1])
-    out = {"kept": int((quads & kept).sum())}
     n = len(masks)
-    for i in range(n):
-        for j in range(i + 1, n):
-            out[f"{i + 1}-{j + 1}"] = int((quads & ~kept & (a == i) & (b == j)).sum())
+    names = [str(i + 1) for i in range(n)]
+    out = {"kept": kept_folds(masks, quads, 1, names)[0]}
+    out.update({f"{i + 1}-{j + 1}": 0 for i in range(n) for j in range(i + 1, n)})
+    for (a, b), count in transition_folds(fld.weights, masks, quads, names):
+        out[f"{a}-{b}"] = count
     return out
 
 

@@ -105,10 +105,11 @@ def seam_message(folds, pairs):
     )
 
 
-def transition_message(folds, pairs, names):
-    """The warning for IMAGE_BLEND's folds in transitions, its cameras exact: ``folds``
-    int, ``pairs`` ``quality.transition_folds``' list, ``names`` the rig's cameras. What
-    to change comes early: the panel shows a warning's first four lines."""
+def transition_message(pairs, names):
+    """The warning for IMAGE_BLEND's folds in transitions, its cameras exact: ``pairs``
+    ``quality.transition_folds``' list, ``names`` the rig's cameras. What to change
+    comes early: the panel shows a warning's first four lines."""
+    folds = sum(count for _pair, count in pairs)
     where = ", ".join(f"'{a}'-'{b}' {c}" for (a, b), c in pairs)
     inner = [f"'{b}'" for b in sorted({b for (_a, b), _c in pairs}, key=names.index)]
     return (
@@ -218,7 +219,7 @@ def prepare_auto(rig, settings=None, diag=None, reuse=None):
     if name == "IMAGE_BLEND" and folds and not accuracy_misses(cameras, settings.accuracy_px):
         turns = transition_folds(fld.weights, rig.masks, maps[name], names)
         if turns:
-            fld.warnings.append(transition_message(sum(c for _p, c in turns), turns, names))
+            fld.warnings.append(transition_message(turns, names))
     return fld
 
 
