@@ -129,6 +129,32 @@ def test_auto_takes_scalar_field_for_a_shot_where_one_sampled_frame_folds(monkey
     assert built == [rigs[2]] and fld.stats["auto"] == choice.why
 
 
+def test_a_shot_whose_masks_touch_keeps_image_blend_as_a_still_does():
+    """Overlapping masks leave two kept regions touching: the rays across the seam are
+    the cameras' own with every method, so a still's AUTO keeps IMAGE_BLEND there
+    (``quality.kept_folds``). A shot counted those folds against IMAGE_BLEND and built
+    SCALAR_FIELD on every frame, slower and folding at the same seam."""
+    from fixtures.rigs import contradictory_rig
+    from multiscale_camera.core.quality import fold_map, kept_folds
+
+    rig = Rig(*contradictory_rig(W, H))
+    still = prepare(rig, "AUTO", replace(SETTINGS, steady=False))
+    folds, stride = fold_map(still)
+    n = int(folds.sum())
+    assert still.method == "IMAGE_BLEND" and n > 0
+    assert kept_folds(rig.masks, folds, stride, ["C1", "C2"]) == (n, [("C1", "C2")])
+    moved = Rig(*contradictory_rig(W, H))
+    choice = choose_shot_method([(1, rig), (9, moved)], SETTINGS)
+    assert choice == ShotChoice(
+        "IMAGE_BLEND",
+        (1, 9),
+        "IMAGE_BLEND: the rig moves and a shot keeps one method; IMAGE_BLEND meets the "
+        "target (p95 <= 2 px, max <= 8 px along every preserved ray, no fold) at frames "
+        "1, 9 of the shot; its folded quads lie where masks touch, and every method's "
+        f"rays fold there (frame 1: {n}, 'C1' and 'C2'; frame 9: {n}, 'C1' and 'C2')",
+    )
+
+
 def test_a_shots_choice_is_deterministic_and_part_of_every_frames_key():
     """Two processes (fresh rigs and stores each) measure the same sampled frames and
     choose alike, so every frame's cache key agrees; the key follows the method."""

@@ -4,7 +4,9 @@ A choice measured frame by frame could switch method mid-shot (the rays would ju
 that frame). So AUTO measures IMAGE_BLEND, the cheaper candidate, on a few frames that
 cover the shot (``sample_frames``: its first and last keyed frames and the key nearest
 its middle) and keeps it for every frame when every sampled frame meets the target
-(``registry.shortfall``), else SCALAR_FIELD on the shot's layout. The frames sampled
+(``registry.shortfall``), else SCALAR_FIELD on the shot's layout. Folds that every
+method has (quads across a seam where masks touch, ``quality.kept_folds``) do not count
+against IMAGE_BLEND, as they do not for a still. The frames sampled
 depend on the shot alone (its keys, not the frames a process was asked to render), and
 each measure on that frame's rig alone, so every process of a farm chooses alike.
 """
@@ -12,10 +14,10 @@ each measure on that frame's rig alone, so every process of a farm chooses alike
 from dataclasses import dataclass
 
 from ..diagnostics import diagnostics_of
-from ..quality import measure
+from ..quality import kept_folds, measure_map
 from .base import Settings
 from .image_blend import prepare_image_blend
-from .registry import MAX_OVER_TARGET, shortfall
+from .registry import MAX_OVER_TARGET, accuracy_misses, shortfall
 
 # Frames of a shot AUTO measures IMAGE_BLEND on, at most (each a weights solve and a
 # measure of the frame's preserved rays and folds).
@@ -81,16 +83,26 @@ def choose_shot_method(samples, settings=None, diag=None):
     -------
     ShotChoice: IMAGE_BLEND when every sampled frame meets the target, else
     SCALAR_FIELD, naming the first frame that missed and why (the frames after it are
-    not measured).
+    not measured). A frame whose every fold lies across a seam where masks touch
+    (``quality.kept_folds``), its cameras on the target, meets it: those rays are the
+    cameras' own with every method, so SCALAR_FIELD would fold there too. The word then
+    names those frames and the cameras whose masks touch.
     """
     settings = settings or Settings()
     diag = diagnostics_of(diag)
-    measured = []
+    measured, seams = [], []
     for frame, rig in sorted(samples, key=lambda s: s[0]):
         diag.check()
         fld = prepare_image_blend(rig, settings, diag)
-        cameras, folds = measure(fld, settings.processes, diag)
+        cameras, fold_quads, stride = measure_map(fld, settings.processes, diag)
+        folds = int(fold_quads.sum())
         measured.append(int(frame))
+        if folds and not accuracy_misses(cameras, settings.accuracy_px):
+            names = [cam.name for cam in rig.cameras]
+            fixed, pairs = kept_folds(rig.masks, fold_quads, stride, names)
+            if fixed == folds:  # every method's rays fold there: not IMAGE_BLEND's miss
+                seams.append((int(frame), folds, pairs))
+                continue
         why = shortfall(cameras, folds, settings.accuracy_px)
         if why:
             return ShotChoice(
@@ -106,8 +118,20 @@ def choose_shot_method(samples, settings=None, diag=None):
         f"IMAGE_BLEND: the rig moves and a shot keeps one method; IMAGE_BLEND meets the "
         f"target (p95 <= {settings.accuracy_px:g} px, max <= "
         f"{MAX_OVER_TARGET * settings.accuracy_px:g} px along every preserved ray, no fold) "
-        f"at frames {_listed(measured)} of the shot",
+        f"at frames {_listed(measured)} of the shot" + _seams(seams),
     )
+
+
+def _seams(seams):
+    """The word's note on folds at seams: ``seams`` a list of (frame, folds, pairs)."""
+    if not seams:
+        return ""
+    said = "; ".join(
+        f"frame {frame}: {folds}, "
+        + (", ".join(f"'{a}' and '{b}'" for a, b in pairs) or "one camera")
+        for frame, folds, pairs in seams
+    )
+    return f"; its folded quads lie where masks touch, and every method's rays fold there ({said})"
 
 
 def _listed(frames):
