@@ -49,6 +49,8 @@ def field_to_arrays(fld):
                 part = getattr(value, t.name)
                 if t.name == "step" and part is None:  # a step that followed the cells
                     part = np.nan
+                if t.name == "bands" and part is None:  # every ray the whole step
+                    continue
                 out[f"traced.{f.name}.{t.name}"] = np.asarray(part)
         elif isinstance(value, Grid):
             out[f"grid.{f.name}"] = np.concatenate(

@@ -17,6 +17,7 @@ from fixtures.rigs import zoom_rig
 from multiscale_camera.core.diagnostics import Diagnostics
 from multiscale_camera.core.errors import RigError
 from multiscale_camera.core.field import tracer
+from multiscale_camera.core.field.plane_step import MAX_GAIN, extra_steps
 from multiscale_camera.core.geometry import DEFAULT_SEGMENTS, Rig
 from multiscale_camera.core.methods import prepare, registry, settings_for, traced
 from multiscale_camera.core.quality import (
@@ -48,7 +49,9 @@ def test_constants_are_the_ones_the_code_uses():
 def test_copied_stride_and_step_limit_are_those_the_trace_uses(monkeypatch, nested):
     """The estimate reads the lattice's stride and the trace's step limit off the rig
     with its own copy of their arithmetic (core.quality cannot import the methods): on a
-    rig, both equal what a build's ``traced.lattice_stride`` and ``trace_field`` use."""
+    rig, the stride equals what a build's ``traced.lattice_stride`` uses, and the step
+    limit ``trace_field``'s but for the steps its bands at near planes add, which the
+    estimate takes at their most (``field.NearPlaneStep``, MAX_GAIN)."""
     limits = []
     lattice = traced._AdaptiveLattice
 
@@ -64,7 +67,10 @@ def test_copied_stride_and_step_limit_are_those_the_trace_uses(monkeypatch, nest
     fld = prepare(rig, "SCALAR_FIELD", settings)
     assert fld.stats["levels"] > 1 if nested else fld.stats["levels"] == 1
     assert est.shapes["stride"] == fld.stats["stride"]
-    assert limits == [est.shapes["step_limit"]]
+    (limit,) = limits
+    (gain,) = fld.stats["plane_gains"]
+    banded = extra_steps([gain]) if gain > 1 else 0  # no band: the step as it was
+    assert limit == est.shapes["step_limit"] - extra_steps([MAX_GAIN]) + banded
 
 
 def test_image_blend_grows_with_pixels_and_cameras_only():

@@ -91,7 +91,10 @@ def test_transition_rays_of_the_1000x_rig_match_fully_converged_newton(monkeypat
     image (what the warm starts are for), so the reference here is the same trace with
     Newton run to convergence at every evaluation (12 iterations, 1e-11 of the local
     scale): 60 transition rays spread over the image stay within 0.01 px of it in the
-    pixels of every camera that sees them."""
+    pixels of every camera that sees them. The step shortens near the near planes as a
+    function of where the ray is (``field.NearPlaneStep``), so a ray that leaves the
+    grid right at its face may end a vertex sooner or later in one trace than in the
+    other (one of the 60 here, 6.6e-4 world units apart there)."""
     width, height = 240, 135
     cams, masks = zoom1000_rig(width, height)
     rig = Rig(cams, masks)
@@ -107,7 +110,8 @@ def test_transition_rays_of_the_1000x_rig_match_fully_converged_newton(monkeypat
     monkeypatch.setattr(tracer_module, "TRACE_NEWTON_TOLERANCE", 1e-11)
     converged = fld.tracer()
     ref = converged.trace(u0, v0, fld.step, steps)
-    assert converged.missed == 0 and (ref.counts == fast.counts).all()
-    k = int(ref.counts.min())
+    assert converged.missed == 0 and np.abs(ref.counts - fast.counts).max() <= 1
+    assert (ref.counts == fast.counts).mean() >= 0.95
+    k = int(np.minimum(ref.counts, fast.counts).min())
     gap = pixel_gap(cams, width, height, fast.vertices[:, :k], ref.vertices[:, :k])
     assert gap.max() < 0.01, gap.max()

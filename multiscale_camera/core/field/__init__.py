@@ -39,6 +39,7 @@ from .nested import (
     choose_levels,
     solve_levels,
 )
+from .plane_step import NearPlaneStep
 from .preserved_rays import arc_length_rays, scheduled_rays
 from .solvers import (
     ISOLATED_VALUE,
@@ -93,6 +94,7 @@ __all__ = [
     "Tableau",
     "Traced",
     "apply_laplacian",
+    "NearPlaneStep",
     "arc_length_rays",
     "blend_weights",
     "bundle_profile",

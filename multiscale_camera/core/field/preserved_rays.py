@@ -5,6 +5,7 @@ ones, vertex by vertex (docs/architecture.md, *Preserved rays*)."""
 import numpy as np
 
 from ..geometry import near_plane_entries
+from .plane_step import NearPlaneStep
 
 # Dense samples per guide stage for arc-length lookups of R_i: the chord error of
 # 64 samples on a guide is below 1e-5 of its length.
@@ -145,7 +146,12 @@ def _scheduled_chunk(family, u, v, step, vertices, contains):
             gone = live[left]
             d = nxt[left] - x[left]
             more = np.arange(1, vertices - k)
-            out[gone, k + 1 :] = nxt[left][:, None] + d[:, None] * more[None, :, None]
+            if isinstance(step, NearPlaneStep):  # the band's steps, as a trace's run-on
+                unit = d / np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-300)
+                run = step.run_lengths(nxt[left], unit, more[None, :])
+                out[gone, k + 1 :] = nxt[left][:, None] + unit[:, None] * run[..., None]
+            else:
+                out[gone, k + 1 :] = nxt[left][:, None] + d[:, None] * more[None, :, None]
             live = live[~left]
     return out
 

@@ -13,7 +13,7 @@ trace's rays resampled to one layout; ``merge`` gathers the parts of a shared tr
 """
 
 import enum
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -432,6 +432,10 @@ class Traced:
     reason : (R,) int8, ``StopReason`` values.
     step : float, world units; or None when the step followed the local cell size of
         nested grids (vertex k is then the k-th step's end, at no common arc length).
+    bands : (R,) int8 or None: how many of the trace's bands at near planes
+        (``plane_step.NearPlaneStep``, cameras 2, 3, ... in order) each ray's vertices
+        follow: camera i's preserved rays those of cameras 2..i (``up_to``), traced rays
+        all. None: every ray follows the whole step.
     """
 
     vertices: np.ndarray
@@ -439,51 +443,91 @@ class Traced:
     counts: np.ndarray
     reason: np.ndarray
     step: float
+    bands: np.ndarray = None
+
+    def rows(self, sl):
+        """The ``Traced`` of rays ``sl`` (a slice or index array)."""
+        bands = None if self.bands is None else self.bands[sl]
+        return Traced(
+            self.vertices[sl],
+            self.membership[sl],
+            self.counts[sl],
+            self.reason[sl],
+            self.step,
+            bands,
+        )
 
 
-def run_on(traced, vertices):
+def run_on(traced, vertices, schedule=None):
     """A ``Traced`` extended to ``vertices`` vertices by running straight on along each
-    ray's last segment at the same step."""
+    ray's last segment at the same step; with ``schedule`` (a ``NearPlaneStep``, the
+    trace's step) at the steps each ray's own schedule (``Traced.bands``) would have
+    taken there, so rays that stop inside a band around a near plane stay in step with
+    their neighbours."""
     v, m = traced.vertices, traced.membership
     extra = vertices - v.shape[1]
     if extra <= 0:
         return traced
     d = (v[:, -1] - v[:, -2]).astype(np.float64)
-    if traced.step is not None:
-        d *= traced.step / np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-30)
-    # with a step that follows the local cell, the last segment's own length runs on
-    tail = v[:, -1:].astype(np.float64) + d[:, None] * np.arange(1, extra + 1)[None, :, None]
+    last = v[:, -1:].astype(np.float64)
+    more = np.arange(1, extra + 1)
+    tail = np.empty((len(v), extra, 3))
+    if schedule is not None:
+        bands = traced.bands
+        if bands is None:
+            bands = np.full(len(v), len(schedule.given[0]), dtype=np.int8)
+        for count in np.unique(bands):
+            rows = np.flatnonzero(bands == count)
+            step = schedule.up_to(int(count))
+            length = np.linalg.norm(d[rows], axis=-1, keepdims=True)
+            unit = d[rows] / np.maximum(length, 1e-30)
+            if hasattr(step, "run_lengths"):  # a NearPlaneStep: through its bands
+                run = step.run_lengths(last[rows, 0], unit, more[None, :])
+            elif callable(step):  # no band, a step that follows the cells: as without one
+                run = length * more[None, :]
+            else:  # no band: the base step, as laid out
+                run = np.broadcast_to(step * more[None, :], (len(rows), extra))
+            tail[rows] = last[rows] + unit[:, None] * run[..., None]
+    else:
+        if traced.step is not None:
+            d *= traced.step / np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-30)
+        # with a step that follows the local cell, the last segment's own length runs on
+        tail = last + d[:, None] * more[None, :, None]
     return Traced(
         np.concatenate([v, tail.astype(np.float32)], axis=1),
         np.concatenate([m, np.repeat(m[:, -1:], extra, axis=1)], axis=1),
         traced.counts,
         traced.reason,
         traced.step,
+        traced.bands,
     )
 
 
-def merge(parts, order, total):
+def merge(parts, order, total, schedule=None):
     """Combine ``Traced`` parts into one, rays placed at ``order`` (one index array per
-    part) among ``total`` rays. Consumes ``parts``: each entry is released (set to None)
-    once copied, so a large merge holds little more than its result."""
+    part) among ``total`` rays, shorter ones run on (``run_on``, with ``schedule``).
+    Consumes ``parts``: each entry is released (set to None) once copied, so a large
+    merge holds little more than its result."""
     k = max(p.vertices.shape[1] for p in parts)
     step = parts[0].step
     verts = np.empty((total, k, 3), dtype=np.float32)
     mem = np.empty((total, k), dtype=np.float32)
     counts = np.empty(total, dtype=np.int32)
     reason = np.empty(total, dtype=np.int8)
+    banded = any(p.bands is not None for p in parts)
+    bands = np.zeros(total, dtype=np.int8) if banded else None
     for j, idx in enumerate(order):
         p, parts[j] = parts[j], None
         counts[idx], reason[idx] = p.counts, p.reason
+        if banded:
+            bands[idx] = p.bands if p.bands is not None else np.iinfo(np.int8).max
         block = max(1, MERGE_BLOCK_VERTICES // k)
         for s in range(0, len(idx), block):
             sl = slice(s, s + block)
-            sub = run_on(
-                Traced(p.vertices[sl], p.membership[sl], p.counts[sl], p.reason[sl], step), k
-            )
+            sub = run_on(replace(p.rows(sl), step=step), k, schedule)
             verts[idx[sl]], mem[idx[sl]] = sub.vertices, sub.membership
         del p
-    return Traced(verts, mem, counts, reason, step)
+    return Traced(verts, mem, counts, reason, step, bands)
 
 
 # Ray vertices ``merge`` extends at a time.

@@ -18,6 +18,7 @@ from ..errors import Cancelled
 from ..geometry import Family, dot3, solve3
 from ..runtime import runtime, worker_count
 from .grid import FieldSampler
+from .plane_step import NearPlaneStep
 from .preserved_rays import arc_length_rays, first_past_near_plane, scheduled_rays
 from .trace import StopReason, Traced, merge, rk4_streamlines
 
@@ -279,6 +280,9 @@ class FieldTracer:
         ok : (R,) bool, all True. traced : Traced of the R rays.
         """
         r, k = len(u), int(vertices)
+        whole = step  # what the rays are recorded with (``Traced.step``), as traced ones
+        if isinstance(step, NearPlaneStep):  # the bands of its own guides' planes alone
+            step = step.up_to(i)
         verts = np.empty((r, k, 3), dtype=np.float32)
         membership = np.empty((r, k), dtype=np.float32)
         count = np.empty(r, dtype=np.int32)
@@ -310,7 +314,8 @@ class FieldTracer:
             membership[:, :keep].copy() if keep < k else membership,
             count,
             reason,
-            None if callable(step) else step,
+            None if callable(whole) else whole,
+            np.full(r, i, dtype=np.int8) if isinstance(whole, NearPlaneStep) else None,
         )
 
     def _workers(self, rays):
@@ -334,7 +339,12 @@ class FieldTracer:
         self.missed += sum(p[1] for p in parts)
         self.lost += [entry for p in parts for entry in p[3]]
         self.tangent_seconds += float(np.mean([p[2] for p in parts]))
-        return merge([p[0] for p in parts], [np.arange(k, rays, n) for k in range(n)], rays)
+        return merge(
+            [p[0] for p in parts],
+            [np.arange(k, rays, n) for k in range(n)],
+            rays,
+            _schedule(step),
+        )
 
     def trace(self, u0, v0, step, max_steps, should_stop=None):
         """RK4 streamlines from the near-plane points of pixels (u0, v0) of camera 1.
@@ -388,7 +398,7 @@ class FieldTracer:
         if len(rest):
             parts.append(self._trace_here(u[rest], v[rest], step, max_steps, should_stop))
             order.append(rest)
-        return merge(parts, order, len(ix))
+        return merge(parts, order, len(ix), _schedule(step))
 
     def _trace_here(self, u0, v0, step, max_steps, should_stop=None):
         """``trace`` in this process."""
@@ -432,8 +442,12 @@ class FieldTracer:
             # after a ray stops, run straight on along its last direction at the same
             # step, so vertex k of every ray lies at the same arc length
             after = ks >= count[:, None]
-            spacing = step(last)[:, None] if callable(step) else step
-            run = (ks - (count[:, None] - 1)) * spacing
+            after_last = ks - (count[:, None] - 1)
+            if isinstance(step, NearPlaneStep):  # the band's steps, as the trace had them
+                run = step.run_lengths(last, d, after_last)
+            else:
+                spacing = step(last)[:, None] if callable(step) else step
+                run = after_last * spacing
             verts = np.where(after[..., None], last[:, None] + d[:, None] * run[..., None], verts)
             pts[sl] = verts
             membership[sl] = self.n_of(verts.reshape(-1, 3)).reshape(len(verts), k)
@@ -444,6 +458,11 @@ class FieldTracer:
             lines.reason,
             None if callable(step) else step,
         )
+
+
+def _schedule(step):
+    """``step`` when it is a ``NearPlaneStep`` (run-ons follow its band), else None."""
+    return step if isinstance(step, NearPlaneStep) else None
 
 
 def _trace_share(tracer, kind, a, b, step, max_steps, rays, share, context):

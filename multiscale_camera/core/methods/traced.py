@@ -10,8 +10,8 @@ import numpy as np
 
 from ..field import (
     FieldTracer,
+    NearPlaneStep,
     StopReason,
-    Traced,
     choose_grid,
     merge,
     near_plane_width,
@@ -19,6 +19,7 @@ from ..field import (
     steady_grid,
     step_cells,
 )
+from ..field.plane_step import plane_gain
 from ..quality import conflict_messages
 from .base import RayField, guard_warnings
 
@@ -179,6 +180,8 @@ class _AdaptiveLattice:
 
     def __init__(self, tracer, rig, step, max_steps, tol_px, diag):
         self.tracer, self.rig, self.step = tracer, rig, step
+        # run-ons follow the step's band around near planes (``field.run_on``)
+        self.schedule = step if isinstance(step, NearPlaneStep) else None
         self.max_steps, self.tol, self.diag = max_steps, tol_px, diag
         w, h = rig.size
         self.index = np.full((h, w), -1, dtype=np.int32)
@@ -228,8 +231,7 @@ class _AdaptiveLattice:
             if not len(sel):
                 continue
             r = ids[sel] - starts[j]
-            sub = Traced(p.vertices[r], p.membership[r], p.counts[r], p.reason[r], p.step)
-            verts[sel] = run_on(sub, k).vertices
+            verts[sel] = run_on(p.rows(r), k, self.schedule).vertices
             counts[sel] = p.counts[r]
         return verts, counts
 
@@ -333,7 +335,7 @@ class _AdaptiveLattice:
             leaf_of[b : d + 1, a : c + 1] = n
         parts, order = self.parts, self.order
         self.parts, self.order = [], []
-        return merge(parts, order, self.count), self.index, leaves, leaf_of
+        return merge(parts, order, self.count, self.schedule), self.index, leaves, leaf_of
 
 
 def lattice_stride(rig, grid):
@@ -396,12 +398,19 @@ def trace_field(fld, tracer, fill, settings, diag, levels=None):
         step = partial(_nested_step, cells, tracer.domain)
     else:
         step = cells * grid.cell
+    # VECTOR_FIELD lays out no preserved ray (its Y only approximates R_i): no band
+    exact = getattr(tracer, "exact_preserved", False)
+    gains = plane_gains(tracer, rig, step, settings.accuracy_px) if exact else []
+    if max(gains, default=1.0) > 1.0:
+        step = NearPlaneStep(step, rig.cameras[1:], gains)
+        max_steps += step.extra_steps()
     fld.step = step
     lattice = _AdaptiveLattice(tracer, rig, step, max_steps, settings.accuracy_px, diag)
     traced, fld.index, fld.leaves, fld.leaf_of = lattice.run(stride)
     fld.traced = traced
     fld.grids.extend(list(g.shape) for g in grids)
     fld.stats.update(
+        plane_gains=[round(g, 3) for g in gains],
         conflicts=fill.conflicts,
         stalled=int((traced.reason == StopReason.STALLED).sum()),
         unfinished=int((traced.reason == StopReason.REACHED_LIMIT).sum()),
@@ -414,6 +423,46 @@ def trace_field(fld, tracer, fill, settings, diag, levels=None):
     fld.warnings += substitution_messages(rig, traced, fld.index, tracer.lost)
     fld.warnings += conflict_messages([c.name for c in rig.cameras], fill.overlaps)
     fld.warnings += guard_warnings(rig)
+
+
+# Preserved pixels per camera whose rays ``plane_gains`` weighs at its near plane.
+PLANE_SAMPLE = 256
+
+
+def plane_gains(tracer, rig, step, accuracy_px):
+    """How many times to shorten the trace's step at each near plane of cameras 2..N
+    (``field.NearPlaneStep``), from the sag of the segment that straddles it.
+
+    Up to ``PLANE_SAMPLE`` of camera i's preserved pixels, spread over its mask, have
+    their segment across the plane weighed at every phase (``field.plane_step.
+    plane_gain``): a preserved ray is R_i at every vertex, so past the plane that chord
+    is its only error, and it falls as the step squared. 1 for a camera without
+    preserved pixels.
+
+    Parameters
+    ----------
+    tracer : FieldTracer (its families). rig : Rig. step : float (world units) or
+        callable, the trace's unshortened step. accuracy_px : float.
+
+    Returns
+    -------
+    list of float, one per camera 2..N, each in [1, MAX_GAIN].
+    """
+    cams = rig.cameras
+    gains = []
+    for i in range(1, len(cams)):
+        ys, xs = np.nonzero(rig.masks[i])
+        if not len(xs):
+            gains.append(1.0)
+            continue
+        pick = np.unique(np.linspace(0, len(xs) - 1, min(len(xs), PLANE_SAMPLE)).astype(np.int64))
+        u, v = xs[pick] + 0.5, ys[pick] + 0.5
+        if callable(step):
+            base = np.asarray(step(cams[i].near_points(cams[i].directions(u, v))), dtype=np.float64)
+        else:
+            base = np.full(len(u), float(step))
+        gains.append(plane_gain(tracer.families[i], u, v, base, accuracy_px))
+    return gains
 
 
 def _pixel_span(x, y):

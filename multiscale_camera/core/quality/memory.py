@@ -24,6 +24,7 @@ from ..field import (
     solve_workers,
     step_cells,
 )
+from ..field.plane_step import MAX_GAIN, extra_steps
 from .measure_memory import measure_memory
 
 # Megabytes as Blender counts them (its memory statistics), and as the project says them
@@ -519,6 +520,10 @@ def estimate_memory(rig, method, settings, workers=1):
     stride = int(np.clip(grids[-1].cell / px / 2, 1, MAX_STRIDE))
     cells = step_cells(settings.accuracy_px, w)
     steps = int(sum(np.ceil(np.linalg.norm(np.array(g.shape)) / cells * 2) for g in grids)) + 8
+    # at most what the step's bands at the near planes add (``field.NearPlaneStep``): the
+    # trace picks their gains from its families, up to MAX_GAIN where a camera has pixels
+    planes = int(np.asarray(rig.masks)[1:].reshape(n - 1, -1).any(axis=1).sum())
+    steps += extra_steps([MAX_GAIN] * planes) if planes else 0
     widths = [near_plane_width(c) for c in rig.cameras]
     ratio = widths[0] / max(min(widths), 1e-30)
     edges = edge_pixels(rig.masks)
