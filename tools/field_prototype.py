@@ -12,7 +12,9 @@ build's constant is 8: 16 cells at 0.5 px), the prototype of a grid that follows
 image size; ``step_cells=X`` the RK4 step in cells at 0.5 px on a 1920-wide image (the
 build's ``field.STEP_CELLS``, 1.5); ``clock=cpu`` the build's stage seconds (``stages``,
 as the report's) in CPU seconds of this process instead of wall seconds: with ``proc=1``
-the whole build, so a shared machine's load does not blur them.
+the whole build, so a shared machine's load does not blur them; ``plane=0`` the trace's
+step left whole at the near planes (no ``field.NearPlaneStep``: every gain 1), the
+build before it shortened there.
 """
 
 import dataclasses
@@ -27,6 +29,7 @@ import fixtures.rigs as rigs  # noqa: E402
 import multiscale_camera.core.field.fill as fill  # noqa: E402
 import multiscale_camera.core.field.tracer as tracer  # noqa: E402
 import multiscale_camera.core.methods.scalar_field as scalar_field  # noqa: E402
+import multiscale_camera.core.methods.traced as traced  # noqa: E402
 from multiscale_camera.core.geometry import Rig  # noqa: E402
 from multiscale_camera.core.methods import prepare, settings_for  # noqa: E402
 from multiscale_camera.core.quality import build_report  # noqa: E402
@@ -46,6 +49,8 @@ def main(argv):
         fill.MIN_CELLS_ACROSS_NEAR = scalar_field.MIN_CELLS_ACROSS_NEAR = 4
     if "step_cells" in opts:
         tracer.STEP_CELLS = float(opts["step_cells"])
+    if opts.get("plane") == "0":
+        traced.plane_gains = lambda tracer_, rig_, *rest: [1.0] * (len(rig_.cameras) - 1)
     if opts.get("clock") == "cpu":
         time.perf_counter = time.process_time
     wall, cpu = time.perf_counter(), time.process_time()
@@ -62,11 +67,15 @@ def main(argv):
         for c in rep["cameras"]
     )
     stages = ", ".join(f"{k} {v:.2f}" for k, v in fld.seconds.items())
+    traced_rays = getattr(fld, "traced", None)
+    vertices = traced_rays.vertices.shape[1] if traced_rays is not None else 0
     print(
         f"{rig} {width}x{height} {method}->{fld.method} {quality} {opts}: build {wall:.1f} s wall, "
         f"{cpu:.1f} s CPU, peak {peak:.0f} MB; stages {stages}; "
         f"p95/max px {cams_out}; folds {rep['folds']}; "
-        f"levels {rep['levels']}, grid {rep['grids'][:1]}, traced {fld.stats.get('traced')}; "
+        f"levels {rep['levels']}, grid {rep['grids'][:1]}, traced {fld.stats.get('traced')}, "
+        f"vertices {vertices}, "
+        f"plane gains {fld.stats.get('plane_gains')}; "
         f"newton_lost {rep['newton_lost']}, stalled {rep['stalled']}"
     )
     if "auto" in rep:
