@@ -12,7 +12,8 @@
 #                 forced SCALAR_FIELD on the 1000x and turned rigs: bench/methods_1920x1080.json
 #   make bench-preview  AUTO at PREVIEW on every bench rig at 480x270:
 #                 bench/methods_480x270_preview.json
-#   make lint     ruff and the import contracts (pyproject.toml, [tool.importlinter])
+#   make lint     ruff (its checks and its format) and the import contracts
+#                 (pyproject.toml, [tool.importlinter])
 #   make fuzz     the core on 500 random rigs (tests/unit/test_fuzz_core.py, profile "full");
 #                 make test runs its bounded profile
 #   make e2e-real the extension in real Blender 5.2 and 4.3, screenshots to docs/images/
@@ -176,6 +177,7 @@ e2e-timing: build sample_blends/demo.blend
 
 lint: venv
 	$(PY) -m ruff check .
+	$(PY) -m ruff format --check .
 	$(LINT_IMPORTS)
 
 clean:

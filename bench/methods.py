@@ -654,7 +654,7 @@ def preview_acceptance(results, source):
         f"zero folds, every camera's along-ray p95 <= {t['p95']:g} px (max <= {t['max']:g} px).",
         "",
         "The verdict holds the first Compute Field of a fresh process (its workers",
-        "started by it) to the target; \"again\" is the same build once more in that",
+        'started by it) to the target; "again" is the same build once more in that',
         "process, as the live picture rebuilds while a mask is painted.",
         "",
         "| rig | method (built) | Compute Field s | load | p95/max px per camera | folds "

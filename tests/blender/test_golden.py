@@ -115,7 +115,10 @@ def golden_scene(scene, method):
     sphere.data.update()
     scene.world = bpy.data.worlds.new("sky")
     scene.world.node_tree.nodes["Background"].inputs["Color"].default_value = (
-        0.05, 0.07, 0.1, 1.0,
+        0.05,
+        0.07,
+        0.1,
+        1.0,
     )
     ms = scene.multiscale
     ms.method = method

@@ -162,9 +162,7 @@ def test_image_blend_rays_are_the_blend_of_all_curves_bit_for_bit(rig):
 
 @settings(max_examples=200, deadline=None)
 @given(
-    runs=st.lists(
-        st.tuples(st.integers(1, 300), st.sampled_from([0, 0, 2, 10, 18])), min_size=1
-    ),
+    runs=st.lists(st.tuples(st.integers(1, 300), st.sampled_from([0, 0, 2, 10, 18])), min_size=1),
     cols=st.integers(1, 400),
 )
 def test_row_windows_cover_every_quad_to_check_once(runs, cols):
