@@ -93,10 +93,31 @@ def not_measured(cameras):
     return "; not measured, so not held to the target: " + ", ".join(out) if out else ""
 
 
+# AUTO's word on a candidate whose only folds lie where masks touch (``seam_folds``).
+AT_SEAMS = "lie where masks touch, and every method's rays fold there"
+
+
+def seam_folds(rig, fold_quads, stride):
+    """The pairs of cameras whose masks touch where every folded quad of ``fold_quads``
+    lies (``quality.kept_folds``: every method's rays fold there), or None where a fold
+    lies elsewhere (or there is none). ``fold_quads`` : ``fold_map``'s bool map, on the
+    lattice of ``stride``. Returns list of (str, str), or None."""
+    folds = int(fold_quads.sum())
+    if not folds:
+        return None
+    fixed, pairs = kept_folds(rig.masks, fold_quads, stride, [cam.name for cam in rig.cameras])
+    return pairs if fixed == folds else None
+
+
+def seams_text(pairs):
+    """ "'A' and 'B', ..." of the camera pairs whose masks touch ("one camera": none)."""
+    return ", ".join(f"'{a}' and '{b}'" for a, b in pairs) or "one camera"
+
+
 def seam_message(folds, pairs):
-    """The warning for folds no method avoids (``quality.kept_folds``): ``folds`` int,
-    ``pairs`` the (str, str) cameras whose masks touch there."""
-    seams = ", ".join(f"'{a}' and '{b}'" for a, b in pairs) or "one camera"
+    """The warning for folds no method avoids (``seam_folds``): ``folds`` int, ``pairs``
+    the (str, str) cameras whose masks touch there."""
+    seams = seams_text(pairs)
     return (
         f"{folds} folded quads lie where the masks of {seams} touch, with no transition "
         "between them: the rays there are those cameras' own with every method, so they "
@@ -193,16 +214,14 @@ def prepare_auto(rig, settings=None, diag=None, reuse=None):
                 f"fold) on this rig{tried}"
             )
             return fld
-        if not off:
-            fixed, pairs = kept_folds(rig.masks, fold_quads, stride, names)
-            if fixed == folds:  # no other method can do better: say so, keep this one
-                fld.stats["auto"] = (
-                    f"{name}: the cheapest method whose rays meet the target ({target}); "
-                    f"its {folds} folded quads lie where masks touch, and every method's "
-                    f"rays fold there{tried}"
-                )
-                fld.warnings.append(seam_message(folds, pairs))
-                return fld
+        pairs = None if off else seam_folds(rig, fold_quads, stride)
+        if pairs is not None:  # no other method can do better: say so, keep this one
+            fld.stats["auto"] = (
+                f"{name}: the cheapest method whose rays meet the target ({target}); "
+                f"its {folds} folded quads {AT_SEAMS}{tried}"
+            )
+            fld.warnings.append(seam_message(folds, pairs))
+            return fld
         misses.append(f"{name} would miss it: {shortfall(cameras, folds, settings.accuracy_px)}")
         kept.append((folds, len(off), n, fld))
         maps[name] = fold_quads

@@ -14,10 +14,17 @@ each measure on that frame's rig alone, so every process of a farm chooses alike
 from dataclasses import dataclass
 
 from ..diagnostics import diagnostics_of
-from ..quality import kept_folds, measure_map
+from ..quality import measure_map
 from .base import Settings
 from .image_blend import prepare_image_blend
-from .registry import MAX_OVER_TARGET, accuracy_misses, shortfall
+from .registry import (
+    AT_SEAMS,
+    MAX_OVER_TARGET,
+    accuracy_misses,
+    seam_folds,
+    seams_text,
+    shortfall,
+)
 
 # Frames of a shot AUTO measures IMAGE_BLEND on, at most (each a weights solve and a
 # measure of the frame's preserved rays and folds).
@@ -84,7 +91,7 @@ def choose_shot_method(samples, settings=None, diag=None):
     ShotChoice: IMAGE_BLEND when every sampled frame meets the target, else
     SCALAR_FIELD, naming the first frame that missed and why (the frames after it are
     not measured). A frame whose every fold lies across a seam where masks touch
-    (``quality.kept_folds``), its cameras on the target, meets it: those rays are the
+    (``registry.seam_folds``), its cameras on the target, meets it: those rays are the
     cameras' own with every method, so SCALAR_FIELD would fold there too. The word then
     names those frames and the cameras whose masks touch.
     """
@@ -97,12 +104,12 @@ def choose_shot_method(samples, settings=None, diag=None):
         cameras, fold_quads, stride = measure_map(fld, settings.processes, diag)
         folds = int(fold_quads.sum())
         measured.append(int(frame))
-        if folds and not accuracy_misses(cameras, settings.accuracy_px):
-            names = [cam.name for cam in rig.cameras]
-            fixed, pairs = kept_folds(rig.masks, fold_quads, stride, names)
-            if fixed == folds:  # every method's rays fold there: not IMAGE_BLEND's miss
-                seams.append((int(frame), folds, pairs))
-                continue
+        pairs = None
+        if not accuracy_misses(cameras, settings.accuracy_px):
+            pairs = seam_folds(rig, fold_quads, stride)
+        if pairs is not None:  # every method's rays fold there: not IMAGE_BLEND's miss
+            seams.append((int(frame), folds, pairs))
+            continue
         why = shortfall(cameras, folds, settings.accuracy_px)
         if why:
             return ShotChoice(
@@ -126,12 +133,8 @@ def _seams(seams):
     """The word's note on folds at seams: ``seams`` a list of (frame, folds, pairs)."""
     if not seams:
         return ""
-    said = "; ".join(
-        f"frame {frame}: {folds}, "
-        + (", ".join(f"'{a}' and '{b}'" for a, b in pairs) or "one camera")
-        for frame, folds, pairs in seams
-    )
-    return f"; its folded quads lie where masks touch, and every method's rays fold there ({said})"
+    said = "; ".join(f"frame {f}: {n}, {seams_text(pairs)}" for f, n, pairs in seams)
+    return f"; its folded quads {AT_SEAMS} ({said})"
 
 
 def _listed(frames):
