@@ -49,6 +49,25 @@ def test_dot_planes_gives_the_bits_of_dot3():
         np.testing.assert_array_equal(planes, dot3(a, b))
 
 
+def test_segment_search_counts_the_vertices_at_or_before_each_length():
+    """The walk's start: a binary search over each polyline's arc lengths, against the
+    count written out, on polylines with zero-length segments (ties), lengths before
+    the first vertex and past the last, and K from 2 to 40."""
+    rng = np.random.default_rng(11)
+    for k in (2, 3, 7, 40):
+        steps = rng.uniform(0.0, 1.0, size=(300, k - 1)) * (rng.random((300, k - 1)) > 0.3)
+        cum = np.concatenate([np.zeros((300, 1)), np.cumsum(steps, axis=1)], axis=1)
+        length = rng.uniform(-1.0, 1.2, size=(300, 5)) * cum[:, -1:]
+        length[:, 0] = cum[np.arange(300), rng.integers(0, k, 300)]  # on a vertex
+        expected = np.empty(length.shape, dtype=int)
+        for p in range(300):
+            for m in range(5):
+                want = min(max(length[p, m], 0.0), cum[p, -1])
+                at_or_before = sum(1 for c in cum[p] if c <= want)
+                expected[p, m] = min(max(at_or_before - 1, 0), k - 2)
+        np.testing.assert_array_equal(folds_module._segment_at(cum, length), expected)
+
+
 def test_linear_rays_fold_where_the_reference_says():
     cams, masks = three_camera_rig(96, 54)
     fld = prepare(Rig(cams, masks), "LINEAR", settings_for("STANDARD"))
