@@ -20,7 +20,7 @@ from ..field import (
     step_cells,
 )
 from ..field.plane_step import plane_gain
-from ..quality import conflict_messages
+from ..quality import along_ray, conflict_messages
 from .base import RayField, guard_warnings
 
 
@@ -147,7 +147,8 @@ DEVIATION_BLOCK_VERTICES = 1 << 20
 
 # Accuracy target of a lattice cell whose pixels all belong to one camera's preserved
 # region, as a fraction of the build's: its rays are laid out exactly (no trace), and
-# interpolating them is the only error left on that camera's pixels.
+# interpolating them is the only error left on that camera's pixels: what it adds,
+# measured where the picture shows it (``_AdaptiveLattice._pure_error``).
 PRESERVED_TOL_FRACTION = 0.25
 
 
@@ -204,7 +205,13 @@ class _AdaptiveLattice:
     mixes one camera's preserved pixels with other pixels is split down to single
     pixels whatever its error (interpolating across a mask's edge would bend preserved
     rays towards their neighbours), and a cell of one camera's preserved pixels only is
-    held to ``PRESERVED_TOL_FRACTION`` of the tolerance.
+    checked against that camera's own rays instead of the estimate: what interpolating
+    its rays adds to the camera's error along the whole ray, at its centre and the
+    middles of its edges, is held to ``PRESERVED_TOL_FRACTION`` of the tolerance
+    (``_pure_error``). The estimate, on an edge of odd length, compares the ray one
+    pixel before the middle with the mean half a pixel further on and never falls
+    below 0.5 px there: held to a quarter of the tolerance it split every such cell to
+    single pixels (docs/architecture.md).
     """
 
     def __init__(self, tracer, rig, step, max_steps, tol_px, diag):
@@ -215,9 +222,12 @@ class _AdaptiveLattice:
         w, h = rig.size
         self.index = np.full((h, w), -1, dtype=np.int32)
         self.parts, self.order, self.count = [], [], 0
-        self.labels = None
+        self.pixels_x, self.pixels_y = [], []  # each traced ray's pixel, in order
+        self.labels = self.label = None
         if getattr(tracer, "exact_preserved", False):
-            self.labels = _CellLabels(preserved_labels(rig), len(rig.cameras))
+            self.label = preserved_labels(rig)
+            self.labels = _CellLabels(self.label, len(rig.cameras))
+            self.own_error = np.zeros(0)  # along_ray of each traced ray, nan: not yet
 
     def _fine(self, cells, err):
         """(n,) bool: cells whose interpolation error estimate ``err`` (n,) meets the
@@ -225,8 +235,76 @@ class _AdaptiveLattice:
         if self.labels is None:
             return err <= self.tol
         pure, mixed = self.labels.kinds(cells)
-        tol = np.where(pure, self.tol * PRESERVED_TOL_FRACTION, self.tol)
-        return (err <= tol) & ~mixed
+        fine = (err <= self.tol) & ~mixed & ~pure
+        check = np.flatnonzero(pure)
+        k = max(p.vertices.shape[1] for p in self.parts)
+        block = max(1, DEVIATION_BLOCK_VERTICES // (5 * k))  # five rays a cell
+        for s in range(0, len(check), block):
+            sel = check[s : s + block]
+            fine[sel] = self._pure_error(cells[sel]) <= self.tol * PRESERVED_TOL_FRACTION
+        return fine
+
+    def _pure_error(self, cells):
+        """(n,) float64: what interpolating the rays of ``cells`` (n, 4), each inside one
+        camera's preserved region, adds to that camera's error, in its pixels, measured
+        as the report measures it (``quality.along_ray``: the whole ray from the
+        camera's near plane out to its clip end, against the pixel centre's pinhole ray)
+        at the cell's centre and the middles of its edges: the worst there less the
+        worst of its four traced corners (inf where a ray never reaches the stretch)."""
+        x0, y0, x1, y1 = (np.tile(np.asarray(c, dtype=np.int64), 5) for c in cells.T)
+        n = len(cells)
+        xm, ym = (x0 + x1) // 2, (y0 + y1) // 2
+        # the centre, then the middles of the edges y0, y1, x0 and x1
+        sx = np.concatenate([xm[:n], xm[:n], xm[:n], x0[:n], x1[:n]])
+        sy = np.concatenate([ym[:n], y0[:n], y1[:n], ym[:n], ym[:n]])
+        cam = self.label[y0, x0].astype(np.int64) - 1
+        fx = np.where(x1 > x0, (sx - x0) / np.maximum(x1 - x0, 1), 0.0)
+        fy = np.where(y1 > y0, (sy - y0) / np.maximum(y1 - y0, 1), 0.0)
+        corners = [
+            (self.index[y0, x0], (1 - fy) * (1 - fx)),
+            (self.index[y0, x1], (1 - fy) * fx),
+            (self.index[y1, x0], fy * (1 - fx)),
+            (self.index[y1, x1], fy * fx),
+        ]
+        verts, last = None, 0
+        for row, weight in corners:  # as ``TracedField.rays`` interpolates them
+            v, counts = self.rows(row)
+            v = v.astype(np.float64) * weight[:, None, None]
+            verts = v if verts is None else verts + v
+            last = np.maximum(last, counts)
+        straight_on(verts, last)
+        own = np.max([self._own_error(row) for row, _weight in corners], axis=0)
+        got = np.zeros(len(sx))
+        cams = self.rig.cameras
+        for c in np.unique(cam):
+            sel = np.flatnonzero(cam == c)
+            got[sel] = along_ray(verts[sel], cams[c], sx[sel] + 0.5, sy[sel] + 0.5, cams[:c])[0]
+        added = np.where(np.isfinite(got) & np.isfinite(own), got - own, np.inf)
+        return added.reshape(5, n).max(axis=0)
+
+    def _own_error(self, ids):
+        """(n,) float64: ``along_ray`` of traced rays ``ids`` (n,), each against the
+        camera that keeps its pixel, at that pixel: computed once per ray."""
+        if len(self.own_error) < self.count:
+            grown = np.full(self.count, np.nan)
+            grown[: len(self.own_error)] = self.own_error
+            self.own_error = grown
+        todo = np.unique(ids[np.isnan(self.own_error[ids])])
+        if len(todo):
+            px = np.concatenate(self.pixels_x)[todo]
+            py = np.concatenate(self.pixels_y)[todo]
+            c_of = self.label[py, px].astype(np.int64) - 1
+            cams = self.rig.cameras
+            k = max(p.vertices.shape[1] for p in self.parts)
+            block = max(1, DEVIATION_BLOCK_VERTICES // k)
+            for s in range(0, len(todo), block):
+                verts = self.rows(todo[s : s + block])[0]
+                for c in np.unique(c_of[s : s + block]):
+                    sel = s + np.flatnonzero(c_of[s : s + block] == c)
+                    self.own_error[todo[sel]] = along_ray(
+                        verts[sel - s], cams[c], px[sel] + 0.5, py[sel] + 0.5, cams[:c]
+                    )[0]
+        return self.own_error[ids]
 
     def trace(self, px, py):
         """Trace the pixels not traced yet (duplicates allowed)."""
@@ -241,6 +319,8 @@ class _AdaptiveLattice:
             self.tracer.trace_pixels(px, py, self.step, self.max_steps, self.diag.should_stop)
         )
         self.order.append(np.arange(self.count, self.count + len(px)))
+        self.pixels_x.append(px)
+        self.pixels_y.append(py)
         self.index[py, px] = np.arange(self.count, self.count + len(px))
         self.count += len(px)
 
