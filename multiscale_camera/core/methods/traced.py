@@ -115,13 +115,14 @@ def straight_on(verts, last):
     rows = np.flatnonzero(last < k - 1)
     if not len(rows):
         return
-    end = verts[rows, last[rows]]
-    seg = end - verts[rows, last[rows] - 1]
-    ahead = np.arange(k)[None, :] - last[rows, None]  # (R, K): vertices past the last
-    sub = verts[rows]
-    run = end[:, None] + ahead[..., None].astype(verts.dtype) * seg[:, None]
-    np.copyto(sub, run, where=ahead[..., None] > 0)
-    verts[rows] = sub
+    rows = rows[np.argsort(last[rows], kind="stable")]
+    ends, starts = np.unique(last[rows], return_index=True)
+    ahead = np.arange(1, k, dtype=verts.dtype)[None, :, None]  # 1, 2, ... past the last
+    for n, (at, first) in enumerate(zip(ends.tolist(), starts.tolist())):
+        r = rows[first : starts[n + 1] if n + 1 < len(starts) else len(rows)]
+        end = verts[r, at]
+        seg = end - verts[r, at - 1]
+        verts[r, at + 1 :] = end[:, None] + ahead[:, : k - 1 - at] * seg[:, None]
 
 
 def _lattice_axis(n, stride):
