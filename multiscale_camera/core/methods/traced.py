@@ -97,17 +97,16 @@ class TracedField(RayField):
 
 
 def straight_on(verts, last):
-    """Run interpolated rays straight on past their corners' last traced vertex, in
-    place: ray p's vertices after ``last[p]`` continue its segment from ``last[p] - 1``
-    to ``last[p]`` (the first vertex past every corner's trace, where all four run
-    straight) at that segment's length. The renderer's leaf schedules end at the same
-    vertex (``sampling.greedy_keep``), though it runs on along its last kept chord
-    (docs/architecture.md). The corners' own run-ons need not keep step with one
-    another (their step follows the point: nested cells, the bands at near planes);
-    mixed vertex by vertex up to the longest ray of the request, they bent a ray
-    further out by as much as the other pixels asked for had run on: camera 2's rays on
-    the nested 1000x rig at 120x68 PREVIEW strayed up to 0.045 px more among their
-    mask's rays than alone.
+    """Run interpolated rays straight on past their corners' last traced vertex, in place: ray
+    p's vertices after ``last[p]`` continue its segment from ``last[p] - 1`` to
+    ``last[p]`` (the first vertex past every corner's trace, where all four run
+    straight) at that segment's length, as the renderer's leaf schedules end there and
+    keep every vertex from the first corner's last on (``sampling``). The corners' own
+    run-ons need not keep step with one another (their step follows the point: nested
+    cells, the bands at near planes); mixed vertex by vertex up to the longest ray of
+    the request, they bent a ray further out by as much as the other pixels asked for
+    had run on: camera 2's rays on the nested 1000x rig at 120x68 PREVIEW strayed up to
+    0.045 px more among their mask's rays than alone.
 
     verts : (P, K, 3) float32, K >= 2. last : (P,) int, clipped to 1 .. K - 1."""
     k = verts.shape[1]

@@ -199,13 +199,22 @@ def _keep_leaves(rows, seglen, turn, tol, last, leaf_keep, part, stop):
     the greedy pass over the largest turns and lengths, and the smallest tolerances, of
     each leaf's four corner rays (``rows``, four (L,) index arrays)."""
     corners = [c[part[0] : part[1]] for c in rows]
-    leaf_keep[part[0] : part[1]] = greedy_keep(
+    lasts = [last[c] for c in corners]
+    keep = greedy_keep(
         np.maximum.reduce([seglen[c] for c in corners]),
         np.maximum.reduce([turn[c] for c in corners]),
         np.minimum.reduce([tol[c] for c in corners]),
-        np.maximum.reduce([last[c] for c in corners]),
+        np.maximum.reduce(lasts),
         stop,
     )
+    # between the first corner's last vertex and the last one's the corners run on out
+    # of step (each straight, its step following the points it passes), so a ray
+    # blended from them bends there though no corner turns: every vertex is kept, and
+    # the ray runs on past the last as the field's own does (``traced.straight_on``)
+    slots = np.arange(keep.shape[1])
+    lo, hi = np.minimum.reduce(lasts)[:, None], np.maximum.reduce(lasts)[:, None]
+    keep |= (slots >= lo) & (slots <= hi)
+    leaf_keep[part[0] : part[1]] = keep
 
 
 def greedy_keep(seglen, turn, tol, last, should_stop=None):
