@@ -22,9 +22,8 @@ provably cannot fold is not checked); the windows then follow each row's runs of
 to check. The walk's start is the last vertex of q at or before a's arc length; section
 k is settled at once where that start is segment j0 = min(k, K - 2) or j0 - 1 and the
 walk stops within one step (rays of one band share their vertices' order, so this is
-most sections: 94% of a SCALAR_FIELD on the turned rig, 63% on the nested 1000x rig,
-whose cameras' preserved rays step differently through the near-plane bands); the
-others walk as ``section_points`` does, reading the band's
+most sections: 94% of a SCALAR_FIELD on the turned rig, 63% on the nested 1000x rig);
+the others walk as ``section_points`` does, reading the band's
 vertices where the walk goes (``_cross``: no polyline is copied whole, and the walk's
 start is a binary search over the arc lengths). Per-ray quantities (arc
 lengths, tangents, segments) are computed once per band and shared by the three roles
