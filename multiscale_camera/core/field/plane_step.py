@@ -159,6 +159,12 @@ class NearPlaneStep:
         return extra_steps(self.gains)
 
 
+def schedule_of(step):
+    """``step`` when it is a ``NearPlaneStep`` (a run-on follows its bands: ``run_on``,
+    ``merge``), else None (a run-on keeps the step it ran at)."""
+    return step if isinstance(step, NearPlaneStep) else None
+
+
 def extra_steps(gains):
     """int: the steps that bands of ``gains`` (one per plane) may add to a ray's trace
     (``NearPlaneStep.extra_steps``); at most ``extra_steps([MAX_GAIN] * planes)``."""

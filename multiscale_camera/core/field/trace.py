@@ -18,6 +18,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..geometry import dot3
+from .plane_step import schedule_of
 
 # Rays traced together: bounds the memory of the state, the stages and the vertex
 # buffer (about 65536 * K * 12 bytes for K recorded vertices).
@@ -481,7 +482,7 @@ def run_on(traced, vertices, schedule=None):
             step = schedule.up_to(int(count))
             length = np.linalg.norm(d[rows], axis=-1, keepdims=True)
             unit = d[rows] / np.maximum(length, 1e-30)
-            if hasattr(step, "run_lengths"):  # a NearPlaneStep: through its bands
+            if schedule_of(step) is not None:  # through its bands
                 run = step.run_lengths(last[rows, 0], unit, more[None, :])
             elif callable(step):  # no band, a step that follows the cells: as without one
                 run = length * more[None, :]

@@ -18,7 +18,7 @@ from ..errors import Cancelled
 from ..geometry import Family, dot3, solve3
 from ..runtime import runtime, worker_count
 from .grid import FieldSampler
-from .plane_step import NearPlaneStep
+from .plane_step import NearPlaneStep, schedule_of
 from .preserved_rays import arc_length_rays, first_past_near_plane, scheduled_rays
 from .trace import StopReason, Traced, merge, rk4_streamlines
 
@@ -343,7 +343,7 @@ class FieldTracer:
             [p[0] for p in parts],
             [np.arange(k, rays, n) for k in range(n)],
             rays,
-            _schedule(step),
+            schedule_of(step),
         )
 
     def trace(self, u0, v0, step, max_steps, should_stop=None):
@@ -398,7 +398,7 @@ class FieldTracer:
         if len(rest):
             parts.append(self._trace_here(u[rest], v[rest], step, max_steps, should_stop))
             order.append(rest)
-        return merge(parts, order, len(ix), _schedule(step))
+        return merge(parts, order, len(ix), schedule_of(step))
 
     def _trace_here(self, u0, v0, step, max_steps, should_stop=None):
         """``trace`` in this process."""
@@ -458,11 +458,6 @@ class FieldTracer:
             lines.reason,
             None if callable(step) else step,
         )
-
-
-def _schedule(step):
-    """``step`` when it is a ``NearPlaneStep`` (run-ons follow its band), else None."""
-    return step if isinstance(step, NearPlaneStep) else None
 
 
 def _trace_share(tracer, kind, a, b, step, max_steps, rays, share, context):

@@ -19,7 +19,7 @@ from ..field import (
     steady_grid,
     step_cells,
 )
-from ..field.plane_step import plane_gain
+from ..field.plane_step import plane_gain, schedule_of
 from ..quality import along_ray, conflict_messages
 from .base import RayField, guard_warnings
 
@@ -218,7 +218,7 @@ class _AdaptiveLattice:
     def __init__(self, tracer, rig, step, max_steps, tol_px, diag):
         self.tracer, self.rig, self.step = tracer, rig, step
         # run-ons follow the step's band around near planes (``field.run_on``)
-        self.schedule = step if isinstance(step, NearPlaneStep) else None
+        self.schedule = schedule_of(step)
         self.max_steps, self.tol, self.diag = max_steps, tol_px, diag
         w, h = rig.size
         self.index = np.full((h, w), -1, dtype=np.int32)
