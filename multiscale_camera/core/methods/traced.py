@@ -223,7 +223,8 @@ class _AdaptiveLattice:
         w, h = rig.size
         self.index = np.full((h, w), -1, dtype=np.int32)
         self.parts, self.order, self.count = [], [], 0
-        self.pixels_x, self.pixels_y = [], []  # each traced ray's pixel, in order
+        # each traced ray's pixel, in the order traced
+        self.pixel_x = self.pixel_y = np.zeros(0, dtype=np.int64)
         self.labels = self.label = None
         if getattr(tracer, "exact_preserved", False):
             self.label = preserved_labels(rig)
@@ -292,8 +293,7 @@ class _AdaptiveLattice:
             self.own_error = grown
         todo = np.unique(ids[np.isnan(self.own_error[ids])])
         if len(todo):
-            px = np.concatenate(self.pixels_x)[todo]
-            py = np.concatenate(self.pixels_y)[todo]
+            px, py = self.pixel_x[todo], self.pixel_y[todo]
             c_of = self.label[py, px].astype(np.int64) - 1
             cams = self.rig.cameras
             k = max(p.vertices.shape[1] for p in self.parts)
@@ -320,8 +320,8 @@ class _AdaptiveLattice:
             self.tracer.trace_pixels(px, py, self.step, self.max_steps, self.diag.should_stop)
         )
         self.order.append(np.arange(self.count, self.count + len(px)))
-        self.pixels_x.append(px)
-        self.pixels_y.append(py)
+        self.pixel_x = np.concatenate([self.pixel_x, px])
+        self.pixel_y = np.concatenate([self.pixel_y, py])
         self.index[py, px] = np.arange(self.count, self.count + len(px))
         self.count += len(px)
 
