@@ -10,11 +10,13 @@ processes (default 1, so that CPU and memory are this process's); ``cells_per_px
 cells across the smallest camera's near plane per pixel of the accuracy target (the
 build's constant is 8: 16 cells at 0.5 px), the prototype of a grid that follows the
 image size; ``step_cells=X`` the RK4 step in cells at 0.5 px on a 1920-wide image (the
-build's ``field.STEP_CELLS``, 1.5); ``clock=cpu`` the build's stage seconds (``stages``,
-as the report's) in CPU seconds of this process instead of wall seconds: with ``proc=1``
-the whole build, so a shared machine's load does not blur them; ``plane=0`` the trace's
-step left whole at the near planes (no ``field.NearPlaneStep``: every gain 1), the
-build before it shortened there.
+build's ``field.STEP_CELLS``, 1.5); ``cells=X`` the RK4 step in cells whatever the
+target and the image size (the build's ``step_cells``, 0.5 to 3); ``stride=N`` the
+lattice's first spacing in pixels (1: every pixel's ray traced, none interpolated);
+``clock=cpu`` the build's stage seconds (``stages``, as the report's) in CPU seconds of
+this process instead of wall seconds: with ``proc=1`` the whole build, so a shared
+machine's load does not blur them; ``plane=0`` the trace's step left whole at the near
+planes (no ``field.NearPlaneStep``: every gain 1), the build before it shortened there.
 """
 
 import dataclasses
@@ -49,6 +51,12 @@ def main(argv):
         fill.MIN_CELLS_ACROSS_NEAR = scalar_field.MIN_CELLS_ACROSS_NEAR = 4
     if "step_cells" in opts:
         tracer.STEP_CELLS = float(opts["step_cells"])
+    if "cells" in opts:
+        fixed = float(opts["cells"])
+        traced.step_cells = lambda *_args: fixed
+    if "stride" in opts:
+        spacing = int(opts["stride"])
+        traced.lattice_stride = lambda *_args: spacing
     if opts.get("plane") == "0":
         traced.plane_gains = lambda tracer_, rig_, *rest: [1.0] * (len(rig_.cameras) - 1)
     if opts.get("clock") == "cpu":

@@ -1,0 +1,227 @@
+"""Where a SCALAR_FIELD folds, does its flow turn over? The determinant of the flow's
+Jacobian along the rays, against the exact fold counter, and what the counter's folded
+quads look like in their sections (docs/architecture.md, "What the fold counter counts,
+and where the flow turns over").
+
+    .venv/bin/python tools/flow_jacobian.py RIG WIDTH HEIGHT QUALITY [key=value ...]
+
+Streamlines P(x, y, s) of one Lipschitz field T (unit speed, s the arc length from
+camera 1's near plane) keep the sign of D(s) = det[T, dP/dx, dP/dy]: along a ray
+dD/ds = div(T) D, so D(s) = D(0) exp(integral of div T), which can shrink but never
+pass through zero. Pixels whose rays' D changes sign are traced on rays that are not
+such streamlines (a step too long for the flow, or a field that jumps), and D near
+zero (relative to D(0)) is a flow that all but focuses the pixels' rays.
+
+Builds ``fixtures.rigs.<RIG>_rig`` with SCALAR_FIELD (``method``) in one process,
+counts its folds with the report's counter (``quality.report.fold_map``), and at every ``every``-th
+quad of three kinds (folded, all four pixels in transitions; folded, touching a
+preserved pixel; not folded, in transitions) traces the rays of the quad's centre and
+``eps`` pixels either side of it in x and in y (central differences), and prints, per
+kind: how many centres' D changes sign inside the bending stretch, how many of the
+quads ``eps`` wide the counter finds folded, the median and least of min D / D(0),
+and the first sign changes' membership N. Keys: ``eps=F`` (0.05 px), ``every=N`` (10),
+``method=M`` (SCALAR_FIELD; another method's field has no flow to trace, and gets the
+corner triangles alone).
+
+Then, for every folded quad, the most corner triangles (a b c, b c d, c d a, d a b)
+turned in one section (``corner_turns``, brute force on the field's rays, as the counter
+cuts them). One turned triangle is a quad that is no longer convex: its ray d lies
+inside the triangle of a, b and c (or the like), and the triangulation along its other
+diagonal keeps both triangles' orientation, so no two neighbouring rays have swapped.
+Two or more (the areas of a b c and c d a add up to those of b c d and d a b, so two
+turned triangles are neighbours) leave neither triangulation whole: the quad's edges
+cross or it is mirrored.
+"""
+
+import dataclasses
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import fixtures.rigs as rigs  # noqa: E402
+from multiscale_camera.core.geometry import Rig  # noqa: E402
+from multiscale_camera.core.methods import prepare, settings_for  # noqa: E402
+from multiscale_camera.core.methods.traced import preserved_labels  # noqa: E402
+from multiscale_camera.core.quality.folds import _segment_at, quad_folds, section_points  # noqa: E402
+from multiscale_camera.core.quality.metrics import bending_active  # noqa: E402
+from multiscale_camera.core.quality.report import fold_map  # noqa: E402
+
+# The rays traced per site: the centre, then +x, -x, +y, -y and +x+y (eps pixels off).
+OFFSETS = ((0, 0), (1, 0), (-1, 0), (0, 1), (0, -1), (1, 1))
+
+
+def flow_determinant(centre, xp, xm, yp, ym, eps):
+    """D = det[T, dP/dx, dP/dy] at each vertex of the centre rays.
+
+    Parameters
+    ----------
+    centre, xp, xm, yp, ym : (n, K, 3) float64 rays (vertices in world units) of n
+        sites' centres and of the points ``eps`` pixels off them along +x, -x, +y, -y,
+        traced with the same steps, so that vertex k of each lies at about the same
+        arc length (a difference along T does not change D).
+    eps : float, pixels.
+
+    Returns
+    -------
+    (n, K) float64, world units squared per pixel squared: T the centre ray's unit
+    direction (central differences of its vertices), dP/dx and dP/dy central
+    differences of the neighbours.
+    """
+    t = np.gradient(centre, axis=1)
+    t /= np.maximum(np.linalg.norm(t, axis=-1, keepdims=True), 1e-300)
+    px = (xp - xm) / (2.0 * eps)
+    py = (yp - ym) / (2.0 * eps)
+    return np.einsum("nki,nki->nk", t, np.cross(px, py))
+
+
+def sign_changes(d, valid):
+    """Where D leaves its first sign (zero counts as leaving it): ``d`` (n, K) float64,
+    ``valid`` (n, K) bool (the vertices checked). Returns (n,) bool, whether it does at
+    a valid vertex, and (n,) int, the first such vertex (0 where none)."""
+    flip = (np.sign(d) != np.sign(d[:, :1])) & valid
+    return flip.any(axis=1), np.argmax(flip, axis=1)
+
+
+def quad_kinds(folds, label):
+    """The three kinds of quads (folds: (H-1, W-1) bool, the counter's map; label:
+    (H, W) int, 0 in transitions, i + 1 in camera i's kept pixels): a dict of name to
+    (H-1, W-1) bool."""
+    corners = (label[:-1, :-1], label[:-1, 1:], label[1:, :-1], label[1:, 1:])
+    transition = np.logical_and.reduce([c == 0 for c in corners])
+    return {
+        "folded, in transitions": folds & transition,
+        "folded, touching kept pixels": folds & ~transition,
+        "not folded, in transitions": ~folds & transition,
+    }
+
+
+def examine(fld, quads, eps, every):
+    """Trace every ``every``-th quad of ``quads`` ((H-1, W-1) bool) of the field ``fld``
+    at its centre and ``eps`` px around it; a dict of the figures the module prints."""
+    ys, xs = (a[::every] for a in np.nonzero(quads))
+    n = len(ys)
+    if n == 0:
+        return {"sites": 0}
+    cams = fld.rig.cameras
+    u = np.concatenate([xs + 1.0 + eps * dx for dx, _dy in OFFSETS])
+    v = np.concatenate([ys + 1.0 + eps * dy for _dx, dy in OFFSETS])
+    traced = fld.tracer().trace(u, v, fld.step, 4000)
+    rays = traced.vertices.astype(np.float64).reshape(len(OFFSETS), n, -1, 3)
+    counts = traced.counts.reshape(len(OFFSETS), n)
+    active = bending_active(traced.vertices, cams[-1], traced.counts, cams[:-1])
+    active = active.reshape(len(OFFSETS), n, -1)
+    k = rays.shape[2]
+    valid = (np.arange(k) < counts.min(axis=0)[:, None] - 1) & active[0]
+    d = flow_determinant(rays[0], rays[1], rays[2], rays[3], rays[4], eps)
+    flips, first = sign_changes(d, valid)
+    least = np.where(valid, d * np.sign(d[:, :1]), np.inf).min(axis=1) / np.abs(d[:, 0])
+    # the counter on the quad eps wide: (y, x) rows of centre, +x / +y, +x+y
+    tiny = 0
+    for q in range(n):
+        grid = np.stack([[rays[0, q], rays[1, q]], [rays[3, q], rays[5, q]]])
+        act = np.stack([[active[0, q], active[1, q]], [active[3, q], active[5, q]]])
+        tiny += bool(quad_folds(grid, act).any())
+    membership = traced.membership.reshape(len(OFFSETS), n, -1)[0]
+    at = membership[np.flatnonzero(flips), first[flips]]
+    return {
+        "sites": n,
+        "d_flips": int(flips.sum()),
+        "tiny_folds": tiny,
+        "least_p50": float(np.median(least)),
+        "least_min": float(least.min()),
+        "flip_n": at,
+    }
+
+
+# The corner triangles of a quad a b c d (its rays 0, 1, 2, 3: pixels (x, y), (x + 1,
+# y), (x + 1, y + 1), (x, y + 1)), as the counter orders them.
+CORNERS = ((0, 1, 2), (1, 2, 3), (2, 3, 0), (3, 0, 1))
+
+
+def section_turns(rays, active):
+    """How many corner triangles of one quad are turned against the first section, in
+    each section: ``rays`` (4, K, 3) float64 (a, b, c, d), ``active`` (4, K) bool (the
+    bending stretch). The sections are planes through a's vertices normal to its
+    direction (central differences); b, c and d cross them where ``section_points``
+    finds them from the vertex at a's arc length, as the counter does. A section counts
+    where a's vertex and the three crossings' segments are active. Returns (K,) int."""
+    a = rays[0]
+    t = np.empty_like(a)
+    t[1:-1], t[0], t[-1] = a[2:] - a[:-2], a[1] - a[0], a[-1] - a[-2]
+    normal = t / np.linalg.norm(t, axis=1, keepdims=True)
+    cum = np.zeros(rays.shape[:2])
+    cum[:, 1:] = np.cumsum(np.linalg.norm(np.diff(rays, axis=1), axis=-1), axis=1)
+    points, live = [np.zeros_like(a)], active[0].copy()
+    for r in (1, 2, 3):
+        start = _segment_at(cum[r : r + 1], cum[0][None])
+        p, j = section_points(rays[r : r + 1], a[None], normal[None], start)
+        points.append(p[0])
+        live &= active[r][j[0]]
+    turned = np.zeros(len(a), dtype=int)
+    for i, j, k in CORNERS:
+        area = np.einsum("ij,ij->i", np.cross(points[j] - points[i], points[k] - points[i]), normal)
+        o = np.sign(area)
+        turned += (o != o[0]) & (o != 0) & (o[0] != 0)
+    return np.where(live, turned, 0)
+
+
+def corner_turns(fld, ys, xs):
+    """(n,) int: for the quads at (``xs``, ``ys``) ((n,) int, their top-left pixels) of
+    the field ``fld``, the most corner triangles turned in one section
+    (``section_turns``), on the rays and the bending stretch the report's counter
+    takes (``quality.report``: up to the ray's exit from the field where it has one)."""
+    cams = fld.rig.cameras
+    out = np.zeros(len(ys), dtype=int)
+    for q, (y, x) in enumerate(zip(ys, xs)):
+        ix, iy = np.array([x, x + 1, x + 1, x]), np.array([y, y, y + 1, y + 1])
+        bundle = fld.rays(ix, iy)
+        exit_index = fld.exit_index(ix, iy)
+        counts = None if exit_index is None else exit_index + 1
+        active = bending_active(bundle.vertices, cams[-1], counts, cams[:-1])
+        out[q] = section_turns(bundle.vertices.astype(np.float64), active).max()
+    return out
+
+
+def main(argv):
+    rig_name, width, height, quality = argv[:4]
+    opts = dict(a.split("=", 1) for a in argv[4:])
+    eps, every = float(opts.get("eps", 0.05)), int(opts.get("every", 10))
+    method = opts.get("method", "SCALAR_FIELD")
+    cams, masks = getattr(rigs, f"{rig_name}_rig")(int(width), int(height))
+    settings = dataclasses.replace(settings_for(quality), processes=1)
+    fld = prepare(Rig(cams, masks), method, settings)
+    folds, stride = fold_map(fld, 1)
+    if stride != 1:
+        raise SystemExit("the counter took every second pixel: ask for at most a megapixel")
+    print(f"{rig_name} {width}x{height} {quality} {method}: {int(folds.sum())} folded quads")
+    if method == "SCALAR_FIELD":
+        print(f"D from rays eps {eps:g} px apart, every {every}th quad of each kind:")
+        print(
+            "| quads | sites | D changes sign | eps quads folded | min D/D(0) p50 | least "
+            "| N at the first sign change |"
+        )
+        print("|---|---|---|---|---|---|---|")
+        for name, quads in quad_kinds(folds, preserved_labels(fld.rig)).items():
+            r = examine(fld, quads, eps, every)
+            if not r["sites"]:
+                print(f"| {name} | 0 | | | | | |")
+                continue
+            n_at = r["flip_n"]
+            span = f"{n_at.min():.2f} to {n_at.max():.2f}" if len(n_at) else "-"
+            print(
+                f"| {name} | {r['sites']} | {r['d_flips']} | {r['tiny_folds']} | "
+                f"{r['least_p50']:.3g} | {r['least_min']:.3g} | {span} |"
+            )
+    turns = corner_turns(fld, *np.nonzero(folds))
+    counts = {n: int((turns == n).sum()) for n in range(5)}
+    print(
+        f"folded quads by the most corner triangles turned in one section: {counts} "
+        f"(0: the counter's stretch and this one differ)"
+    )
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
