@@ -19,7 +19,9 @@ preserved pixel; not folded, in transitions) traces the rays of the quad's centr
 ``eps`` pixels either side of it in x and in y (central differences), and prints, per
 kind: how many centres' D changes sign inside the bending stretch, how many of the
 quads ``eps`` wide the counter finds folded, the median and least of min D / D(0),
-and the first sign changes' membership N. Keys: ``eps=F`` (0.05 px), ``every=N`` (10),
+the first sign changes' membership N, and at how many sites (and how many of those
+whose D changes sign) a ray had a camera's tangent taken from its guides beyond its
+near plane (``GuidesBeyond``). Keys: ``eps=F`` (0.05 px), ``every=N`` (10),
 ``method=M`` (SCALAR_FIELD; another method's field has no flow to trace, and gets the
 corner triangles alone).
 
@@ -42,7 +44,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import fixtures.rigs as rigs  # noqa: E402
+import multiscale_camera.core.field.tracer as tracer_module  # noqa: E402
 from multiscale_camera.core.geometry import Rig  # noqa: E402
+from multiscale_camera.core.geometry.vectors import dot3  # noqa: E402
 from multiscale_camera.core.methods import prepare, settings_for  # noqa: E402
 from multiscale_camera.core.methods.traced import preserved_labels  # noqa: E402
 from multiscale_camera.core.quality.folds import _segment_at, quad_folds, section_points  # noqa: E402
@@ -98,6 +102,33 @@ def quad_kinds(folds, label):
     }
 
 
+class GuidesBeyond:
+    """While in a ``with`` block, records which rays had a camera's tangent taken from
+    its guides at a point beyond its near plane (``FieldTracer._tangent``: a ray takes
+    camera i's straight part only once its tau reaches i - 1; where camera i's family
+    also runs beside its frustum, the same point then gets another tangent on another
+    ray). ``rays``: (R,) bool after the block, for the last trace's R rays."""
+
+    def __enter__(self):
+        original = self.original = tracer_module.FieldTracer._tangent
+        self.rays = None
+
+        def tangent(tracer, i, x, params, rows):
+            if self.rays is None or len(self.rays) != params.shape[1]:
+                self.rays = np.zeros(params.shape[1], dtype=bool)
+            cam = tracer.rig.cameras[i]
+            past = dot3(x - cam.eye, cam.forward) >= cam.clip_start
+            self.rays[rows[past & (params[i, rows, 2] < i - 1)]] = True
+            return original(tracer, i, x, params, rows)
+
+        tracer_module.FieldTracer._tangent = tangent
+        return self
+
+    def __exit__(self, *exc):
+        tracer_module.FieldTracer._tangent = self.original
+        return False
+
+
 def examine(fld, quads, eps, every):
     """Trace every ``every``-th quad of ``quads`` ((H-1, W-1) bool) of the field ``fld``
     at its centre and ``eps`` px around it; a dict of the figures the module prints."""
@@ -108,7 +139,9 @@ def examine(fld, quads, eps, every):
     cams = fld.rig.cameras
     u = np.concatenate([xs + 1.0 + eps * dx for dx, _dy in OFFSETS])
     v = np.concatenate([ys + 1.0 + eps * dy for _dx, dy in OFFSETS])
-    traced = fld.tracer().trace(u, v, fld.step, 4000)
+    with GuidesBeyond() as guides:
+        traced = fld.tracer().trace(u, v, fld.step, 4000)
+    beyond = guides.rays.reshape(len(OFFSETS), n).any(axis=0)
     rays = traced.vertices.astype(np.float64).reshape(len(OFFSETS), n, -1, 3)
     counts = traced.counts.reshape(len(OFFSETS), n)
     active = bending_active(traced.vertices, cams[-1], traced.counts, cams[:-1])
@@ -133,6 +166,8 @@ def examine(fld, quads, eps, every):
         "least_p50": float(np.median(least)),
         "least_min": float(least.min()),
         "flip_n": at,
+        "beyond": int(beyond.sum()),
+        "beyond_flips": int((beyond & flips).sum()),
     }
 
 
@@ -201,19 +236,20 @@ def main(argv):
         print(f"D from rays eps {eps:g} px apart, every {every}th quad of each kind:")
         print(
             "| quads | sites | D changes sign | eps quads folded | min D/D(0) p50 | least "
-            "| N at the first sign change |"
+            "| N at the first sign change | guides beyond a near plane (of the sign changes) |"
         )
-        print("|---|---|---|---|---|---|---|")
+        print("|---|---|---|---|---|---|---|---|")
         for name, quads in quad_kinds(folds, preserved_labels(fld.rig)).items():
             r = examine(fld, quads, eps, every)
             if not r["sites"]:
-                print(f"| {name} | 0 | | | | | |")
+                print(f"| {name} | 0 | | | | | | |")
                 continue
             n_at = r["flip_n"]
             span = f"{n_at.min():.2f} to {n_at.max():.2f}" if len(n_at) else "-"
             print(
                 f"| {name} | {r['sites']} | {r['d_flips']} | {r['tiny_folds']} | "
-                f"{r['least_p50']:.3g} | {r['least_min']:.3g} | {span} |"
+                f"{r['least_p50']:.3g} | {r['least_min']:.3g} | {span} | "
+                f"{r['beyond']} ({r['beyond_flips']}) |"
             )
     turns = corner_turns(fld, *np.nonzero(folds))
     counts = {n: int((turns == n).sum()) for n in range(5)}

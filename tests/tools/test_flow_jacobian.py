@@ -69,6 +69,21 @@ def test_a_fold_free_scalar_field_keeps_its_flows_orientation():
     assert r["sites"] > 40
     assert r["d_flips"] == 0 and r["tiny_folds"] == 0
     assert r["least_min"] > 0
+    assert r["beyond"] == 0  # no tangent from a camera's guides beyond its near plane
+
+
+def test_turned_rigs_rays_take_camera_3s_guides_beyond_its_near_plane():
+    # camera 3 turned 50 degrees from camera 2: rays of the 2-3 transition reach points
+    # beyond its near plane before their tau reaches its last guide (docs/architecture.md)
+    cams, masks = rigs.turned_rig(64, 36)
+    settings = dataclasses.replace(settings_for("PREVIEW"), processes=1)
+    fld = prepare(Rig(cams, masks), "SCALAR_FIELD", settings)
+    transition = preserved_labels(fld.rig) == 0
+    ys, xs = np.nonzero(transition)
+    with fj.GuidesBeyond() as guides:
+        fld.tracer().trace(xs + 0.5, ys + 0.5, fld.step, 4000)
+    assert len(guides.rays) == len(xs)
+    assert 0.05 * len(xs) < guides.rays.sum() < len(xs)
 
 
 def _quad_towards(corners_end, k=11):
