@@ -13,11 +13,11 @@ such streamlines (a step too long for the flow, or a field that jumps), and D ne
 zero (relative to D(0)) is a flow that all but focuses the pixels' rays.
 
 Builds ``fixtures.rigs.<RIG>_rig`` with SCALAR_FIELD (``method``) in one process,
-counts its folds with the report's counter (``quality.report.fold_map``), and at every ``every``-th
-quad of three kinds (folded, all four pixels in transitions; folded, touching a
-preserved pixel; not folded, in transitions) traces the rays of the quad's centre and
-``eps`` pixels either side of it in x and in y (central differences), and prints, per
-kind: how many centres' D changes sign inside the bending stretch, how many of the
+counts its folds with the report's counter (``quality.report.fold_map``), and at
+every ``every``-th quad of three kinds (folded, all four pixels in transitions; folded,
+touching a preserved pixel; not folded, in transitions) traces the rays of the quad's
+centre and ``eps`` pixels either side of it in x and in y (central differences), and
+prints, per kind: how many centres' D changes sign inside the bending stretch, how many of the
 quads ``eps`` wide the counter finds folded, the median and least of min D / D(0),
 the first sign changes' membership N, and at how many sites (and how many of those
 whose D changes sign) a ray had a camera's tangent taken from its guides beyond its
