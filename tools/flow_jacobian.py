@@ -29,7 +29,9 @@ Then, for every folded quad, the most corner triangles (a b c, b c d, c d a, d a
 turned in one section (``corner_turns``, brute force on the field's rays, as the counter
 cuts them). One turned triangle is a quad that is no longer convex: its ray d lies
 inside the triangle of a, b and c (or the like), and the triangulation along its other
-diagonal keeps both triangles' orientation, so no two neighbouring rays have swapped.
+diagonal keeps both triangles' orientation, so no two neighbouring rays have swapped
+(the bilinear interpolation between them, which the renderer uses, is no longer
+one-to-one there: docs/report.md, "Folds").
 Two or more (the areas of a b c and c d a add up to those of b c d and d a b, so two
 turned triangles are neighbours) leave neither triangulation whole: the quad's edges
 cross or it is mirrored.
