@@ -40,32 +40,17 @@ from multiscale_camera.core.geometry import Family, Rig  # noqa: E402
 from multiscale_camera.core.methods import prepare, settings_for  # noqa: E402
 from multiscale_camera.core.methods.traced import _nested_step  # noqa: E402
 from multiscale_camera.core.quality import build_report  # noqa: E402
-from multiscale_camera.core.quality.folds import _segment_at, quad_folds, section_points  # noqa: E402
+from multiscale_camera.core.quality.folds import quad_folds  # noqa: E402
 from multiscale_camera.core.quality.metrics import bending_active  # noqa: E402
 from multiscale_camera.core.quality.report import fold_map  # noqa: E402
+from tools.flow_jacobian import section_turns  # noqa: E402
 
 
 def flipped_sections(v, active):
     """(K,) bool: sections of ray a (v[0], (4, K, 3) float64 rays a, b, c, d) whose
-    corner triangles turn against the first section, as ``quad_folds`` (brute force)."""
-    a = v[0]
-    t = np.empty_like(a)
-    t[1:-1], t[0], t[-1] = a[2:] - a[:-2], a[1] - a[0], a[-1] - a[-2]
-    n = t / np.linalg.norm(t, axis=1, keepdims=True)
-    cum = np.zeros(v.shape[:2])
-    cum[:, 1:] = np.cumsum(np.linalg.norm(np.diff(v, axis=1), axis=-1), axis=1)
-    pts, alive = [np.zeros_like(a)], active[0].copy()
-    for r in (1, 2, 3):
-        p, j = section_points(
-            v[r : r + 1], a[None], n[None], _segment_at(cum[r : r + 1], cum[0][None])
-        )
-        pts.append(p[0])
-        alive &= active[r][j[0]]
-    flips = np.zeros(len(a), dtype=bool)
-    for i, j, k in ((0, 1, 2), (1, 2, 3), (2, 3, 0), (3, 0, 1)):
-        o = np.sign(np.einsum("ij,ij->i", np.cross(pts[j] - pts[i], pts[k] - pts[i]), n))
-        flips |= (o != o[0]) & (o != 0) & (o[0] != 0)
-    return flips & alive
+    corner triangles turn against the first section, as ``quad_folds`` (brute force:
+    ``tools/flow_jacobian.section_turns``)."""
+    return section_turns(v, active) > 0
 
 
 def quad_pixels(y, x):

@@ -2,29 +2,18 @@
 rays written out here, and a fold-free SCALAR_FIELD whose flow keeps its orientation."""
 
 import dataclasses
-import importlib.util
-from pathlib import Path
 
 import numpy as np
 
 import fixtures.rigs as rigs
+from fixtures.tools import load_tool
 from multiscale_camera.core.geometry import Rig
 from multiscale_camera.core.methods import prepare, settings_for
 from multiscale_camera.core.methods.traced import preserved_labels
 from multiscale_camera.core.quality.folds import quad_folds
 from multiscale_camera.core.quality.report import fold_map
 
-TOOL = Path(__file__).resolve().parents[2] / "tools" / "flow_jacobian.py"
-
-
-def _tool():
-    spec = importlib.util.spec_from_file_location("flow_jacobian", TOOL)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-fj = _tool()
+fj = load_tool("flow_jacobian")
 
 
 def _line_focus(x, y, s, focus):

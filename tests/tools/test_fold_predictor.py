@@ -1,26 +1,14 @@
 """tools/fold_predictor.py: IMAGE_BLEND's folds foretold from the curves and the weights'
 slope, against the exact counter, and the matrix determinant lemma it rests on."""
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 
 import fixtures.rigs as rigs
 from fixtures.masks import disk_masks
+from fixtures.tools import load_tool
 from multiscale_camera.core.quality.report import fold_map
 
-TOOL = Path(__file__).resolve().parents[2] / "tools" / "fold_predictor.py"
-
-
-def _tool():
-    spec = importlib.util.spec_from_file_location("fold_predictor", TOOL)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-fp = _tool()
+fp = load_tool("fold_predictor")
 
 
 def test_predicted_folds_lie_on_counted_ones_on_the_turned_rig():
