@@ -8,7 +8,7 @@ from fixtures.rigs import demo_rig, zoom1000_rig
 from multiscale_camera.core.field import StopReason, Traced
 from multiscale_camera.core.geometry import Family, Rig
 from multiscale_camera.core.geometry.family import LOST_TOLERANCE, RETRY_TOLERANCE
-from multiscale_camera.core.methods.traced import substitution_messages
+from multiscale_camera.core.quality import substitution_messages
 
 
 @pytest.mark.parametrize("i, taus", [(1, (0.8, 0.9, 0.97)), (2, (1.85, 1.95, 1.99))])

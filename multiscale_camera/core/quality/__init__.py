@@ -53,6 +53,7 @@ from .validate import (
     obstruction_messages,
     preflight,
     sample_pixels,
+    substitution_messages,
     turn_deg,
 )
 
@@ -96,6 +97,7 @@ __all__ = [
     "sample_pixels",
     "section_points",
     "size_text",
+    "substitution_messages",
     "to_json",
     "transition_folds",
     "turn_deg",

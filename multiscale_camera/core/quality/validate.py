@@ -1,9 +1,11 @@
-"""Checks of a rig that explain, before a build, what would go wrong and what to change."""
+"""Checks of a rig that explain, before a build, what would go wrong and what to change,
+and the warnings that say where a build put something else in place of the field
+(claims two masks both make, Newton's failures, stalled and unfinished rays)."""
 
 import numpy as np
 
 from ..errors import RigError
-from ..field import choose_grid
+from ..field import StopReason, choose_grid
 from ..geometry import DEFAULT_SEGMENTS, build_guides, curved_rays
 
 # Consecutive cameras may turn at most this much: beyond it the guides of neighbouring
@@ -266,3 +268,49 @@ def preflight(rig):
     build: raises ``RigError`` (turns over 90 degrees); returns warnings (order of
     scales, guard, empty masks, crossing frusta), each naming the camera and the fix."""
     return check_rig(rig) + guard_messages(rig) + empty_mask_messages(rig) + crossing_messages(rig)
+
+
+def _pixel_span(x, y):
+    """'pixels x a-b, y c-d' of pixel coordinates ((n,) arrays, camera 1's pixels)."""
+    x, y = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
+    return f"pixels x {x.min()}-{x.max()}, y {y.min()}-{y.max()}"
+
+
+def substitution_messages(rig, traced, index, lost):
+    """Warnings for what the trace put in place of the field, saying where.
+
+    Parameters
+    ----------
+    rig : Rig. traced : field.Traced, every traced ray. index : (H, W) int32, the
+    traced ray of each pixel or -1. lost : list of (camera index, (n, 2) float32
+    camera-1 pixels) for every tangent evaluation where Newton's inversion of a ray
+    family failed (``FieldTracer.lost``).
+
+    Returns
+    -------
+    list of str: per camera whose family Newton lost points of, and for stalled and
+    unfinished rays, how many and the pixels they cover.
+    """
+    out = []
+    names = [c.name for c in rig.cameras]
+    for i in sorted({cam for cam, _at in lost}):
+        at = np.concatenate([a for cam, a in lost if cam == i])
+        rays = np.unique(at[np.isfinite(at).all(axis=1)], axis=0)
+        where = f" ({_pixel_span(rays[:, 0], rays[:, 1])})" if len(rays) else ""
+        out.append(
+            f"Newton's inversion of camera '{names[i]}''s curved rays failed at {len(at)} "
+            f"points of {len(rays)} traced rays{where}: there the field took camera "
+            f"'{names[0]}''s direction instead of '{names[i]}''s, so rays there may bend wrongly"
+        )
+    py, px = np.nonzero(index >= 0)
+    rows = index[py, px]
+    for reason, text in (
+        (StopReason.STALLED, "stalled (the blended field vanished) before leaving the grid"),
+        (StopReason.REACHED_LIMIT, "reached the step limit inside the grid and ran straight on"),
+    ):
+        hit = traced.reason[rows] == reason
+        if hit.any():
+            out.append(
+                f"{int(hit.sum())} traced rays {text} ({_pixel_span(px[hit] + 0.5, py[hit] + 0.5)})"
+            )
+    return out
