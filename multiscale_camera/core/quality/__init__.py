@@ -6,15 +6,14 @@ bytes out). Built on ``geometry`` and ``field``; it measures any ray field throu
 alone, so it needs none of the methods.
 """
 
+from .budget import budget_message, size_text
 from .folds import quad_folds, section_points
 from .memory import (
     MB,
     MemoryEstimate,
-    budget_message,
     build_memory,
     estimate_memory,
     render_memory,
-    size_text,
 )
 from .metrics import (
     ERODE_PX,
