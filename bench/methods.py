@@ -141,7 +141,9 @@ def run_one(rig_name, method, quality, width, height):
             "commit": _commit(),
         }
     build = time.perf_counter() - start
-    report = build_report(fld, quality, build)
+    # the report in as many processes as the build, as Compute Field runs it
+    # (render.fields); AUTO measured its candidates so already
+    report = build_report(fld, quality, build, settings.processes)
     total = time.perf_counter() - start
     peak_main = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
     workers = _workers_peaks_mb()
@@ -149,7 +151,7 @@ def run_one(rig_name, method, quality, width, height):
     if quality == "PREVIEW":  # a redraw while a mask is painted: the workers are up
         start = time.perf_counter()
         more = prepare(Rig(cams, masks), method.replace("_DEFAULT", ""), settings)
-        build_report(more, quality, time.perf_counter() - start)
+        build_report(more, quality, time.perf_counter() - start, settings.processes)
         again = round(time.perf_counter() - start, 3)
     return {
         "rig": rig_name,
