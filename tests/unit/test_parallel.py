@@ -15,6 +15,7 @@ from multiscale_camera.core.methods import prepare, settings_for
 from multiscale_camera.core.quality import bending_active, build_report, fold_map
 from multiscale_camera.core.quality import report as report_module
 from multiscale_camera.core.runtime import runtime
+from multiscale_camera.core.runtime.wire import dump_payload
 from multiscale_camera.core.runtime.worker import probe
 
 from .fold_reference import reference_quad_folds
@@ -44,6 +45,20 @@ def test_rays_traced_in_two_processes_equal_those_traced_in_one(monkeypatch):
     np.testing.assert_array_equal(one.traced.counts, two.traced.counts)
     np.testing.assert_array_equal(one.index, two.index)
     assert one.stats["newton_lost"] == two.stats["newton_lost"]
+    # the rays of the field built for workers lie in shared memory: the fold count and
+    # the render's tables map them rather than a copy
+    assert runtime().shared.handle(two.traced.vertices) is not None
+    assert runtime().shared.handle(two.traced.membership) is not None
+    assert runtime().shared.handle(one.traced.vertices) is None
+    copies = []
+    dump_payload(two, runtime().shared, copies)
+    try:
+        copied = {seg.size for seg in copies}
+        assert two.traced.vertices.nbytes not in copied
+        assert two.traced.membership.nbytes not in copied
+    finally:
+        for seg in copies:
+            seg.unlink()
 
 
 def test_processes_are_not_part_of_the_fields_identity():

@@ -185,6 +185,34 @@ def test_no_segments_are_left_behind(rt):
     assert segments() == before
 
 
+def _taken_bytes(array, rt):
+    """Bytes of /dev/shm the segment under ``array`` holds (Linux)."""
+    name = rt.shared.handle(array).segment
+    return os.stat(f"/dev/shm/{name}").st_blocks * 512
+
+
+@pytest.mark.skipif(not os.path.isdir("/dev/shm"), reason="Linux's /dev/shm shows the pages")
+def test_a_shared_array_made_without_reserving_takes_its_pages_as_asked(rt):
+    out = rt.shared_array((64, 1024), np.float32, reserve=False)  # 256 kB
+    assert _taken_bytes(out, rt) == 0
+    rt.shared.reserve(out[16:32])  # 64 kB
+    assert 64 * 1024 <= _taken_bytes(out, rt) < 128 * 1024
+    out[16:32] = 1.0
+    assert float(out.sum()) == 16 * 1024
+    # workers see what was written, and what was not reads as zeros
+    assert rt.map(partial(tasks.total, out), [0, 1], 2).results == [(16384.0, "mmap")] * 2
+    whole = rt.shared_array((64, 1024), np.float32)
+    assert _taken_bytes(whole, rt) >= 256 * 1024
+
+
+def test_only_a_contiguous_piece_of_a_shared_array_can_be_reserved(rt):
+    out = rt.shared_array((8, 8), np.float32, reserve=False)
+    with pytest.raises(ValueError, match="not a contiguous piece of a shared array"):
+        rt.shared.reserve(out[:, :4])
+    with pytest.raises(ValueError, match="not a contiguous piece of a shared array"):
+        rt.shared.reserve(np.zeros((8, 8), np.float32))
+
+
 def test_too_few_processes_run_here_without_workers():
     runtime = Runtime()
     mapped = runtime.map(tasks.where, [1, 2, 3], 1)

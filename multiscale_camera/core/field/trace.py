@@ -18,6 +18,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..geometry import dot3
+from ..runtime import runtime
 from .plane_step import schedule_of
 
 # Rays traced together: bounds the memory of the state, the stages and the vertex
@@ -504,15 +505,20 @@ def run_on(traced, vertices, schedule=None):
     )
 
 
-def merge(parts, order, total, schedule=None):
+def merge(parts, order, total, schedule=None, shared=False):
     """Combine ``Traced`` parts into one, rays placed at ``order`` (one index array per
     part) among ``total`` rays, shorter ones run on (``run_on``, with ``schedule``).
     Consumes ``parts``: each entry is released (set to None) once copied, so a large
-    merge holds little more than its result."""
+    merge holds little more than its result and its largest part.
+
+    ``shared``: the vertices and memberships go into shared memory
+    (``Runtime.shared_array``), its pages taken a block at a time as they are written,
+    so that workers handed the result (the fold count, the render's tables) map these
+    pages rather than a copy of them; where shared memory cannot be had, they go into
+    this process's memory as without it."""
     k = max(p.vertices.shape[1] for p in parts)
     step = parts[0].step
-    verts = np.empty((total, k, 3), dtype=np.float32)
-    mem = np.empty((total, k), dtype=np.float32)
+    out = _MergeArrays(total, k, shared)
     counts = np.empty(total, dtype=np.int32)
     reason = np.empty(total, dtype=np.int8)
     banded = any(p.bands is not None for p in parts)
@@ -526,9 +532,50 @@ def merge(parts, order, total, schedule=None):
         for s in range(0, len(idx), block):
             sl = slice(s, s + block)
             sub = run_on(replace(p.rows(sl), step=step), k, schedule)
-            verts[idx[sl]], mem[idx[sl]] = sub.vertices, sub.membership
+            out.write(idx[sl], sub.vertices, sub.membership)
         del p
-    return Traced(verts, mem, counts, reason, step, bands)
+    return Traced(out.verts, out.mem, counts, reason, step, bands)
+
+
+class _MergeArrays:
+    """``merge``'s vertices (total, k, 3) and memberships (total, k), float32: in
+    shared memory taken as rows are written, or in this process's memory."""
+
+    def __init__(self, total, k, shared):
+        self.verts = self.mem = None
+        if shared:
+            try:
+                pool = runtime()
+                self.verts = pool.shared_array((total, k, 3), np.float32, reserve=False)
+                self.mem = pool.shared_array((total, k), np.float32, reserve=False)
+            except OSError:
+                self.verts = self.mem = None
+        self.shared = self.mem is not None
+        # the rows whose pages are taken (only these are read back on a fall back)
+        self.taken = np.zeros(total, dtype=bool) if self.shared else None
+        if not self.shared:
+            self.verts = np.empty((total, k, 3), dtype=np.float32)
+            self.mem = np.empty((total, k), dtype=np.float32)
+
+    def write(self, rows, verts, mem):
+        """Write rays ``rows`` ((n,) int): vertices (n, k, 3), memberships (n, k)."""
+        if self.shared and len(rows):
+            span = slice(int(rows.min()), int(rows.max()) + 1)
+            try:
+                runtime().shared.reserve(self.verts[span])
+                runtime().shared.reserve(self.mem[span])
+                self.taken[span] = True
+            except OSError:  # /dev/shm is full: the rows written so far move here
+                self._here()
+        self.verts[rows], self.mem[rows] = verts, mem
+
+    def _here(self):
+        """Move to this process's memory (the pages not taken are never touched: on a
+        full /dev/shm touching them would fail)."""
+        verts = np.empty(self.verts.shape, dtype=np.float32)
+        mem = np.empty(self.mem.shape, dtype=np.float32)
+        verts[self.taken], mem[self.taken] = self.verts[self.taken], self.mem[self.taken]
+        self.verts, self.mem, self.shared, self.taken = verts, mem, False, None
 
 
 # Ray vertices ``merge`` extends at a time.

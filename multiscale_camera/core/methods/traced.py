@@ -21,6 +21,7 @@ from ..field import (
 )
 from ..field.plane_step import plane_gain, schedule_of
 from ..quality import along_ray, conflict_messages, substitution_messages
+from ..runtime import worker_count
 from .base import RayField, guard_warnings
 
 
@@ -445,7 +446,11 @@ class _AdaptiveLattice:
             leaf_of[b : d + 1, a : c + 1] = n
         parts, order = self.parts, self.order
         self.parts, self.order = [], []
-        return merge(parts, order, self.count, self.schedule), self.index, leaves, leaf_of
+        # in shared memory where workers will be handed the field (its fold count, the
+        # render's tables): they map its rays then rather than a copy of them
+        shared = worker_count(getattr(self.tracer, "processes", 1)) >= 2
+        traced = merge(parts, order, self.count, self.schedule, shared=shared)
+        return traced, self.index, leaves, leaf_of
 
 
 def lattice_stride(rig, grid):

@@ -445,14 +445,15 @@ class Runtime:
                 pool = self._pools[launcher] = Pool(launcher)
             return pool
 
-    def shared_array(self, shape, dtype):
-        """A zeroed array that workers of any run can write into (``SharedArrays.new``).
+    def shared_array(self, shape, dtype, reserve=True):
+        """A zeroed array that workers of any run can write into (``SharedArrays.new``;
+        ``reserve`` False: its memory is taken a piece at a time, ``shared.reserve``).
 
         Raises
         ------
         OSError when shared memory cannot be had.
         """
-        return self.shared.new(shape, dtype)
+        return self.shared.new(shape, dtype, reserve)
 
     def run(
         self,

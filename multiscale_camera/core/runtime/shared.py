@@ -90,13 +90,17 @@ class Segment:
         self._named = owner
 
     @classmethod
-    def create(cls, size):
+    def create(cls, size, reserve=True):
         """A new zeroed segment of ``size`` bytes (at least 1).
+
+        ``reserve``: take the memory now (``posix_fallocate``, so that a full /dev/shm
+        fails here rather than with SIGBUS on a later write); False leaves it to be
+        taken a range at a time (module ``reserve``) before each range is written: a large
+        array filled in pieces then holds only what is written so far.
 
         Raises
         ------
-        OSError when the memory cannot be had (``posix_fallocate`` reserves it now, so
-        that a full /dev/shm fails here rather than with SIGBUS on a later write).
+        OSError when the memory cannot be had.
         """
         size = max(int(size), 1)
         if _posixshmem is None:
@@ -104,7 +108,7 @@ class Segment:
             return cls(name, size, mmap.mmap(-1, size, tagname=name), True)
 
         def mapped(fd):
-            if hasattr(os, "posix_fallocate"):
+            if reserve and hasattr(os, "posix_fallocate"):
                 os.posix_fallocate(fd, 0, size)
             return mmap.mmap(fd, size)
 
@@ -163,6 +167,24 @@ class Segment:
     def array(self, shape, dtype, offset=0, strides=None):
         """An ndarray over this segment's memory (its ``base`` is the mapping)."""
         return np.ndarray(shape, dtype, buffer=self.buffer, offset=offset, strides=strides)
+
+
+def reserve(name, offset, length):
+    """Take the memory of bytes ``offset`` to ``offset + length`` of segment ``name`` now
+    (POSIX, with ``posix_fallocate``; elsewhere the system takes it as it is written),
+    while the name exists.
+
+    Raises
+    ------
+    OSError when the memory cannot be had (/dev/shm is full).
+    """
+    if _posixshmem is None or not hasattr(os, "posix_fallocate") or length <= 0:
+        return
+    fd = _posixshmem.shm_open("/" + name, os.O_RDWR, mode=0o600)
+    try:
+        os.posix_fallocate(fd, int(offset), int(length))
+    finally:
+        os.close(fd)
 
 
 def unlink(name):
@@ -232,8 +254,10 @@ class SharedArrays:
         # so that the mapping goes with the last array over it
         self._names = {}
 
-    def new(self, shape, dtype):
-        """A zeroed ndarray of ``shape`` and ``dtype`` in a new segment.
+    def new(self, shape, dtype, reserve=True):
+        """A zeroed ndarray of ``shape`` and ``dtype`` in a new segment; ``reserve``
+        False: its memory is taken as ``reserve`` is asked for each piece before it is
+        written (``Segment.create``).
 
         Raises
         ------
@@ -241,7 +265,7 @@ class SharedArrays:
         """
         dtype = np.dtype(dtype)
         count = int(np.prod(shape, dtype=np.int64))
-        seg = Segment.create(count * dtype.itemsize)
+        seg = Segment.create(count * dtype.itemsize, reserve)
         array = seg.array(shape, dtype)
         key = id(seg.buffer)
         with self._lock:
@@ -256,8 +280,8 @@ class SharedArrays:
         if entry is not None:
             unlink(entry[1])
 
-    def handle(self, array):
-        """The Handle of ``array`` when it lies in one of these segments, else None."""
+    def _segment_of(self, array):
+        """(mapping, name) of the segment ``array`` lies in, or None."""
         root = _root(array)
         if not isinstance(root, mmap.mmap):
             return None
@@ -265,7 +289,28 @@ class SharedArrays:
             entry = self._names.get(id(root))
         if entry is None or entry[0]() is not root:
             return None
-        return handle_in(array, root, entry[1])
+        return root, entry[1]
+
+    def handle(self, array):
+        """The Handle of ``array`` when it lies in one of these segments, else None."""
+        found = self._segment_of(array)
+        if found is None:
+            return None
+        return handle_in(array, *found)
+
+    def reserve(self, array):
+        """Take the memory under ``array`` now: a C-contiguous piece of an array that
+        ``new`` made with ``reserve`` False, before it is written (module ``reserve``).
+
+        Raises
+        ------
+        OSError when the memory cannot be had. ValueError when ``array`` is not such a
+        piece.
+        """
+        found = self._segment_of(array)
+        if found is None or not array.flags.c_contiguous:
+            raise ValueError("not a contiguous piece of a shared array")
+        reserve(found[1], handle_in(array, *found).offset, array.nbytes)
 
     def names(self):
         """list of str, the names kept now."""
