@@ -24,6 +24,7 @@ import resource
 import signal
 import subprocess
 import sys
+import threading
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -114,6 +115,54 @@ def _workers_peaks_mb():
     return [round(kb / 1024, 1) for kb in peaks]
 
 
+def _meminfo_used_kb():
+    """The machine's memory in use, kB: MemTotal - MemAvailable (Linux's /proc/meminfo;
+    shared memory counts once, page cache that can be dropped not at all), or None."""
+    try:
+        with open("/proc/meminfo") as info:
+            fields = dict(line.split(":", 1) for line in info)
+        return int(fields["MemTotal"].split()[0]) - int(fields["MemAvailable"].split()[0])
+    except (OSError, KeyError, ValueError):
+        return None
+
+
+class MachineMemory:
+    """The most memory the machine held at once while this runs, above what it held
+    before less this process's own (so this process counts whole, its workers and the
+    shared memory they map once each): sampled every ``SAMPLE_S`` seconds by a thread.
+    A peak shorter than a sample can be missed; anything else running on the machine is
+    counted too, so the bench runs alone. ``peak_mb`` is None where /proc/meminfo is not
+    to be had."""
+
+    SAMPLE_S = 0.02
+
+    def __init__(self):
+        self.peak_mb = None
+        self._stop = threading.Event()
+        used = _meminfo_used_kb()
+        if used is None:
+            self._thread = None
+            return
+        self._base = used - resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+        self._peak = used
+        self._thread = threading.Thread(target=self._sample, name="memory", daemon=True)
+        self._thread.start()
+
+    def _sample(self):
+        while not self._stop.wait(self.SAMPLE_S):
+            used = _meminfo_used_kb()
+            if used is not None and used > self._peak:
+                self._peak = used
+
+    def stop(self):
+        """Stop sampling; return ``peak_mb`` (float MB or None)."""
+        if self._thread is not None:
+            self._stop.set()
+            self._thread.join()
+            self.peak_mb = round((self._peak - self._base) / 1024, 1)
+        return self.peak_mb
+
+
 def run_one(rig_name, method, quality, width, height):
     """Build one field in this process; return its row (a dict)."""
     from fixtures import rigs
@@ -127,12 +176,14 @@ def run_one(rig_name, method, quality, width, height):
     settings = settings_for(quality)
     if method in ("SCALAR_FIELD", "SCALAR_FIELD_NESTED"):
         settings = replace(settings, nested=method.endswith("NESTED"))
+    machine = MachineMemory()
     start = time.perf_counter()
     try:
         fld = prepare(
             Rig(cams, masks), method.replace("_NESTED", "").replace("_DEFAULT", ""), settings
         )
     except RigError as err:
+        machine.stop()
         return {
             "rig": rig_name,
             "method": method,
@@ -147,6 +198,7 @@ def run_one(rig_name, method, quality, width, height):
     total = time.perf_counter() - start
     peak_main = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
     workers = _workers_peaks_mb()
+    peak_machine = machine.stop()
     again = None
     if quality == "PREVIEW":  # a redraw while a mask is painted: the workers are up
         start = time.perf_counter()
@@ -191,6 +243,9 @@ def run_one(rig_name, method, quality, width, height):
         # every process's peak added up: an upper bound on the memory held at once
         # (shared pages count once per process that mapped them)
         "peak_mb_all": round(peak_main + sum(workers), 1),
+        # the most the machine held at once (``MachineMemory``): every process, shared
+        # memory once, whether mapped or not
+        "peak_mb_machine": peak_machine,
     }
 
 
@@ -603,11 +658,27 @@ def _accepts(r, build_limit, targets=TARGETS):
     bad = _failures(r, targets)
     if _seconds(r) > build_limit:
         bad.append(f"{_seconds(r):.3g} s > {build_limit:g} s")
-    if r.get("peak_mb_all", r["peak_mb"]) > TARGETS["memory_mb"]:
-        bad.append(f"{r.get('peak_mb_all', r['peak_mb']):.0f} MB")
+    if _peak_memory(r) > TARGETS["memory_mb"]:
+        bad.append(f"{_peak_memory(r):.0f} MB")
     if not bad and _seam_only(r):
         return f"yes, saying its {r['folds']} folds lie where the masks touch"
     return "yes" if not bad else "no: " + ", ".join(bad)
+
+
+def _peak_memory(r):
+    """MB, what row ``r`` held at its peak: the machine's memory in use at once
+    (``MachineMemory``) where the row has it, else every process's peak added up (rows
+    measured before it, an upper bound on what was mapped at once)."""
+    machine = r.get("peak_mb_machine")
+    return machine if machine is not None else r.get("peak_mb_all", r["peak_mb"])
+
+
+def _memory_cell(r):
+    """The acceptance table's memory cell: the machine's peak, then the processes'
+    peaks added up."""
+    added = f"{r.get('peak_mb_all', r['peak_mb']):.0f}"
+    machine = r.get("peak_mb_machine")
+    return added if machine is None else f"{machine:.0f}; {added}"
 
 
 def _verdict_lines(rows, limit_of, targets, extra=(0, None)):
@@ -685,11 +756,14 @@ def acceptance(results, source=OUT):
         "the pixels it keeps,",
         "zero folds (exact counter), zero stalled rays and Newton failures, Compute Field",
         f"<= {TARGETS['build']:g} s (default) or <= {TARGETS['forced_build']:g} s (forced "
-        "SCALAR_FIELD), every process's",
-        f"peak memory added up <= {TARGETS['memory_mb'] / 1024:g} GB.",
+        "SCALAR_FIELD), the machine's memory in use at once <= "
+        f"{TARGETS['memory_mb'] / 1024:g} GB:",
+        "every process, shared memory once, sampled every 20 ms (rows measured before",
+        "that was sampled: every process's peak added up).",
         "",
         "| rig | method (built) | Compute Field s | load | p95/max px per camera | folds "
-        "| stalled, Newton | peak MB (all) | commit | meets the targets |",
+        "| stalled, Newton | peak MB (machine; processes added up) | commit "
+        "| meets the targets |",
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
     lines += _verdict_lines(
@@ -700,7 +774,7 @@ def acceptance(results, source=OUT):
             2,
             lambda r: [
                 f"{r['stalled']}, {r['newton_lost']}",
-                f"{r.get('peak_mb_all', r['peak_mb']):.0f}",
+                _memory_cell(r),
             ],
         ),
     )
