@@ -193,6 +193,35 @@ def test_folds_of_an_image_with_few_bands_are_shared_on_smaller_bands(monkeypatc
     np.testing.assert_array_equal(two, expected)
 
 
+def test_bands_too_wide_for_the_chunk_are_counted_in_pieces_of_columns(monkeypatch):
+    """Rays of 216 vertices across a 1920-wide image (the turned rig's forced
+    SCALAR_FIELD): a band of two rows held 0.83 M vertices, 1.6 chunks, whatever
+    FOLD_CHUNK_VERTICES said. Such a band now goes in pieces of columns of at most a
+    chunk; the map is every quad's."""
+    cams, masks = turned_rig(64, 48)
+    fld = prepare(Rig(cams, masks), "IMAGE_BLEND", settings_for("STANDARD"))
+    k = vertices_per_ray(fld)
+    monkeypatch.setattr(report_module, "FOLD_CHUNK_VERTICES", 2 * k * 7)  # 7 columns a piece
+    monkeypatch.setattr(report_module, "FOLD_SHARED_MIN_PIXELS", 64 * 48)
+    assert report_module.fold_plan(64, 48, k, 2)[1] == 2
+    assert report_module.fold_columns(2, k) == 7
+    pieces = []
+    piece = report_module._fold_piece
+
+    def recorded(fld, band, xs, limit, need, a, b, folds):
+        pieces.append((len(band), b - a))
+        piece(fld, band, xs, limit, need, a, b, folds)
+
+    monkeypatch.setattr(report_module, "_fold_piece", recorded)
+    one, _ = fold_map(fld, processes=1)
+    assert pieces and max(rows * cols for rows, cols in pieces) <= 2 * 7
+    two, _ = fold_map(fld, processes=2)  # the workers' pieces go unrecorded here
+    expected = brute_force_fold_map(fld)
+    assert expected.any()
+    np.testing.assert_array_equal(one, expected)
+    np.testing.assert_array_equal(two, expected)
+
+
 def test_the_measure_runs_while_workers_count_the_folds(monkeypatch):
     """``measure_map`` begins the shared fold count before it measures the preserved
     rays, so that the workers count while this process measures: the count's workers

@@ -47,9 +47,10 @@ def fold_map(fld, processes=1, should_stop=None):
     """Folds among the rendered rays: every quad of neighbouring pixels, at every size.
 
     The image's rows go in bands of at most ``FOLD_CHUNK_VERTICES`` vertices (each
-    band's last row is the next one's first), shared among worker processes
-    (``processes``: ``runtime.worker_count``'s request: 0 one per core, 1 keeps them
-    here) in runs of consecutive bands, a few a worker, on images of
+    band's last row is the next one's first; a band of two rows that holds more, of long
+    rays across a wide image, is counted in pieces of columns: ``fold_columns``), shared
+    among worker processes (``processes``: ``runtime.worker_count``'s request: 0 one per
+    core, 1 keeps them here) in runs of consecutive bands, a few a worker, on images of
     ``FOLD_SHARED_MIN_PIXELS`` (bands cut smaller where there are too few: ``fold_plan``);
     smaller images are counted here. ``should_stop`` (callable () -> bool) cancels the
     count, here or shared, asked before every band (at most about 0.4 s of work at
@@ -97,6 +98,7 @@ class FoldCount:
             one = np.zeros(1, dtype=np.int64)
             k = fld.rays(one, one).vertices.shape[1]
         workers, self.rows = fold_plan(w, h, k, worker_count(processes))
+        self.cols = fold_columns(self.rows, k)
         self.starts = list(range(0, len(self.ys) - 1, self.rows - 1))
         self.map = None
         self._stop, self._error, self._thread = False, None, None
@@ -116,7 +118,7 @@ class FoldCount:
         return self._stop or (self.should_stop is not None and self.should_stop())
 
     def _shared(self, workers):
-        task = partial(_fold_bands, self.fld, self.xs, self.ys, self.rows)
+        task = partial(_fold_bands, self.fld, self.xs, self.ys, self.rows, cols=self.cols)
         try:
             shares = runtime().map(task, self.runs, workers, self._asked).results
             self.map = self._assemble(self.runs, shares)
@@ -139,7 +141,7 @@ class FoldCount:
         """
         if self._thread is None:
             stop = self.should_stop
-            bands = _fold_bands(self.fld, self.xs, self.ys, self.rows, self.starts, stop)
+            bands = _fold_bands(self.fld, self.xs, self.ys, self.rows, self.starts, stop, self.cols)
             return self._assemble([self.starts], [bands]), 1
         self._thread.join()
         if self._error is not None:
@@ -176,14 +178,22 @@ def fold_workers(size, k, processes=1):
     return fold_plan(*size, k, worker_count(processes))[0]
 
 
-def _fold_bands(fld, xs, ys, rows, starts, context):
+def fold_columns(rows, k):
+    """int, the most lattice columns a piece of a band of ``rows`` rows holds for rays of
+    ``k`` vertices: ``FOLD_CHUNK_VERTICES`` of them (at least 2). A band of two rows
+    still too wide (long rays on a wide image) is counted a piece at a time."""
+    return max(2, FOLD_CHUNK_VERTICES // (int(rows) * int(k)))
+
+
+def _fold_bands(fld, xs, ys, rows, starts, context, cols=None):
     """The fold maps of the lattice bands starting at rows ``starts`` of ``ys`` (each
     ``rows`` rows, the last shorter), a list of (rows - 1, len(xs) - 1) bool; what
     ``fold_map`` runs here or in a worker. ``context``: the cancel check asked before
     every band (``fold_map``'s ``should_stop``, or the run's ``Context``, which in a
     worker beats too), or None. Only the quads ``kept_limits`` leaves to check are
-    checked, and only their pixels' rays are made."""
-    cams = fld.rig.cameras
+    checked, and only their pixels' rays are made, in pieces of at most ``cols``
+    lattice columns (``fold_columns``; None: whole bands), each piece's last column the
+    next one's first."""
     out = []
     for r0 in starts:
         check_stop(context)
@@ -195,24 +205,39 @@ def _fold_bands(fld, xs, ys, rows, starts, context):
         for dy in (0, 1):
             for dx in (0, 1):
                 need[dy : dy + len(band) - 1, dx : dx + len(xs) - 1] |= limit != 0
-        cols = np.flatnonzero(need.any(axis=0))
-        if len(cols) == 0:
+        held = np.flatnonzero(need.any(axis=0))
+        if len(held) == 0:
             continue
-        c0, c1 = cols[0], cols[-1] + 1  # the lattice's columns that hold them
-        sub = need[:, c0:c1]
-        iy, ix = np.nonzero(sub)
-        iy, ix = band[iy], xs[c0:c1][ix]
-        bundle = fld.rays(ix, iy)
-        k = bundle.vertices.shape[1]
-        exit_index = fld.exit_index(ix, iy)
-        counts = None if exit_index is None else exit_index + 1
-        active = bending_active(bundle.vertices, cams[-1], counts, cams[:-1])
-        verts = np.zeros((*sub.shape, k, 3), dtype=bundle.vertices.dtype)
-        verts[sub] = bundle.vertices
-        on = np.zeros((*sub.shape, k), dtype=bool)
-        on[sub] = active
-        folds[:, c0 : c1 - 1] = quad_folds(verts, on, np.minimum(limit[:, c0 : c1 - 1], k))
+        c0, c1 = held[0], held[-1] + 1  # the lattice's columns that hold them
+        width = c1 - c0 if cols is None else int(cols)
+        for a in range(c0, max(c1 - 1, c0 + 1), width - 1):
+            b = min(a + width, c1)
+            if a > c0:
+                check_stop(context)
+            _fold_piece(fld, band, xs, limit, need, a, b, folds)
     return out
+
+
+def _fold_piece(fld, band, xs, limit, need, a, b, folds):
+    """Count the quads of lattice columns ``a`` to ``b`` (excluded) of a band (``band``:
+    its rows of ``ys``; ``limit``, ``need``: its quads' ``kept_limits`` and the pixels
+    whose rays they need) into ``folds`` (the band's map, columns a to b - 1)."""
+    cams = fld.rig.cameras
+    sub = need[:, a:b]
+    if b - a < 2 or not sub.any():
+        return
+    iy, ix = np.nonzero(sub)
+    iy, ix = band[iy], xs[a:b][ix]
+    bundle = fld.rays(ix, iy)
+    k = bundle.vertices.shape[1]
+    exit_index = fld.exit_index(ix, iy)
+    counts = None if exit_index is None else exit_index + 1
+    active = bending_active(bundle.vertices, cams[-1], counts, cams[:-1])
+    verts = np.zeros((*sub.shape, k, 3), dtype=bundle.vertices.dtype)
+    verts[sub] = bundle.vertices
+    on = np.zeros((*sub.shape, k), dtype=bool)
+    on[sub] = active
+    folds[:, a : b - 1] = quad_folds(verts, on, np.minimum(limit[:, a : b - 1], k))
 
 
 def kept_limits(fld, ys, xs):
