@@ -21,9 +21,11 @@ prints, per kind: how many centres' D changes sign inside the bending stretch, h
 quads ``eps`` wide the counter finds folded, the median and least of min D / D(0),
 the first sign changes' membership N, and at how many sites (and how many of those
 whose D changes sign) a ray had a camera's tangent taken from its guides beyond its
-near plane (``GuidesBeyond``). Keys: ``eps=F`` (0.05 px), ``every=N`` (10),
-``method=M`` (SCALAR_FIELD; another method's field has no flow to trace, and gets the
-corner triangles alone).
+near plane (``GuidesBeyond``); then, on the same rays, at how many sites a camera's
+family turned its orientation along a ray or its solved tau ran back (``FamilySheets``),
+and at how many the six rays split between guides beyond a near plane and not. Keys:
+``eps=F`` (0.05 px), ``every=N`` (10), ``method=M`` (SCALAR_FIELD; another method's
+field has no flow to trace, and gets the corner triangles alone).
 
 Then, for every folded quad, the most corner triangles (a b c, b c d, c d a, d a b)
 turned in one section (``corner_turns``, brute force on the field's rays, as the counter
@@ -131,6 +133,59 @@ class GuidesBeyond:
         return False
 
 
+def orientation(family, u, v, tau):
+    """(P,) int8: the sign of det[dR/du, dR/dv, dR/dtau] of ``family`` (a
+    ``geometry.Family``) at (u, v, tau), (P,) float64 each (0 where it vanishes)."""
+    _point, along, du, dv = family.evaluate(u, v, tau, jacobian=True)
+    return np.sign(dot3(du, np.cross(dv, along))).astype(np.int8)
+
+
+class FamilySheets:
+    """While in a ``with`` block, records along every ray of a trace the orientation of
+    each camera's family where the ray took that camera's tangent from it (Newton on the
+    family, not its straight part): the sign of det[dR/du, dR/dv, dR/dtau] at the
+    solved (u, v, tau) (``orientation``). A family whose curves fold over along a
+    ray (det taking both signs) gives one point two tangents. ``both``: (F, R) bool
+    after the block, camera i's family took both signs along ray r; ``back``: (F, R)
+    bool, the solved tau ran back by more than ``BACK_TAU`` between two evaluations (a
+    jump to another sheet of the family)."""
+
+    BACK_TAU = 0.05
+
+    def __enter__(self):
+        original = self.original = tracer_module.FieldTracer._tangent
+        self.both = self.back = None
+        seen = {}
+
+        def tangent(tracer, i, x, params, rows):
+            out = original(tracer, i, x, params, rows)
+            f, r = params.shape[:2]
+            if self.both is None or self.both.shape != (f, r):
+                self.both, self.back = np.zeros((f, r), bool), np.zeros((f, r), bool)
+                seen.update(sign=np.zeros((f, r), np.int8), tau=np.full((f, r), np.nan))
+            cam = tracer.rig.cameras[i]
+            past = dot3(x - cam.eye, cam.forward) >= cam.clip_start
+            solved = rows[~(past & (params[i, rows, 2] >= i - 1))]  # as ``_tangent``
+            if i == 0 or len(solved) == 0:
+                return out
+            u, v, tau = (params[i, solved, c] for c in range(3))
+            sign = orientation(tracer.families[i], u, v, tau)
+            before = seen["sign"][i, solved]
+            self.both[i, solved] |= (before != 0) & (sign != 0) & (sign != before)
+            seen["sign"][i, solved] = np.where(sign != 0, sign, before)
+            last = seen["tau"][i, solved]
+            self.back[i, solved] |= np.isfinite(last) & (tau < last - self.BACK_TAU)
+            seen["tau"][i, solved] = tau
+            return out
+
+        tracer_module.FieldTracer._tangent = tangent
+        return self
+
+    def __exit__(self, *exc):
+        tracer_module.FieldTracer._tangent = self.original
+        return False
+
+
 def examine(fld, quads, eps, every):
     """Trace every ``every``-th quad of ``quads`` ((H-1, W-1) bool) of the field ``fld``
     at its centre and ``eps`` px around it; a dict of the figures the module prints."""
@@ -141,9 +196,15 @@ def examine(fld, quads, eps, every):
     cams = fld.rig.cameras
     u = np.concatenate([xs + 1.0 + eps * dx for dx, _dy in OFFSETS])
     v = np.concatenate([ys + 1.0 + eps * dy for _dx, dy in OFFSETS])
-    with GuidesBeyond() as guides:
+    with GuidesBeyond() as guides, FamilySheets() as sheets:
         traced = fld.tracer().trace(u, v, fld.step, 4000)
-    beyond = guides.rays.reshape(len(OFFSETS), n).any(axis=0)
+    on = guides.rays.reshape(len(OFFSETS), n)
+    beyond = on.any(axis=0)
+    # a site's rays split between the guides beyond a near plane and the rest
+    split = beyond & ~on.all(axis=0)
+    f = sheets.both.shape[0]
+    folded_family = sheets.both.reshape(f, len(OFFSETS), n).any(axis=1)
+    ran_back = sheets.back.reshape(f, len(OFFSETS), n).any(axis=1)
     rays = traced.vertices.astype(np.float64).reshape(len(OFFSETS), n, -1, 3)
     counts = traced.counts.reshape(len(OFFSETS), n)
     active = bending_active(traced.vertices, cams[-1], traced.counts, cams[:-1])
@@ -170,6 +231,13 @@ def examine(fld, quads, eps, every):
         "flip_n": at,
         "beyond": int(beyond.sum()),
         "beyond_flips": int((beyond & flips).sum()),
+        "split": int(split.sum()),
+        "split_flips": int((split & flips).sum()),
+        # per camera: sites where its family's orientation turned along a ray (and of
+        # them where D turns), and where its solved tau ran back
+        "family_turns": [int(folded_family[i].sum()) for i in range(f)],
+        "family_turns_flips": [int((folded_family[i] & flips).sum()) for i in range(f)],
+        "tau_back": [int(ran_back[i].sum()) for i in range(f)],
     }
 
 
@@ -250,6 +318,7 @@ def main(argv):
             "| N at the first sign change | guides beyond a near plane (of the sign changes) |"
         )
         print("|---|---|---|---|---|---|---|---|")
+        sheets = []
         for name, quads in quad_kinds(folds, preserved_labels(fld.rig)).items():
             r = examine(fld, quads, eps, every)
             if not r["sites"]:
@@ -261,6 +330,20 @@ def main(argv):
                 f"| {name} | {r['sites']} | {r['d_flips']} | {r['tiny_folds']} | "
                 f"{r['least_p50']:.3g} | {r['least_min']:.3g} | {span} | "
                 f"{r['beyond']} ({r['beyond_flips']}) |"
+            )
+            sheets.append((name, r))
+        print("Families along the same rays (sites, and of them where D turns):")
+        for name, r in sheets:
+            turns = ", ".join(
+                f"camera {i + 1} {t} ({tf}), tau back {b}"
+                for i, (t, tf, b) in enumerate(
+                    zip(r["family_turns"], r["family_turns_flips"], r["tau_back"])
+                )
+                if i
+            )
+            print(
+                f"- {name}: a family's orientation turned: {turns}; rays split between "
+                f"guides beyond a near plane and not: {r['split']} ({r['split_flips']})"
             )
     turns = corner_turns(fld, *np.nonzero(folds))
     counts = {n: int((turns == n).sum()) for n in range(5)}

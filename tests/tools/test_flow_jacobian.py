@@ -7,7 +7,7 @@ import numpy as np
 
 import fixtures.rigs as rigs
 from fixtures.tools import load_tool
-from multiscale_camera.core.geometry import Rig
+from multiscale_camera.core.geometry import Family, Rig
 from multiscale_camera.core.methods import prepare, settings_for
 from multiscale_camera.core.methods.traced import preserved_labels
 from multiscale_camera.core.quality.folds import quad_folds
@@ -59,6 +59,50 @@ def test_a_fold_free_scalar_field_keeps_its_flows_orientation():
     assert r["d_flips"] == 0 and r["tiny_folds"] == 0
     assert r["least_min"] > 0
     assert r["beyond"] == 0  # no tangent from a camera's guides beyond its near plane
+    # camera 2's family keeps its orientation along every ray, its tau never runs back
+    assert r["family_turns"] == [0, 0] and r["tau_back"] == [0, 0]
+
+
+def test_orientation_is_the_sign_of_the_familys_jacobian_by_finite_differences():
+    cams, _masks = rigs.turned_rig(64, 36)
+    family = Family(cams, 2)
+    rng = np.random.default_rng(5)
+    n = 200
+    u, v = rng.uniform(-64, 128, n), rng.uniform(-36, 72, n)
+    tau = rng.uniform(0.02, 2.9, n)
+    tau = tau[np.abs(tau - np.round(tau)) > 0.02]  # not across a stage's end
+    u, v = u[: len(tau)], v[: len(tau)]
+    h = 1e-5
+
+    def point(du=0.0, dv=0.0, dt=0.0):
+        return family.evaluate(u + du, v + dv, tau + dt)[0]
+
+    cols = [(point(**{k: h}) - point(**{k: -h})) / (2 * h) for k in ("du", "dv", "dt")]
+    det = np.einsum("ij,ij->i", cols[0], np.cross(cols[1], cols[2]))
+    sure = np.abs(det) > 1e-6 * np.abs(det).max()
+    assert sure.sum() > 0.9 * len(tau)
+    np.testing.assert_array_equal(fj.orientation(family, u, v, tau)[sure], np.sign(det[sure]))
+
+
+def test_family_sheets_flags_the_rays_along_which_a_family_turns_over(monkeypatch):
+    cams, masks = rigs.zoom_rig(64, 48)
+    settings = dataclasses.replace(settings_for("PREVIEW"), processes=1)
+    fld = prepare(Rig(cams, masks), "SCALAR_FIELD", settings)
+    real = fj.orientation
+
+    def turned_past_half(family, u, v, tau):  # camera 2's family mirrored from tau 0.5 on
+        sign = real(family, u, v, tau)
+        return np.where(tau > 0.5, -sign, sign).astype(np.int8)
+
+    monkeypatch.setattr(fj, "orientation", turned_past_half)
+    xs, ys = np.arange(0, 64, 8) + 0.5, np.full(8, 24.5)
+    with fj.FamilySheets() as sheets:
+        fld.tracer().trace(xs, ys, fld.step, 4000)
+    assert sheets.both.shape == (2, 8)
+    assert not sheets.both[0].any() and not sheets.back.any()
+    # the rays camera 2's family was solved for both before and after tau 0.5: 5 of the
+    # 8 (the other three, in camera 1's kept border, stay below tau 0.5 on it)
+    assert sheets.both[1].sum() == 5
 
 
 def test_turned_rigs_rays_take_camera_3s_guides_beyond_its_near_plane():
