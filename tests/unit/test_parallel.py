@@ -10,6 +10,7 @@ import pytest
 from fixtures.rigs import three_camera_rig, turned_rig
 from multiscale_camera.core.errors import Cancelled
 from multiscale_camera.core.field import tracer as field_module
+from multiscale_camera.core.field.plane_step import schedule_of
 from multiscale_camera.core.geometry import Rig
 from multiscale_camera.core.methods import prepare, settings_for
 from multiscale_camera.core.quality import bending_active, build_report, fold_map
@@ -19,6 +20,16 @@ from multiscale_camera.core.runtime.wire import dump_payload
 from multiscale_camera.core.runtime.worker import probe
 
 from .fold_reference import reference_quad_folds
+
+
+def assert_same_rays(one, two):
+    """Two traced fields traced the same pixels with the same rays, to float32 steps (a
+    millionth of the rig's size): pixel by pixel, their rays numbered as the workers'
+    shares came back."""
+    np.testing.assert_array_equal(one.index >= 0, two.index >= 0)
+    a, b = one.index[one.index >= 0], two.index[two.index >= 0]
+    np.testing.assert_allclose(one.traced.vertices[a], two.traced.vertices[b], rtol=0, atol=1e-5)
+    np.testing.assert_array_equal(one.traced.counts[a], two.traced.counts[b])
 
 
 @pytest.mark.slow
@@ -41,9 +52,7 @@ def test_rays_traced_in_two_processes_equal_those_traced_in_one(monkeypatch):
     # numpy's vector loops may round the last bit of a float64 differently with the
     # length of the arrays a ray shares its steps with, and the trace carries that on:
     # equal to a millionth of the rig's size (14 units), a few float32 steps
-    np.testing.assert_allclose(one.traced.vertices, two.traced.vertices, rtol=0, atol=1e-5)
-    np.testing.assert_array_equal(one.traced.counts, two.traced.counts)
-    np.testing.assert_array_equal(one.index, two.index)
+    assert_same_rays(one, two)
     assert one.stats["newton_lost"] == two.stats["newton_lost"]
     # the rays of the field built for workers lie in shared memory: the fold count and
     # the render's tables map them rather than a copy
@@ -59,6 +68,36 @@ def test_rays_traced_in_two_processes_equal_those_traced_in_one(monkeypatch):
     finally:
         for seg in copies:
             seg.unlink()
+
+
+@pytest.mark.slow
+def test_the_workers_shares_come_back_apart_when_asked_and_merge_to_the_same_rays(monkeypatch):
+    """The lattice takes a round's shares apart (``parts=True``): merging them there
+    held the round twice, and the build's last merge held that copy beside the
+    result."""
+    monkeypatch.setattr(field_module, "MIN_RAYS_PER_PROCESS", 16)
+    monkeypatch.setattr(field_module, "MAX_RAYS_PER_SHARE", 40)
+    cams, masks = three_camera_rig(96, 54)
+    fld = prepare(Rig(cams, masks), "SCALAR_FIELD", replace(settings_for("PREVIEW"), processes=1))
+    tracer = fld.tracer()
+    tracer.processes = 2
+    iy, ix = np.nonzero(np.ones((54, 96), dtype=bool))
+    ix, iy = ix[::37], iy[::37]  # 141 pixels: 4 shares
+    merged = tracer.trace_pixels(ix, iy, fld.step, 4000)
+    shares = tracer.trace_pixels(ix, iy, fld.step, 4000, parts=True)
+    assert len(shares) == 4
+    rows = np.concatenate([r for _t, r in shares])
+    np.testing.assert_array_equal(np.sort(rows), np.arange(len(ix)))
+    again = field_module.merge(
+        [t for t, _r in shares], [r for _t, r in shares], len(ix), schedule_of(fld.step)
+    )
+    np.testing.assert_array_equal(again.vertices, merged.vertices)
+    np.testing.assert_array_equal(again.counts, merged.counts)
+    # in one process, one part of every ray
+    tracer.processes = 1
+    ((alone, rows),) = tracer.trace_pixels(ix, iy, fld.step, 4000, parts=True)
+    np.testing.assert_array_equal(rows, np.arange(len(ix)))
+    assert alone.vertices.shape[0] == len(ix)
 
 
 def test_processes_are_not_part_of_the_fields_identity():
@@ -91,9 +130,7 @@ def test_nested_levels_filled_and_rays_laid_out_in_workers_equal_those_done_in_p
     assert all(r.in_workers == len(r.where) for r in runs)
     np.testing.assert_array_equal(one.domain.values, two.domain.values)
     assert one.stats["conflicts"] == two.stats["conflicts"]
-    np.testing.assert_allclose(one.traced.vertices, two.traced.vertices, rtol=0, atol=1e-5)
-    np.testing.assert_array_equal(one.traced.counts, two.traced.counts)
-    np.testing.assert_array_equal(one.index, two.index)
+    assert_same_rays(one, two)
 
 
 def test_field_workers_import_the_core_and_no_bpy(monkeypatch):

@@ -323,10 +323,11 @@ class FieldTracer:
         workers = worker_count(self.processes)
         return min(workers, rays // MIN_RAYS_PER_PROCESS)
 
-    def _shared(self, kind, a, b, step, max_steps, should_stop):
+    def _shared(self, kind, a, b, step, max_steps, should_stop, parts=False):
         """``_trace_share`` over every n-th of the ``len(a)`` rays in worker processes,
         merged (a share whose worker was given up is traced here); None when the work
-        is not shared (too few rays)."""
+        is not shared (too few rays). ``parts``: the shares unmerged instead, a list of
+        (Traced, rows): each share's rays and which of the ``len(a)`` they are."""
         rays = len(a)
         workers = self._workers(rays)
         if workers < 2:
@@ -335,16 +336,14 @@ class FieldTracer:
         # shares take about as long
         n = max(workers, -(-rays // MAX_RAYS_PER_SHARE))
         task = partial(_trace_share, self, kind, a, b, step, max_steps, rays)
-        parts = runtime().map(task, [(k, n) for k in range(n)], workers, should_stop).results
-        self.missed += sum(p[1] for p in parts)
-        self.lost += [entry for p in parts for entry in p[3]]
-        self.tangent_seconds += float(np.mean([p[2] for p in parts]))
-        return merge(
-            [p[0] for p in parts],
-            [np.arange(k, rays, n) for k in range(n)],
-            rays,
-            schedule_of(step),
-        )
+        shares = runtime().map(task, [(k, n) for k in range(n)], workers, should_stop).results
+        self.missed += sum(p[1] for p in shares)
+        self.lost += [entry for p in shares for entry in p[3]]
+        self.tangent_seconds += float(np.mean([p[2] for p in shares]))
+        orders = [np.arange(k, rays, n) for k in range(n)]
+        if parts:
+            return [(p[0], rows) for p, rows in zip(shares, orders)]
+        return merge([p[0] for p in shares], orders, rays, schedule_of(step))
 
     def trace(self, u0, v0, step, max_steps, should_stop=None):
         """RK4 streamlines from the near-plane points of pixels (u0, v0) of camera 1.
@@ -367,19 +366,23 @@ class FieldTracer:
             return traced
         return self._trace_here(u0, v0, step, max_steps, should_stop)
 
-    def trace_pixels(self, ix, iy, step, max_steps, should_stop=None):
+    def trace_pixels(self, ix, iy, step, max_steps, should_stop=None, parts=False):
         """Rays of pixels (ix, iy) ((R,) int arrays): R_i laid out analytically where a
         preserved pixel's ray stays in camera i's constraint (``preserved_rays``), RK4
         streamlines for the rest (the transitions). Both run in the workers.
 
         Returns
         -------
-        Traced of the R rays, in the order of the pixels.
+        Traced of the R rays, in the order of the pixels; with ``parts``, a list of
+        (Traced, rows), each part's rays and which of the R they are ((n,) int), as the
+        workers' shares came back: no merged copy of them all is made (the caller lays
+        them out once, ``merge``).
         """
-        traced = self._shared("pixels", ix, iy, step, max_steps, should_stop)
+        traced = self._shared("pixels", ix, iy, step, max_steps, should_stop, parts)
         if traced is not None:
             return traced
-        return self._pixels_here(ix, iy, step, max_steps, should_stop)
+        traced = self._pixels_here(ix, iy, step, max_steps, should_stop)
+        return [(traced, np.arange(len(ix)))] if parts else traced
 
     def _pixels_here(self, ix, iy, step, max_steps, should_stop=None):
         """``trace_pixels`` in this process."""

@@ -317,14 +317,21 @@ class _AdaptiveLattice:
         if len(px) == 0:
             return
         self.diag.check()
-        self.parts.append(
-            self.tracer.trace_pixels(px, py, self.step, self.max_steps, self.diag.should_stop)
+        # the workers' shares stay apart, each numbered as one run of rays: merging them
+        # here would hold the round twice, and ``run``'s merge would then hold the
+        # round's copy beside the result (the build's peak on large images)
+        shares = self.tracer.trace_pixels(
+            px, py, self.step, self.max_steps, self.diag.should_stop, parts=True
         )
-        self.order.append(np.arange(self.count, self.count + len(px)))
-        self.pixel_x = np.concatenate([self.pixel_x, px])
-        self.pixel_y = np.concatenate([self.pixel_y, py])
-        self.index[py, px] = np.arange(self.count, self.count + len(px))
-        self.count += len(px)
+        rows = np.concatenate([r for _traced, r in shares])
+        for traced, r in shares:
+            self.parts.append(traced)
+            self.order.append(np.arange(self.count, self.count + len(r)))
+            self.count += len(r)
+        start = self.count - len(rows)
+        self.pixel_x = np.concatenate([self.pixel_x, px[rows]])
+        self.pixel_y = np.concatenate([self.pixel_y, py[rows]])
+        self.index[py[rows], px[rows]] = np.arange(start, self.count)
 
     def rows(self, ids):
         """Vertices (n, K, 3) float32 and counts (n,) of traced rays ``ids`` (n,),

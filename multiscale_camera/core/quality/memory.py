@@ -54,11 +54,11 @@ WORKER_BYTES_PER_VOXEL = 4
 # summed-area table (int64, ``traced._CellLabels``).
 LATTICE_BYTES_PER_PIXEL = 9
 CELL_TABLE_BYTES_PER_PIXEL = 8
-# Per vertex of a traced ray kept in the main process (float32 xyz and membership), held
-# twice while the lattice's parts are merged, once the rounds (and their error
-# estimates) are done: the rounds' peak and the merge's come one after the other.
+# Per vertex of a traced ray kept in the main process (float32 xyz and membership). Once
+# the rounds (and their error estimates) are done, the lattice's parts are merged: the
+# result beside the part being copied (a worker's share, or the largest round traced
+# here; the rounds' peak and the merge's come one after the other).
 RAY_BYTES_PER_VERTEX = 16
-RAY_COPIES = 2
 # The lattice's error estimate weighs ``methods.traced.DEVIATION_BLOCK_VERTICES``
 # vertices at a time (the same value, tests/unit/test_memory_guard.py), a dozen float32
 # and float64 temporaries each: per vertex of a round's rays, up to one block.
@@ -288,7 +288,7 @@ def build_memory(
     The main process's peak is that of its largest stage: the fill (eq. 4), the solve
     (eq. 5), or the trace on the lattice (the kept grid and the lattice's arrays, with
     the rays traced so far, the error estimate's block and a share received from a
-    worker while the rounds run, then the traced rays twice while they are merged); each
+    worker while the rounds run, then the traced rays and the part being merged); each
     worker's, its interpreter, the grid it samples and its share of rays (the largest
     of the share's stages, ``share_memory``). On nested
     grids (``level_voxels``) the levels are filled in the workers and solved one at a
@@ -372,7 +372,11 @@ def build_memory(
                 share * int(vertices) * RECEIVE_BYTES_PER_VERTEX if n else share_bytes
             ),
         },
-        {**held, "traced rays": kept * RAY_BYTES_PER_VERTEX * RAY_COPIES},
+        {
+            **held,
+            "traced rays": kept * RAY_BYTES_PER_VERTEX,
+            "part merged": share * int(vertices) * RAY_BYTES_PER_VERTEX,
+        },
     ]
     main = max(stages, key=lambda parts: sum(parts.values()))
     worker = {}
