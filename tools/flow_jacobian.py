@@ -106,24 +106,24 @@ def quad_kinds(folds, label):
     }
 
 
-class GuidesBeyond:
-    """While in a ``with`` block, records which rays had a camera's tangent taken from
-    its guides at a point beyond its near plane (``FieldTracer._tangent``: a ray takes
-    camera i's straight part only once its tau reaches i - 1; where camera i's family
-    also runs beside its frustum, the same point then gets another tangent on another
-    ray). ``rays``: (R,) bool after the block, for the last trace's R rays."""
+class _TangentHook:
+    """A ``with`` block during which ``FieldTracer._tangent`` also calls ``record``
+    (tracer, i, params, rows, past, straight) after each evaluation, ``params`` as it
+    left them: ``past`` (n,) bool, the points at or beyond camera i's near plane;
+    ``straight`` (n,) bool, those ``_tangent`` gave camera i's straight part (``past``
+    where the ray's tau had reached i - 1 before the call), the rest solved on its
+    family."""
 
     def __enter__(self):
         original = self.original = tracer_module.FieldTracer._tangent
-        self.rays = None
 
         def tangent(tracer, i, x, params, rows):
-            if self.rays is None or len(self.rays) != params.shape[1]:
-                self.rays = np.zeros(params.shape[1], dtype=bool)
             cam = tracer.rig.cameras[i]
             past = dot3(x - cam.eye, cam.forward) >= cam.clip_start
-            self.rays[rows[past & (params[i, rows, 2] < i - 1)]] = True
-            return original(tracer, i, x, params, rows)
+            straight = past & (params[i, rows, 2] >= i - 1)
+            out = original(tracer, i, x, params, rows)
+            self.record(tracer, i, params, rows, past, straight)
+            return out
 
         tracer_module.FieldTracer._tangent = tangent
         return self
@@ -133,6 +133,21 @@ class GuidesBeyond:
         return False
 
 
+class GuidesBeyond(_TangentHook):
+    """While in a ``with`` block, records which rays had a camera's tangent taken from
+    its guides at a point beyond its near plane (``FieldTracer._tangent``: a ray takes
+    camera i's straight part only once its tau reaches i - 1; where camera i's family
+    also runs beside its frustum, the same point then gets another tangent on another
+    ray). ``rays``: (R,) bool after the block, for the last trace's R rays."""
+
+    rays = None
+
+    def record(self, tracer, i, params, rows, past, straight):
+        if self.rays is None or len(self.rays) != params.shape[1]:
+            self.rays = np.zeros(params.shape[1], dtype=bool)
+        self.rays[rows[past & ~straight]] = True
+
+
 def orientation(family, u, v, tau):
     """(P,) int8: the sign of det[dR/du, dR/dv, dR/dtau] of ``family`` (a
     ``geometry.Family``) at (u, v, tau), (P,) float64 each (0 where it vanishes)."""
@@ -140,7 +155,7 @@ def orientation(family, u, v, tau):
     return np.sign(dot3(du, np.cross(dv, along))).astype(np.int8)
 
 
-class FamilySheets:
+class FamilySheets(_TangentHook):
     """While in a ``with`` block, records along every ray of a trace the orientation of
     each camera's family where the ray took that camera's tangent from it (Newton on the
     family, not its straight part): the sign of det[dR/du, dR/dv, dR/dtau] at the
@@ -151,39 +166,24 @@ class FamilySheets:
     jump to another sheet of the family)."""
 
     BACK_TAU = 0.05
+    both = back = sign = tau = None
 
-    def __enter__(self):
-        original = self.original = tracer_module.FieldTracer._tangent
-        self.both = self.back = None
-        seen = {}
-
-        def tangent(tracer, i, x, params, rows):
-            out = original(tracer, i, x, params, rows)
-            f, r = params.shape[:2]
-            if self.both is None or self.both.shape != (f, r):
-                self.both, self.back = np.zeros((f, r), bool), np.zeros((f, r), bool)
-                seen.update(sign=np.zeros((f, r), np.int8), tau=np.full((f, r), np.nan))
-            cam = tracer.rig.cameras[i]
-            past = dot3(x - cam.eye, cam.forward) >= cam.clip_start
-            solved = rows[~(past & (params[i, rows, 2] >= i - 1))]  # as ``_tangent``
-            if i == 0 or len(solved) == 0:
-                return out
-            u, v, tau = (params[i, solved, c] for c in range(3))
-            sign = orientation(tracer.families[i], u, v, tau)
-            before = seen["sign"][i, solved]
-            self.both[i, solved] |= (before != 0) & (sign != 0) & (sign != before)
-            seen["sign"][i, solved] = np.where(sign != 0, sign, before)
-            last = seen["tau"][i, solved]
-            self.back[i, solved] |= np.isfinite(last) & (tau < last - self.BACK_TAU)
-            seen["tau"][i, solved] = tau
-            return out
-
-        tracer_module.FieldTracer._tangent = tangent
-        return self
-
-    def __exit__(self, *exc):
-        tracer_module.FieldTracer._tangent = self.original
-        return False
+    def record(self, tracer, i, params, rows, past, straight):
+        f, r = params.shape[:2]
+        if self.both is None or self.both.shape != (f, r):
+            self.both, self.back = np.zeros((f, r), bool), np.zeros((f, r), bool)
+            self.sign, self.tau = np.zeros((f, r), np.int8), np.full((f, r), np.nan)
+        solved = rows[~straight]
+        if i == 0 or len(solved) == 0:
+            return
+        u, v, tau = (params[i, solved, c] for c in range(3))
+        sign = orientation(tracer.families[i], u, v, tau)
+        before = self.sign[i, solved]
+        self.both[i, solved] |= (before != 0) & (sign != 0) & (sign != before)
+        self.sign[i, solved] = np.where(sign != 0, sign, before)
+        last = self.tau[i, solved]
+        self.back[i, solved] |= np.isfinite(last) & (tau < last - self.BACK_TAU)
+        self.tau[i, solved] = tau
 
 
 def examine(fld, quads, eps, every):
