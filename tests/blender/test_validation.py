@@ -11,6 +11,7 @@ import pytest
 from fixtures.blender.objects import add_camera, add_mesh, mask_image
 from fixtures.blender.scenes import two_camera_scene
 from fixtures.masks import disk
+from fixtures.rigs import orbit
 from multiscale_camera.adapters.cameras import pinhole_from_object
 from multiscale_camera.core.quality import turn_deg
 
@@ -140,6 +141,30 @@ def test_frusta_of_non_consecutive_cameras_cross(rig):
     scene.multiscale.cameras[2].camera = c3b
     bpy.context.view_layer.update()
     assert not any("cross" in t for t in warnings(scene))
+
+
+def test_kept_views_that_must_cross(rig):
+    """C2 turned 80 degrees about the sphere with its near plane close to its eye: its
+    kept rays begin where C1 sees them on C1's own kept pixels, so they must cross C1's
+    kept rays (``quality.crossing_entries``); the Clip Start the warning asks for clears
+    it."""
+    scene, _c1, _c2 = rig
+    sphere = (0.6, -0.6, 2.3)
+    c2b = add_camera(scene, "C2b", orbit(sphere, 3.0, 80, 35), sphere, clip_start=0.5)
+    scene.multiscale.cameras[1].camera = c2b
+    bpy.context.view_layer.update()
+    pattern = (
+        r"The kept rays of 'C2b' must cross those of 'C1': they begin on the near plane of "
+        r"'C2b' where 'C1' sees them outside the opening of its mask \((\d+) of \1 checked, "
+        r"all on its kept pixels\), so every method's rays fold "
+        r"between the two\. To fix it, raise the Clip Start of 'C2b' to ([0-9.]+) or more "
+        r"\(it is 0\.5\), or turn 'C2b' less \(docs/failures\.md\)\."
+    )
+    found = [m for m in map(re.compile(pattern).fullmatch, warnings(scene)) if m]
+    assert len(found) == 1, warnings(scene)
+    c2b.data.clip_start = float(found[0].group(2))
+    bpy.context.view_layer.update()
+    assert not any("must cross" in t for t in warnings(scene))
 
 
 def test_geometry_between_near_planes_on_preserved_rays(rig):

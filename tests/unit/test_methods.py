@@ -175,6 +175,31 @@ def test_auto_keeps_the_candidate_that_misses_least_when_none_meets_the_target(m
         assert fld.stats["auto"].startswith(f"{chosen}: no method meets the target")
 
 
+def test_auto_builds_scalar_field_after_a_folding_image_blend(monkeypatch):
+    """On made-up measurements of a rig whose kept views need not cross (the 4x rig):
+    IMAGE_BLEND with every camera exact and folds sends AUTO on to SCALAR_FIELD, kept
+    where it meets the target; only a rig whose kept views must cross stops AUTO at
+    IMAGE_BLEND (the turned rig, ``test_auto_keeps_exact_image_blend_on_the_turned_rig_...``)."""
+    from multiscale_camera.core.methods import registry
+
+    exact = [{"name": "C", "pixels": 10, "preserved_px": {"p50": 0.0, "p95": 0.0, "max": 0.0}}]
+    figures = {"IMAGE_BLEND": (exact, 3), "SCALAR_FIELD": (exact, 0)}
+
+    def fake_measure(fld, processes=1, diag=None):
+        cameras, folds = figures[fld.method]
+        quads = np.zeros((4, 4), dtype=bool)
+        quads.flat[:folds] = True
+        return cameras, quads, 1
+
+    monkeypatch.setattr(registry, "measure_map", fake_measure)
+    monkeypatch.setattr(registry, "kept_folds", lambda *a: (0, []))
+    cams, masks = zoom_rig(32, 24)
+    fld = prepare(Rig(cams, masks), "AUTO", settings_for("STANDARD"))
+    assert fld.method == "SCALAR_FIELD"
+    assert fld.stats["auto"].startswith("SCALAR_FIELD: the cheapest method whose rays meet")
+    assert "IMAGE_BLEND would miss it: 3 folded quads" in fld.stats["auto"]
+
+
 def test_auto_keeps_image_blend_where_its_only_folds_are_where_masks_touch():
     """Overlapping masks leave two preserved regions touching: the rays across the seam
     are the cameras' own with every method. AUTO built SCALAR_FIELD there (102 s at
@@ -223,25 +248,37 @@ def test_auto_takes_image_blend_on_the_1000x_rig_where_false_folds_sent_it_to_ne
 
 
 @pytest.mark.slow
-def test_auto_keeps_exact_image_blend_on_the_turned_rig_and_names_its_transitions():
-    """On the turned rig (views 40.6 and 49.5 degrees apart) IMAGE_BLEND's transition
-    rays fold, every camera exact, and SCALAR_FIELD folds too. AUTO kept the one with
-    fewer folds whatever its cameras (SCALAR_FIELD at 480x270, two cameras 6 px off);
-    it keeps the exact cameras and names the transitions that fold and what to change.
-    (The fold count once skipped every ray that started beyond camera 3's near plane
-    and found none here: the counts below are the exact counter's, split by the two
-    cameras of largest weight.)"""
+def test_auto_keeps_exact_image_blend_on_the_turned_rig_and_builds_nothing_after_it(
+    monkeypatch,
+):
+    """On the turned rig (views 40.6 and 49.5 degrees apart) C3's kept rays begin, seen
+    from C2, on C2's ring or beyond it: they must cross C2's kept rays, and every
+    method's rays fold between the two (``quality.crossing_entries``). AUTO once built
+    SCALAR_FIELD after IMAGE_BLEND there (minutes at 1920x1080), which folded too; it
+    keeps IMAGE_BLEND, every camera exact, says why, names the crossing and the folding
+    transitions, and builds nothing after it. (The fold count once skipped every ray
+    that started beyond camera 3's near plane and found none here: the counts below
+    are the exact counter's, split by the two cameras of largest weight.)"""
     from fixtures.rigs import turned_rig
+    from multiscale_camera.core.methods import registry
 
+    def not_built(*_args, **_kw):
+        raise AssertionError("SCALAR_FIELD was built")
+
+    monkeypatch.setitem(registry.METHODS, "SCALAR_FIELD", not_built)
     cams, masks = turned_rig(64, 48)
     fld = prepare(Rig(cams, masks), "AUTO", settings_for("PREVIEW"))
     assert fld.method == "IMAGE_BLEND"
     cameras, folds = fld.measured
     assert folds == 185 and all(c["preserved_px"]["p95"] <= 2.0 for c in cameras)
-    assert fld.stats["auto"].startswith("IMAGE_BLEND: no method meets the target")
-    assert "IMAGE_BLEND would miss it: 185 folded quads" in fld.stats["auto"]
-    assert "SCALAR_FIELD would miss it: " in fld.stats["auto"]
-    assert fld.warnings[-2].startswith("No method meets the accuracy target on this rig")
+    assert fld.stats["auto"] == (
+        "IMAGE_BLEND: no method can meet the target on this rig: the kept rays of 'C3' "
+        "and 'C2' must cross, so every method's rays fold between them; IMAGE_BLEND "
+        "meets it otherwise (p95 <= 2 px, max <= 8 px along every preserved ray) with "
+        "185 folded quads, and the methods after it were not built"
+    )
+    assert fld.warnings[-2].startswith("The kept rays of 'C3' must cross those of 'C2'")
+    assert "raise the Clip Start of 'C3' to 1.99 or more (it is 1.28)" in fld.warnings[-2]
     assert fld.warnings[-1] == (
         "185 quads fold in the transitions ('C2'-'C3' 128, 'C1'-'C2' 57), every camera "
         "exact: raise the Clip Start of 'C2' and 'C3' (nearer the subject), widen the gaps "

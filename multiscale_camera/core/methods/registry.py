@@ -14,7 +14,13 @@ gets its seconds per stage.
 
 from ..diagnostics import diagnostics_of
 from ..errors import RigError
-from ..quality import kept_folds, measure_map, transition_folds
+from ..quality import (
+    crossing_entries,
+    crossing_message,
+    kept_folds,
+    measure_map,
+    transition_folds,
+)
 from .base import Settings
 from .image_blend import prepare_image_blend
 from .linear import prepare_linear
@@ -222,6 +228,9 @@ def prepare_auto(rig, settings=None, diag=None, reuse=None):
             )
             fld.warnings.append(seam_message(folds, pairs))
             return fld
+        crossing = [] if off or n + 1 == len(AUTO_CANDIDATES) else crossing_entries(rig)
+        if crossing:  # every method folds here: the exact cameras, at once
+            return _kept_crossing(fld, rig, crossing, fold_quads, target, tried)
         misses.append(f"{name} would miss it: {shortfall(cameras, folds, settings.accuracy_px)}")
         kept.append((folds, len(off), n, fld))
         maps[name] = fold_quads
@@ -237,6 +246,28 @@ def prepare_auto(rig, settings=None, diag=None, reuse=None):
     cameras, folds = fld.measured
     if name == "IMAGE_BLEND" and folds and not accuracy_misses(cameras, settings.accuracy_px):
         turns = transition_folds(fld.weights, rig.masks, maps[name], names)
+        if turns:
+            fld.warnings.append(transition_message(turns, names))
+    return fld
+
+
+def _kept_crossing(fld, rig, crossing, fold_quads, target, tried):
+    """AUTO's field on a rig whose kept views must cross (``quality.crossing_entries``):
+    ``fld``, every camera on the target and its rays folding, is kept without building
+    the candidates after it, which fold there too (docs/architecture.md, "Kept views
+    that must cross"); its word and warnings say which cameras and what to change."""
+    names = [cam.name for cam in rig.cameras]
+    folds = int(fold_quads.sum())
+    pairs = "; ".join(f"'{names[e.inner]}' and '{names[e.outer]}'" for e in crossing)
+    fld.stats["auto"] = (
+        f"{fld.method}: no method can meet the target on this rig: the kept rays of "
+        f"{pairs} must cross, so every method's rays fold between them; {fld.method} meets it "
+        f"otherwise ({target}) with {folds} folded quads, and the methods after it were "
+        f"not built{tried}"
+    )
+    fld.warnings += [crossing_message(e, rig.cameras) for e in crossing]
+    if fld.method == "IMAGE_BLEND":
+        turns = transition_folds(fld.weights, rig.masks, fold_quads, names)
         if turns:
             fld.warnings.append(transition_message(turns, names))
     return fld

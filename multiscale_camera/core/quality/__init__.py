@@ -7,6 +7,13 @@ alone, so it needs none of the methods.
 """
 
 from .budget import budget_message, size_text
+from .entries import (
+    CrossingEntry,
+    crossing_entries,
+    crossing_entry_messages,
+    crossing_message,
+    free_regions,
+)
 from .folds import quad_folds, section_points
 from .memory import (
     MB,
@@ -61,6 +68,7 @@ __all__ = [
     "ERODE_PX",
     "MAX_MEASURED",
     "MAX_TURN_DEG",
+    "CrossingEntry",
     "MemoryEstimate",
     "Preserved",
     "UNBOUNDED_NEAR_DISTANCES",
@@ -72,6 +80,9 @@ __all__ = [
     "build_report",
     "check_rig",
     "conflict_messages",
+    "crossing_entries",
+    "crossing_entry_messages",
+    "crossing_message",
     "crossing_messages",
     "empty_mask_messages",
     "erode",
@@ -79,6 +90,7 @@ __all__ = [
     "far_depth",
     "fold_map",
     "fold_workers",
+    "free_regions",
     "guard_message",
     "guard_messages",
     "guard_pairs",

@@ -7,6 +7,8 @@ import numpy as np
 from ..errors import RigError
 from ..field import StopReason, choose_grid
 from ..geometry import DEFAULT_SEGMENTS, build_guides, curved_rays
+from .entries import crossing_entry_messages
+from .samples import MAX_CHECK_RAYS, MIN_SHARE, sample_pixels
 
 # Consecutive cameras may turn at most this much: beyond it the guides of neighbouring
 # pixels cross (paper, section 6).
@@ -81,14 +83,8 @@ def conflict_messages(names, overlaps):
 
 # Pixels per side of the lattice the guard check samples (cheap enough for a panel redraw).
 GUARD_LATTICE = 9
-# Preserved pixels sampled per camera by the crossing and obstruction checks: enough to
-# find a crossing a few pixels wide at 1080p, a fraction of a second of work.
-MAX_CHECK_RAYS = 4000
 # Points sampled along each straight preserved ray by the crossing check.
 CROSSING_SAMPLES = 48
-# A crossing or an obstruction is reported once it touches this share of the sampled rays
-# (single rays graze mask edges through rounding).
-MIN_SHARE = 0.002
 
 
 def guard_pairs(cameras, beta, size):
@@ -139,17 +135,6 @@ def empty_mask_messages(rig):
                 "(paint it white where its view should be kept, if that was the intent)"
             )
     return out
-
-
-def sample_pixels(mask, limit=MAX_CHECK_RAYS):
-    """(ix, iy) int arrays: the pixels of ``mask`` ((H, W) bool), every k-th in each
-    direction so that at most about ``limit`` are taken."""
-    count = int(mask.sum())
-    stride = max(1, int(np.ceil(np.sqrt(count / limit)))) if count else 1
-    sub = np.zeros_like(mask)
-    sub[::stride, ::stride] = mask[::stride, ::stride]
-    iy, ix = np.nonzero(sub)
-    return ix, iy
 
 
 def _bending_box(rig):
@@ -266,8 +251,15 @@ def obstruction_messages(rig, cast):
 def preflight(rig):
     """The checks that need no scene geometry, for ``multiscale.validate`` and before a
     build: raises ``RigError`` (turns over 90 degrees); returns warnings (order of
-    scales, guard, empty masks, crossing frusta), each naming the camera and the fix."""
-    return check_rig(rig) + guard_messages(rig) + empty_mask_messages(rig) + crossing_messages(rig)
+    scales, guard, empty masks, crossing frusta, kept views that must cross), each
+    naming the camera and the fix."""
+    return (
+        check_rig(rig)
+        + guard_messages(rig)
+        + empty_mask_messages(rig)
+        + crossing_messages(rig)
+        + crossing_entry_messages(rig)
+    )
 
 
 def _pixel_span(x, y):
