@@ -299,3 +299,27 @@ def test_a_camera_with_no_measured_pixel_reports_null_and_why():
     assert rep["newton_lost"] == 0 and rep["unfinished"] == 0
     assert headline(rep).startswith("IMAGE_BLEND: p95 error 0.00 px")
     assert "'C2': not measured: its mask is empty: no preserved pixel to measure" in readable(rep)
+
+
+def test_a_traced_fields_rays_measured_in_blocks_give_each_ray_its_own_figures(monkeypatch):
+    """The report lays a traced field's measured rays out a block of vertices at a time
+    (the 1000x rig's 20,000 rays of about 680 vertices a camera held about 400 MB at
+    once at 1920x1080): blocks of 700 vertices (a few rays each) give every ray the
+    figures it has measured with all the others at once, to float32 rounding (a ray
+    laid out with fewer others runs straight on past its trace in fewer float32
+    vertices: the same line, rounded elsewhere)."""
+    from multiscale_camera.core.methods import prepare, settings_for
+    from multiscale_camera.core.quality import measured_pixels, preserved_error, report
+
+    cams, masks = zoom_rig(40, 30)
+    fld = prepare(Rig(cams, masks), "SCALAR_FIELD", settings_for("PREVIEW"))
+    k = fld.ray_vertices()
+    assert k == fld.traced.vertices.shape[1] > 20
+    monkeypatch.setattr(report, "ALONG_BLOCK_VERTICES", 700)
+    for i in range(len(cams)):
+        ix, iy = measured_pixels(masks[i])
+        whole = preserved_error(cams, i, fld.rays(ix, iy))
+        blocks = report._preserved_in_blocks(fld, i, ix, iy, None)
+        assert len(ix) > 700 // k and blocks.pixels == whole.pixels == len(ix)
+        np.testing.assert_allclose(blocks.error_px, whole.error_px, rtol=0, atol=1e-4)
+        np.testing.assert_allclose(blocks.angle_deg, whole.angle_deg, rtol=0, atol=1e-4)

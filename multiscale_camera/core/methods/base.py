@@ -115,6 +115,12 @@ class RayField(abc.ABC):
         end of its bending stretch); the last vertex unless a method knows better."""
         return None
 
+    def ray_vertices(self):
+        """The most vertices a ray of ``rays`` has (int), where a method knows it before
+        it lays rays out (the report measures its rays in blocks of so many vertices);
+        None: few enough to measure a camera's pixels at once."""
+        return None
+
     def _bundle(self, ix, iy, verts, membership):
         cams = self.rig.cameras
         p1 = cams[0].near_points(cams[0].directions(ix + 0.5, iy + 0.5))

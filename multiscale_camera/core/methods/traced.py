@@ -89,6 +89,10 @@ class TracedField(RayField):
         straight_on(verts, last)
         return self._bundle(ix, iy, verts, mem)
 
+    def ray_vertices(self):
+        """Every traced ray's vertex count (an interpolated ray has at most as many)."""
+        return int(self.traced.vertices.shape[1])
+
     def exit_index(self, ix, iy):
         """(P,) int: for each pixel, the vertex where its ray leaves the grid (the
         smallest traced count among the rays it is interpolated from)."""
