@@ -3,6 +3,7 @@ processes that import the core alone."""
 
 import threading
 from dataclasses import replace
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -98,6 +99,34 @@ def test_the_workers_shares_come_back_apart_when_asked_and_merge_to_the_same_ray
     ((alone, rows),) = tracer.trace_pixels(ix, iy, fld.step, 4000, parts=True)
     np.testing.assert_array_equal(rows, np.arange(len(ix)))
     assert alone.vertices.shape[0] == len(ix)
+
+
+def test_tangent_seconds_of_a_shared_trace_count_every_share(monkeypatch):
+    """A round of n shares over w workers took about n / w shares' time, and their
+    tangent seconds were counted as the mean of one share's: on the 1000x rig at
+    1920x1080 the build said 61.5 s of tangents in a 357 s build whose tangents, traced
+    in one process at 320x180, take 31.8 of the trace's 46 CPU s. Shares here report
+    known seconds; the tracer adds their sum over the workers."""
+
+    class Ran:
+        def __init__(self, results):
+            self.results = results
+
+    class FakeRuntime:
+        def map(self, task, items, workers, should_stop):
+            return Ran([(None, 0, 1.5 + k, []) for k, _n in items])
+
+    monkeypatch.setattr(field_module, "MIN_RAYS_PER_PROCESS", 16)
+    monkeypatch.setattr(field_module, "MAX_RAYS_PER_SHARE", 40)
+    monkeypatch.setattr(field_module, "worker_count", lambda processes: 2)
+    monkeypatch.setattr(field_module, "runtime", FakeRuntime)
+    cams, masks = three_camera_rig(32, 18)
+    no_grid = SimpleNamespace(sample=None, contains=None)  # the shares never read it
+    tracer = field_module.FieldTracer(Rig(cams, masks), None, None, domain=no_grid, processes=2)
+    ix = np.arange(200)  # 5 shares of 40 rays over 2 workers
+    parts = tracer._shared("pixels", ix, ix, 1.0, 10, None, parts=True)
+    assert len(parts) == 5
+    assert tracer.tangent_seconds == pytest.approx((1.5 + 2.5 + 3.5 + 4.5 + 5.5) / 2)
 
 
 def test_processes_are_not_part_of_the_fields_identity():

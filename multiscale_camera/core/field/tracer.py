@@ -339,7 +339,10 @@ class FieldTracer:
         shares = runtime().map(task, [(k, n) for k in range(n)], workers, should_stop).results
         self.missed += sum(p[1] for p in shares)
         self.lost += [entry for p in shares for entry in p[3]]
-        self.tangent_seconds += float(np.mean([p[2] for p in shares]))
+        # the shares' tangent seconds over the workers that ran them: a round's n
+        # shares take about n / workers shares' time (their mean undercounted a round
+        # of more shares than workers by that factor)
+        self.tangent_seconds += float(np.sum([p[2] for p in shares])) / workers
         orders = [np.arange(k, rays, n) for k in range(n)]
         if parts:
             return [(p[0], rows) for p, rows in zip(shares, orders)]
