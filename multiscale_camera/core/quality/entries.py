@@ -7,8 +7,9 @@ camera's view. Seen from camera j, camera i's kept pixels lie in a region of cam
 image that camera j does not keep: a hole in camera j's kept pixels, or open to the
 frame's edge. Take a plane across camera j's view behind camera i's near plane: camera
 j's kept rays cross it where their pixels say (a pinhole image of camera j's kept
-pixels), and a field whose neighbouring rays never cross maps the image onto the plane
-one to one, so the rays of the hole's pixels cross it inside the image of the hole.
+pixels), and a field whose rays cross it once, forward, and whose neighbouring rays
+never cross maps the image onto the plane one to one, so the rays of the hole's pixels
+cross it inside the image of the hole.
 Camera i's kept rays therefore stay, seen from camera j, within the hole until they
 enter camera i's view, and there they begin on camera i's near plane at their entries
 ``E_i + d_i v / (v . V_i)``. Where camera j sees an entry on its own kept pixels or
