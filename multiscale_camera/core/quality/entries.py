@@ -171,6 +171,7 @@ def crossing_entries(rig, limit=MAX_CHECK_RAYS):
     """
     cams, masks = rig.cameras, np.asarray(rig.masks)
     out = []
+    regions_of = {}  # each camera's regions, found once for every later camera
     for i in range(1, len(cams)):
         ix, iy = sample_pixels(masks[i], limit)
         if not len(ix):
@@ -179,7 +180,9 @@ def crossing_entries(rig, limit=MAX_CHECK_RAYS):
         for j in range(i):
             if not masks[j].any():
                 continue
-            regions = free_regions(masks[j])
+            if j not in regions_of:
+                regions_of[j] = free_regions(masks[j])
+            regions = regions_of[j]
             own = regions.label(ix, iy)
             found = _crossing(cams[j], regions, own, _entries(inner, ix, iy, inner.clip_start))
             crossing, on_kept, checked = (int(f.sum()) for f in found)
