@@ -132,3 +132,33 @@ def build_or_refuse(cams, masks, method):
 @given(data=st.data())
 def test_random_rigs_build_finite_rays_or_refuse_with_a_message(method, data):
     build_or_refuse(*data.draw(rigs(MAX_SIDE[method]), label="rig"), method)
+
+
+# Rigs the checks before a build see in the bounded profile: they build nothing, so many.
+CHECK_EXAMPLES = {"bounded": 60, "full": 1000}[PROFILE]
+
+
+@settings(settings.get_profile(PROFILE), max_examples=CHECK_EXAMPLES)
+@given(data=st.data())
+def test_random_rigs_pass_the_checks_before_a_build_or_refuse_with_a_message(data):
+    """The checks before every build and in Check Rig (``quality.preflight``, the kept
+    views that must cross among them) on random rigs up to 64 pixels a side: warnings
+    that are text, or the core's own refusal with a message; each pair of kept views
+    that must cross counts what it says."""
+    from multiscale_camera.core.quality import crossing_entries, preflight
+
+    cams, masks = data.draw(rigs(64), label="rig")
+    try:
+        rig = Rig(tuple(cams), masks)
+        said = preflight(rig)
+    except RigError as err:
+        assert str(err).strip()
+        event("refused")
+        return
+    assert all(isinstance(t, str) and t.strip() for t in said)
+    for found in crossing_entries(rig):
+        event("kept views that must cross")
+        assert found.outer < found.inner
+        assert 1 < found.crossing <= found.checked and 0 <= found.on_kept <= found.crossing
+        assert found.clip_start is None or found.clip_start > cams[found.inner].clip_start
+        assert any(f"The kept rays of '{cams[found.inner].name}'" in t for t in said)
