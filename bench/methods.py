@@ -20,6 +20,7 @@ in docs/methods.md and, at 1920x1080, the acceptance table in docs/performance.m
 import argparse
 import json
 import os
+import re
 import resource
 import signal
 import subprocess
@@ -72,7 +73,7 @@ PREVIEW_TARGETS = {"p95": 2.0, "max": 8.0, "build": 1.0}
 SEAM_WARNING = "folded quads lie where the masks of"
 # The start of the warning for kept views that must cross (core/quality/entries.py,
 # crossing_message): every method folds there, which the build says; the row still misses.
-CROSSING_WARNING = "The kept rays of "
+CROSSING = re.compile(r"(The kept rays of '.*?' must cross those of '.*?')[:,]")
 
 
 # What a row's figures depend on: a change elsewhere (docs/) leaves its commit clean.
@@ -558,8 +559,9 @@ def _failures(r, targets=TARGETS):
     if r.get("worst_max_px") is not None and r["worst_max_px"] > targets["max"]:
         bad.append(f"max {r['worst_max_px']:.3g} px")
     if r["folds"] and not _seam_only(r):
-        crossing = [w for w in r.get("warnings", ()) if w.startswith(CROSSING_WARNING)]
-        why = f" ({crossing[0].split(':')[0]}: every method folds)" if crossing else ""
+        crossing = [CROSSING.match(w) for w in r.get("warnings", ())]
+        crossing = [m.group(1) for m in crossing if m]
+        why = f" ({crossing[0]}: every method folds)" if crossing else ""
         bad.append(f"{r['folds']} folds{why}")
     if r["stalled"]:
         bad.append(f"{r['stalled']} stalled")

@@ -144,15 +144,10 @@ def test_least_miss_takes_a_fold_free_field_then_exact_cameras():
         assert least_miss([(*ib, 0, "IB"), (*sf, 1, "SF")]) == chosen, (ib, sf)
 
 
-def test_auto_keeps_the_candidate_that_misses_least_when_none_meets_the_target(monkeypatch):
-    """On made-up measurements: IMAGE_BLEND with a camera off the target sends AUTO on
-    to SCALAR_FIELD, and ``least_miss`` chooses between them."""
+def measured_as(monkeypatch, figures):
+    """Make AUTO's measure of each candidate what ``figures`` says: method -> (cameras,
+    folded quads), none of them where masks touch. Returns ``figures`` (to update)."""
     from multiscale_camera.core.methods import registry
-
-    def cam(p95):
-        return {"name": "C", "pixels": 10, "preserved_px": {"p50": p95, "p95": p95, "max": p95}}
-
-    figures = {}
 
     def fake_measure(fld, processes=1, diag=None):
         cameras, folds = figures[fld.method]
@@ -162,6 +157,17 @@ def test_auto_keeps_the_candidate_that_misses_least_when_none_meets_the_target(m
 
     monkeypatch.setattr(registry, "measure_map", fake_measure)
     monkeypatch.setattr(registry, "kept_folds", lambda *a: (0, []))
+    return figures
+
+
+def test_auto_keeps_the_candidate_that_misses_least_when_none_meets_the_target(monkeypatch):
+    """On made-up measurements: IMAGE_BLEND with a camera off the target sends AUTO on
+    to SCALAR_FIELD, and ``least_miss`` chooses between them."""
+
+    def cam(p95):
+        return {"name": "C", "pixels": 10, "preserved_px": {"p50": p95, "p95": p95, "max": p95}}
+
+    figures = measured_as(monkeypatch, {})
     cams, masks = zoom_rig(32, 24)
     for ib, sf, chosen in (
         (([cam(0.9)], 0), ([cam(0.1)], 3), "IMAGE_BLEND"),
@@ -180,19 +186,9 @@ def test_auto_builds_scalar_field_after_a_folding_image_blend(monkeypatch):
     IMAGE_BLEND with every camera exact and folds sends AUTO on to SCALAR_FIELD, kept
     where it meets the target; only a rig whose kept views must cross stops AUTO at
     IMAGE_BLEND (the turned rig, ``test_auto_keeps_exact_image_blend_on_the_turned_rig_...``)."""
-    from multiscale_camera.core.methods import registry
 
     exact = [{"name": "C", "pixels": 10, "preserved_px": {"p50": 0.0, "p95": 0.0, "max": 0.0}}]
-    figures = {"IMAGE_BLEND": (exact, 3), "SCALAR_FIELD": (exact, 0)}
-
-    def fake_measure(fld, processes=1, diag=None):
-        cameras, folds = figures[fld.method]
-        quads = np.zeros((4, 4), dtype=bool)
-        quads.flat[:folds] = True
-        return cameras, quads, 1
-
-    monkeypatch.setattr(registry, "measure_map", fake_measure)
-    monkeypatch.setattr(registry, "kept_folds", lambda *a: (0, []))
+    measured_as(monkeypatch, {"IMAGE_BLEND": (exact, 3), "SCALAR_FIELD": (exact, 0)})
     cams, masks = zoom_rig(32, 24)
     fld = prepare(Rig(cams, masks), "AUTO", settings_for("STANDARD"))
     assert fld.method == "SCALAR_FIELD"

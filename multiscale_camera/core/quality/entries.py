@@ -217,8 +217,8 @@ def _clear_clip(outer, regions, own, inner, ix, iy):
 
 
 def crossing_message(entry, cameras):
-    """The warning for a ``CrossingEntry``: what crosses, why it folds, what to change
-    (first: the panel shows a warning's first lines)."""
+    """The warning for a ``CrossingEntry``: what crosses and what to change first (the
+    report's panel shows a warning's first four lines), then why."""
     inner, outer = cameras[entry.inner].name, cameras[entry.outer].name
     if entry.on_kept == entry.crossing:
         where = "all on its kept pixels"
@@ -234,10 +234,10 @@ def crossing_message(entry, cameras):
     else:
         fix = f"turn '{inner}' less, or move it nearer the centre of what '{outer}' sees"
     return (
-        f"The kept rays of '{inner}' must cross those of '{outer}': they begin on the near "
-        f"plane of '{inner}' where '{outer}' sees them outside the opening of its mask "
-        f"({entry.crossing} of {entry.checked} checked, {where}), so every method's rays "
-        f"fold between the two. To fix it, {fix} (docs/failures.md)."
+        f"The kept rays of '{inner}' must cross those of '{outer}', so every method's "
+        f"rays fold between the two: {fix}. They begin on the near plane of '{inner}' "
+        f"where '{outer}' sees them outside the opening of its mask ({entry.crossing} of "
+        f"{entry.checked} checked, {where}; docs/failures.md)."
     )
 
 
