@@ -73,7 +73,10 @@ PREVIEW_TARGETS = {"p95": 2.0, "max": 8.0, "build": 1.0}
 SEAM_WARNING = "folded quads lie where the masks of"
 # The start of the warning for kept views that must cross (core/quality/entries.py,
 # crossing_message): every method folds there, which the build says; the row still misses.
-CROSSING = re.compile(r"(The kept rays of '.*?' must cross those of '.*?')[:,]")
+CROSSING = re.compile(
+    r"(?:The kept rays of '(.*?)' must cross those of '(.*?)'[:,]"
+    r"|Kept rays of '(.*?)' and '(.*?)' must cross:)"
+)
 
 
 # What a row's figures depend on: a change elsewhere (docs/) leaves its commit clean.
@@ -559,9 +562,13 @@ def _failures(r, targets=TARGETS):
     if r.get("worst_max_px") is not None and r["worst_max_px"] > targets["max"]:
         bad.append(f"max {r['worst_max_px']:.3g} px")
     if r["folds"] and not _seam_only(r):
-        crossing = [CROSSING.match(w) for w in r.get("warnings", ())]
-        crossing = [m.group(1) for m in crossing if m]
-        why = f" ({crossing[0]}: every method folds)" if crossing else ""
+        found = [CROSSING.match(w) for w in r.get("warnings", ())]
+        pairs = [[g for g in m.groups() if g] for m in found if m]
+        why = (
+            f" (kept rays of '{pairs[0][0]}' and '{pairs[0][1]}' must cross: every method folds)"
+            if pairs
+            else ""
+        )
         bad.append(f"{r['folds']} folds{why}")
     if r["stalled"]:
         bad.append(f"{r['stalled']} stalled")

@@ -154,11 +154,11 @@ def test_kept_views_that_must_cross(rig):
     scene.multiscale.cameras[1].camera = c2b
     bpy.context.view_layer.update()
     pattern = (
-        r"The kept rays of 'C2b' must cross those of 'C1', so every method's rays fold "
-        r"between the two: raise the Clip Start of 'C2b' to ([0-9.]+) or more \(it is "
-        r"0\.5\), or turn 'C2b' less\. They begin on the near plane of 'C2b' where 'C1' "
-        r"sees them outside the opening of its mask \((\d+) of \2 checked, all on its "
-        r"kept pixels; docs/failures\.md\)\."
+        r"Kept rays of 'C2b' and 'C1' must cross: raise the Clip Start of 'C2b' to "
+        r"([0-9.]+) or more \(now 0\.5\), or turn 'C2b' less; every method folds there "
+        r"until then\. The kept rays of 'C2b' begin on its near plane where 'C1' sees them "
+        r"outside the opening of its mask \((\d+) of \2 checked, all on its kept pixels; "
+        r"docs/failures\.md\)\."
     )
     found = [m for m in map(re.compile(pattern).fullmatch, warnings(scene)) if m]
     assert len(found) == 1, warnings(scene)

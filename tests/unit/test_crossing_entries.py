@@ -134,11 +134,11 @@ def test_the_advised_clip_start_clears_the_crossing_and_one_step_less_does_not()
 def test_the_warning_names_both_cameras_what_crosses_and_the_clip_start():
     rig = Rig(*rigs.turned_rig(192, 108))
     assert (
-        "The kept rays of 'C3' must cross those of 'C2', so every method's rays fold "
-        "between the two: raise the Clip Start of 'C3' to 1.99 or more (it is 1.28), or "
-        "turn 'C3' less. They begin on the near plane of 'C3' where 'C2' sees them "
-        "outside the opening of its mask (1672 of 1672 checked, 46% on its kept pixels, "
-        "the rest beyond; docs/failures.md)."
+        "Kept rays of 'C3' and 'C2' must cross: raise the Clip Start of 'C3' to 1.99 or "
+        "more (now 1.28), or turn 'C3' less; every method folds there until then. The "
+        "kept rays of 'C3' begin on its near plane where 'C2' sees them outside the "
+        "opening of its mask (1672 of 1672 checked, 46% on its kept pixels, the rest "
+        "beyond; docs/failures.md)."
     ) in preflight(rig)
 
 

@@ -228,15 +228,15 @@ def crossing_message(entry, cameras):
         where = "all beyond its kept pixels"
     if entry.clip_start is not None:
         fix = (
-            f"raise the Clip Start of '{inner}' to {entry.clip_start:.3g} or more (it is "
+            f"raise the Clip Start of '{inner}' to {entry.clip_start:.3g} or more (now "
             f"{cameras[entry.inner].clip_start:.3g}), or turn '{inner}' less"
         )
     else:
         fix = f"turn '{inner}' less, or move it nearer the centre of what '{outer}' sees"
     return (
-        f"The kept rays of '{inner}' must cross those of '{outer}', so every method's "
-        f"rays fold between the two: {fix}. They begin on the near plane of '{inner}' "
-        f"where '{outer}' sees them outside the opening of its mask ({entry.crossing} of "
+        f"Kept rays of '{inner}' and '{outer}' must cross: {fix}; every method folds "
+        f"there until then. The kept rays of '{inner}' begin on its near plane where "
+        f"'{outer}' sees them outside the opening of its mask ({entry.crossing} of "
         f"{entry.checked} checked, {where}; docs/failures.md)."
     )
 
