@@ -5,9 +5,10 @@ import hashlib
 import numpy as np
 
 # The methods' revision: a change that alters the rays of an unchanged rig (IMAGE_BLEND's
-# eased weights: 2; SCALAR_FIELD's step shortened at the near planes: 3) bumps it, so
-# fields cached on disk before it are built again.
-REVISION = 3
+# eased weights: 2; SCALAR_FIELD's step shortened at the near planes: 3; AUTO keeping
+# IMAGE_BLEND where kept views must cross, not SCALAR_FIELD: 4) bumps it, so fields
+# cached on disk before it are built again.
+REVISION = 4
 
 
 def field_key(rig, method, settings):
