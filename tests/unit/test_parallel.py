@@ -108,13 +108,9 @@ def test_tangent_seconds_of_a_shared_trace_count_every_share(monkeypatch):
     in one process at 320x180, take 31.8 of the trace's 46 CPU s. Shares here report
     known seconds; the tracer adds their sum over the workers."""
 
-    class Ran:
-        def __init__(self, results):
-            self.results = results
-
     class FakeRuntime:
         def map(self, task, items, workers, should_stop):
-            return Ran([(None, 0, 1.5 + k, []) for k, _n in items])
+            return SimpleNamespace(results=[(None, 0, 1.5 + k, []) for k, _n in items])
 
     monkeypatch.setattr(field_module, "MIN_RAYS_PER_PROCESS", 16)
     monkeypatch.setattr(field_module, "MAX_RAYS_PER_SHARE", 40)

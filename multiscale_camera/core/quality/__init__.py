@@ -46,6 +46,7 @@ from .report import (
     to_json,
     transition_folds,
 )
+from .samples import sample_pixels
 from .validate import (
     MAX_TURN_DEG,
     bending_paths,
@@ -58,7 +59,6 @@ from .validate import (
     guard_pairs,
     obstruction_messages,
     preflight,
-    sample_pixels,
     substitution_messages,
     turn_deg,
 )

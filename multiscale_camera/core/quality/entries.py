@@ -134,9 +134,9 @@ def _entries(cam, ix, iy, clip):
     """(P, 3) float64, world units: where the pinhole rays of pixels ``ix``, ``iy`` ((P,)
     int) of ``cam`` cross a near plane at distance ``clip`` (float); (C, P, 3) for
     ``clip`` a (C,) array of distances."""
-    d = cam.directions(ix + 0.5, iy + 0.5)
-    cos = d @ np.asarray(cam.forward, dtype=np.float64)
-    return cam.eye + d * (np.asarray(clip, dtype=np.float64)[..., None] / cos)[..., None]
+    near = cam.near_points(cam.directions(ix + 0.5, iy + 0.5))  # at its own clip start
+    ratio = np.asarray(clip, dtype=np.float64)[..., None, None] / cam.clip_start
+    return cam.eye + (near - cam.eye) * ratio
 
 
 def _crossing(outer, regions, own, points):
