@@ -25,14 +25,16 @@ walk stops within one step (rays of one band share their vertices' order, so thi
 most sections: 94% of a SCALAR_FIELD on the turned rig, 63% on the nested 1000x rig);
 the others walk as ``section_points`` does, reading the band's
 vertices where the walk goes (``_cross``: no polyline is copied whole, and the walk's
-start is a binary search over the arc lengths). Per-ray quantities (arc
-lengths, tangents, segments) are computed once per band and shared by the three roles
-b, c and d, whose windows are stacked so that one numpy call serves all three;
-coordinates are held as three (Hy, Wx, K) planes, the vertices around j0 are read
-through slices, and the sections go in chunks of ``CHUNK_SECTIONS``, so that the
-arithmetic runs over contiguous memory in a core's cache. Sides, points and areas are
-the same float64 operations in the same order as ``dot3`` and ``cross3`` on (..., 3)
-rows would make.
+start is a binary search over the arc lengths). Arc lengths and tangents are computed
+once per band, as three (Hy, Wx, K) coordinate planes. A window is one row of quads:
+its rays, and each role's, lie one after the other in memory (``_window``: the band's
+own rows where the window takes every vertex, a copy of the first kq otherwise), so
+that the vertices j0 - 1, j0 and j0 + 1 of every ray are the window's vertices read
+one element back, in place or one on (``_along``: one numpy call over the whole window
+and a column or two fixed where the index is no such shift), and the arithmetic runs
+over contiguous memory, in chunks of ``CHUNK_SECTIONS`` that stay in a core's cache.
+Sides, points and areas are the same float64 operations in the same order as ``dot3``
+and ``cross3`` on (..., 3) rows would make.
 """
 
 import numpy as np
@@ -42,7 +44,12 @@ def dot_planes(a, b):
     """Dot product of vectors held as three coordinate planes (``a``, ``b``: sequences of
     three arrays of one shape), summed in the order ``dot3`` sums contiguous rows
     (x, then z, then y: numpy's einsum), so that both give the same float64 bits."""
-    return (a[0] * b[0] + a[2] * b[2]) + a[1] * b[1]
+    out = np.multiply(a[0], b[0])
+    term = np.multiply(a[2], b[2])
+    out += term
+    np.multiply(a[1], b[1], out=term)
+    out += term
+    return out
 
 
 def _segment_at(cum, length):
@@ -179,17 +186,11 @@ def quad_folds(vertices, active, limit=None):
     rays = _Rays(vertices, np.asarray(active, dtype=bool))
     cols = min(wx - 1, max(1, CHUNK_SECTIONS // k))
     if limit is None:
-        rows = max(1, CHUNK_SECTIONS // (k * (wx - 1)))
-        for r0 in range(0, hy - 1, rows):
-            for c0 in range(0, wx - 1, cols):
-                window = (slice(r0, min(r0 + rows, hy - 1)), slice(c0, min(c0 + cols, wx - 1)))
-                out[window] = _chunk_folds(rays, window, k, None)
-        return out
+        limit = np.full(out.shape, k)
     limit = np.minimum(np.asarray(limit), k)
     for r0 in range(hy - 1):
         for c0, c1, kmax in _row_windows(limit[r0], cols):
-            window = (slice(r0, r0 + 1), slice(c0, c1))
-            out[window] = _chunk_folds(rays, window, kmax, limit[window])
+            out[r0, c0:c1] = _chunk_folds(rays, (r0, c0, c1), kmax, limit[r0, c0:c1])
     return out
 
 
@@ -237,41 +238,51 @@ def _row_windows(limit, cols):
 
 class _Rays:
     """Per-ray arrays of a lattice band, computed once for a and the three roles b, c and
-    d (about 13 float64 (Hy, Wx, K) planes in all): coordinates and segments (as
-    ``np.diff`` makes them) as planes (3, Hy, Wx, K) and (3, Hy, Wx, K - 1); the runs
-    that gather, for each section k, the vertices around its first segment j0 (segment
-    k, the last one for the last vertex): jm = j0 - 1, j0, j0 + 1; arc lengths at every
-    vertex and at those (inf where no such start is possible); activity at every vertex
-    and at jm and j0; a's section normals (3, Hy - 1, Wx - 1, K)."""
+    d: the vertices as coordinate planes (3, Hy, Wx, K), float64; the arc lengths at
+    every vertex (Hy, Wx, K); the activity (Hy, Wx, K); the unit tangents, a's section
+    normals, (3, Hy, Wx, K); for each section k, the first vertices of the segments
+    around the one at a's vertex: jm = j0 - 1, j0 (segment k, the last one for the last
+    vertex) and j0 + 1, (K,) int each."""
 
     def __init__(self, v, active):
         k = v.shape[2]
-        j0 = np.minimum(np.arange(k), k - 2)
-        jm = np.maximum(j0 - 1, 0)
         self.k = k
+        self.j0 = j0 = np.minimum(np.arange(k), k - 2)
+        self.jm = np.maximum(j0 - 1, 0)
         # whether a walk may go on from segment j0 back, from it on, from j0 - 1 back
         self.inner = (j0 > 0, j0 < k - 2, j0 > 1)
+        self._plans = {}
         self.vertex = vertex = np.moveaxis(v, -1, 0).astype(np.float64, order="C")
-        self.runs = [_runs(j) for j in (jm, j0, j0 + 1)]
-        self.steps = steps = np.diff(vertex, axis=-1)  # the bits of np.diff(v, axis=-2)
+        steps = np.diff(vertex, axis=-1)  # the bits of np.diff(v, axis=-2)
         # _arc_lengths and _unit_tangents, bit for bit, on the planes
         cum = np.zeros(vertex.shape[1:])
         np.cumsum(np.sqrt(dot_planes(steps, steps)), axis=-1, out=cum[..., 1:])
-        self.cum, self.end = cum, cum[..., -1:]
-        # (3, Hy, Wx, K): the arc lengths at jm, j0 and j0 + 1
-        self.cums = np.stack([np.take(cum, j, axis=-1) for j in (jm, j0, j0 + 1)])
-        self.cums[0][..., j0 == 0] = np.inf  # no segment before the first
-        self.cums[2][..., j0 == k - 2] = np.inf  # a's arc length past vertex K - 2
+        self.cum = cum
         self.active = active
-        # (2, Hy, Wx, K): the activity at jm and j0
-        self.actives = np.stack([np.take(active, j, axis=-1) for j in (jm, j0)])
-        a = vertex[:, :-1, :-1]
-        t = np.empty(a.shape)
-        t[..., 1:-1] = a[..., 2:] - a[..., :-2]
-        t[..., 0] = a[..., 1] - a[..., 0]
-        t[..., -1] = a[..., -1] - a[..., -2]
+        t = np.empty(vertex.shape)
+        np.subtract(vertex[..., 2:], vertex[..., :-2], out=t[..., 1:-1])
+        np.subtract(vertex[..., 1], vertex[..., 0], out=t[..., 0])
+        np.subtract(vertex[..., -1], vertex[..., -2], out=t[..., -1])
         n = np.sqrt(dot_planes(t, t))
-        self.normal = t / np.where(n > 0, n, 1.0)
+        t /= np.where(n > 0, n, 1.0)
+        self.normal = t
+
+    def plan(self, name, kq):
+        """The ``_shift_plan`` of reads ``name`` for windows of kq vertices: "m", "0",
+        "1" (vertices jm, j0, j0 + 1, less vertex k), "step", "step_m" (vertex j0 + 1
+        less j0, jm + 1 less jm)."""
+        key = (name, kq)
+        if key not in self._plans:
+            jm, j0, k = self.jm, self.j0, np.arange(self.k)
+            ix, iy = {
+                "m": (jm, k),
+                "0": (j0, k),
+                "1": (j0 + 1, k),
+                "step": (j0 + 1, j0),
+                "step_m": (jm + 1, jm),
+            }[name]
+            self._plans[key] = _shift_plan(ix, iy, kq)
+        return self._plans[key]
 
 
 # Sections per chunk of the per-section arithmetic: its two dozen float64 temporaries
@@ -281,56 +292,130 @@ CHUNK_SECTIONS = 1 << 14
 ROLES = ((0, 1), (1, 1), (1, 0))
 
 
+def _flat(x):
+    """A view of ``x`` (..., P, kq) with its last two axes as one (..., P * kq): the
+    rays of a window one after the other, so that a shift by one vertex is a shift by
+    one element. Raises where that needs a copy (a window not contiguous)."""
+    view = x.view()
+    view.shape = (*x.shape[:-2], x.shape[-2] * x.shape[-1])
+    return view
+
+
+def _shift_plan(ix, iy, kq):
+    """How ``_along`` reads vertices ``ix`` and ``iy`` ((K,) int each, K >= kq) for
+    rays of kq vertices: (sx, sy, fixes), the shifts of the flat call (the most common
+    ``index[k] - k``, -1, 0 or 1) and the (k, jx, jy) of the vertices it misses, whose
+    index is no such shift or reaches past the window (that vertex's section is never
+    checked: it reads vertex kq - 1)."""
+    k = np.arange(kq)
+    ix, iy = ix[:kq], iy[:kq]
+    sx, sy = (
+        int(np.bincount(np.clip(i - k + 1, 0, 2), minlength=3).argmax()) - 1 for i in (ix, iy)
+    )
+    fix = np.flatnonzero((ix != k + sx) | (iy != k + sy) | (ix >= kq) | (iy >= kq))
+    return sx, sy, [(int(c), min(int(ix[c]), kq - 1), min(int(iy[c]), kq - 1)) for c in fix]
+
+
+def _along(out, x, plan, y=None, func=None):
+    """Fill ``out`` (..., P, kq), P rays of kq vertices held contiguous, with
+    ``func(x[..., ix[k]], y[..., iy[k]])`` at every vertex k (or ``x[..., ix[k]]`` with
+    no ``func``): ``x``, ``y`` (..., P, kq) contiguous likewise, ``plan`` the
+    ``_shift_plan`` of ``ix`` and ``iy``. One numpy call on the flat rays, shifted by
+    the plan's shifts, and the vertices it misses written a column at a time: the same
+    operation on the same operands as ``func(x[..., ix], y[..., iy])``, element for
+    element."""
+    sx, sy, fixes = plan
+    of, xf = _flat(out), _flat(x)
+    n = of.shape[-1]
+    lo, hi = max(0, -sx, -sy), n - max(0, sx, sy)
+    if func is None:
+        np.copyto(of[..., lo:hi], xf[..., lo + sx : hi + sx])
+        for c, jx, _jy in fixes:
+            out[..., c] = x[..., jx]
+        return out
+    func(xf[..., lo + sx : hi + sx], _flat(y)[..., lo + sy : hi + sy], out=of[..., lo:hi])
+    for c, jx, jy in fixes:
+        func(x[..., jx], y[..., jy], out=out[..., c])
+    return out
+
+
+def _window(x, y, c0, c1, kq, lead=1):
+    """Rows y and y + 1, columns c0 to c1 (included), vertices below kq of a band array
+    ``x`` (``lead`` axes before its (Hy, Wx, K) ones): each row's rays contiguous, so
+    that its first and last ``c1 - c0`` rays are ``_flat`` windows. A view where the
+    rays are whole (kq = K), else a copy."""
+    w = x[(slice(None),) * lead + (slice(y, y + 2), slice(c0, c1 + 1), slice(0, kq))]
+    return w if kq == x.shape[-1] else np.ascontiguousarray(w)
+
+
 def _chunk_folds(rays, window, kmax, limit):
-    """(rows, cols) bool: the folds of the quads ``window`` (row, column slices) in
-    their sections k < ``kmax`` (and k < ``limit``, (rows, cols) int, where given)."""
-    ys, xs = window
-    a = rays.vertex[:, ys, xs, :kmax]
-    normal = rays.normal[:, ys, xs, :kmax]
-    ref = rays.cum[ys, xs, :kmax]
-    live = rays.active[ys, xs, :kmax].copy()
-    if limit is not None:
-        live &= np.arange(kmax) < limit[..., None]
-    point, alive = _sections(rays, window, a, normal, ref)
+    """(cols,) bool: the folds of the quads ``window`` = (row, c0, c1), of one lattice
+    row, columns c0 to c1 (excluded), in their sections k < ``kmax`` and k < ``limit``
+    ((cols,) int). The arithmetic runs over sections 0 to kq - 1, kq = min(kmax + 1,
+    K), on windows whose rays are contiguous (``_window``); the last is not checked
+    where kq > kmax."""
+    y, c0, c1 = window
+    cols = c1 - c0
+    kq = min(kmax + 1, rays.k)
+    vertex = _window(rays.vertex, y, c0, c1, kq)
+    a = vertex[:, 0, :cols]
+    # the roles' rays, each (3, cols, kq): b, c, d
+    q = [vertex[:, dy, dx : dx + cols] for dy, dx in ROLES]
+    normal = rays.normal[:, y, c0:c1, :kq]
+    if kq < rays.k:
+        normal = np.ascontiguousarray(normal)
+    cum = _window(rays.cum, y, c0, c1, kq, 0)
+    ref = cum[0, :cols]
+    active = _window(rays.active, y, c0, c1, kq, 0)
+    live = active[0, :cols] & (np.arange(kq) < limit[:, None])
+    point, alive = _sections(rays, (y, c0, cols), (a, q, normal), (cum, ref, active), live)
     live &= alive.all(axis=0)
     return _flipped((point[:, 0], point[:, 1], point[:, 2]), normal, live)
 
 
-def _roles(x, window, lead=0):
-    """The three roles' (``ROLES``) windows of a per-ray array ``x`` (``lead`` axes
-    before its (Hy, Wx) ones), stacked on a new axis after the leading ones."""
-    ys, xs = window
-    pre = (slice(None),) * lead
-    return np.stack(
-        [
-            x[(*pre, slice(ys.start + dy, ys.stop + dy), slice(xs.start + dx, xs.stop + dx))]
-            for dy, dx in ROLES
-        ],
-        axis=lead,
-    )
-
-
-def _sections(rays, window, a, normal, ref):
-    """Where the three roles' rays (``ROLES``, offset from the quads ``window``) cross
-    a's sections: the points relative to a's vertices (3, 3, rows, cols, kmax: the
-    coordinates, then the roles) and whether each point's segment is active (3, rows,
-    cols, kmax). ``section_points``' walk, from the segment at a's arc length, settled
-    at once where it takes at most one step from segment j0 or j0 - 1; the other
-    sections walk there. The roles go together: the same float64 operations, in one
-    numpy call each instead of three."""
-    kmax = ref.shape[-1]
-    inner0, inner1, inner_m = (x[:kmax] for x in rays.inner)
-    runs = [_upto(r, kmax) for r in rays.runs]
-    a, normal = a[:, None], normal[:, None]
-    vq = _roles(rays.vertex, window, 1)
-    d_m, d_0, d_1 = (_minus(vq, a, r) for r in runs)  # (3, 3, rows, cols, kmax) each
+def _sections(rays, window, planes, lengths, live):
+    """Where the three roles' rays (``ROLES``) cross a's sections: the points relative to
+    a's vertices (3, 3, cols, kq: the coordinates, then the roles) and whether each
+    point's segment is active (3, cols, kq). ``section_points``' walk, from the segment
+    at a's arc length, settled at once where it takes at most one step from segment j0
+    or j0 - 1; the other sections walk there (those checked, and the first, which
+    every other is compared with). ``window``: (row, c0, cols); ``planes``: a's
+    vertices, the roles' (a list) and a's normals, (3, cols, kq) each; ``lengths``: the
+    arc lengths and activity of rows y and y + 1 (``_window``) and a's arc lengths."""
+    a, q, normal = planes
+    cum, ref, active = lengths
+    y, c0, cols = window
+    kq = ref.shape[-1]
+    j0 = rays.j0
+    plan = {name: rays.plan(name, kq) for name in ("m", "0", "1", "step", "step_m")}
+    inner0, inner1, inner_m = (x[:kq] for x in rays.inner)
+    shape = (3, 3, cols, kq)
+    d_m, d_0, d_1 = np.empty(shape), np.empty(shape), np.empty(shape)
+    for r in range(3):
+        for d, name in ((d_m, "m"), (d_0, "0"), (d_1, "1")):
+            _along(d[:, r], q[r], plan[name], a, np.subtract)
+    normal = normal[:, None]
     s_m = dot_planes(d_m, normal)
     s_0 = dot_planes(d_0, normal)
     s_1 = dot_planes(d_1, normal)
-    cum = _roles(rays.cums[..., :kmax], window, 1)
-    want = np.clip(ref, 0.0, _roles(rays.end, window))
-    start_0 = (cum[1] <= want) & (want < cum[2])
-    start_m = (cum[0] <= want) & (want < cum[1])
+    # the roles' arc lengths at jm, j0 and j0 + 1 (inf where the segment before the
+    # first or after the last would be meant), and their activity at jm and j0
+    c_m, c_0, c_1 = (np.empty((3, cols, kq)) for _ in range(3))
+    act_m, act_0 = (np.empty((3, cols, kq), dtype=bool) for _ in range(2))
+    ends = []
+    for r, (dy, dx) in enumerate(ROLES):
+        role = cum[dy, dx : dx + cols]
+        for out, name in ((c_m, "m"), (c_0, "0"), (c_1, "1")):
+            _along(out[r], role, plan[name])
+        for out, name in ((act_m, "m"), (act_0, "0")):
+            _along(out[r], active[dy, dx : dx + cols], plan[name])
+        ends.append(rays.cum[y + dy, c0 + dx : c0 + dx + cols, -1:])
+    c_m[..., j0[:kq] == 0] = np.inf
+    c_1[..., j0[:kq] == rays.k - 2] = np.inf
+    # a's arc length (>= 0), clamped to each role's length: np.clip's bits
+    want = np.minimum(ref, np.stack(ends))
+    start_0 = (c_0 <= want) & (want < c_1)
+    start_m = (c_m <= want) & (want < c_0)
     pos, neg = s_0 > 0, s_0 < 0
     # segments j0 and j0 - 1 hold the plane (a walk stops there)
     stop_0 = ~((pos & (s_1 > 0) & inner0) | (neg & (s_1 < 0) & inner1))
@@ -340,70 +425,36 @@ def _sections(rays, window, a, normal, ref):
     s_a = np.where(back, s_m, s_0)
     den = s_a - np.where(back, s_0, s_1)
     w = np.where(den != 0, s_a / np.where(den != 0, den, 1.0), 0.0)
-    sq = _roles(rays.steps, window, 1)
-    runs_m, runs_0 = runs[:2]
-    shape = (3, *w.shape)
-    point = (
-        np.where(back, d_m, d_0)
-        + np.where(back, _gather(sq, runs_m, shape), _gather(sq, runs_0, shape)) * w
-    )
-    act = _roles(rays.actives[..., :kmax], window, 1)
-    alive = np.where(back, act[0], act[1])
-    slow = ~(back | here)
+    # the crossing, on segment j0 - 1 (back) or j0: its first vertex's d plus the
+    # segment's step (the bits of np.diff) times w
+    step, step_m = np.empty(shape), np.empty(shape)
+    for r in range(3):
+        _along(step[:, r], q[r], plan["step"], q[r], np.subtract)
+        _along(step_m[:, r], q[r], plan["step_m"], q[r], np.subtract)
+    np.copyto(step, step_m, where=back)
+    np.copyto(d_0, d_m, where=back)
+    np.multiply(step, w, out=step)
+    point = np.add(d_0, step, out=step)
+    alive = np.where(back, act_m, act_0)
+    first = np.arange(kq) == 0
+    slow = ~(back | here) & (live | first)
     for r, (dy, dx) in enumerate(ROLES if slow.any() else ()):
         where = np.nonzero(slow[r])
         if len(where[0]):
-            ys, xs = window
-            q = (slice(ys.start + dy, ys.stop + dy), slice(xs.start + dx, xs.stop + dx))
-            _walk(rays, q, (a[:, 0], normal[:, 0], ref), where, point[:, r], alive[r])
+            role = (y + dy, c0 + dx)
+            _walk(rays, role, (a, normal[:, 0], ref), where, point[:, r], alive[r])
     return point, alive
 
 
-def _runs(index):
-    """The runs of an index array (K,) that steps by one: (destination, source) slice
-    pairs, so that ``x[..., index]`` is gathered without a copy of ``x``."""
-    cut = np.flatnonzero(np.diff(index) != 1) + 1
-    bounds = [0, *cut.tolist(), len(index)]
-    return [
-        (slice(b0, b1), slice(int(index[b0]), int(index[b0]) + b1 - b0))
-        for b0, b1 in zip(bounds[:-1], bounds[1:])
-    ]
-
-
-def _upto(runs, kmax):
-    """``runs`` of an index array cut to its first ``kmax`` entries."""
-    return [
-        (slice(d.start, min(d.stop, kmax)), slice(s.start, s.start + min(d.stop, kmax) - d.start))
-        for d, s in runs
-        if d.start < kmax
-    ]
-
-
-def _minus(q, a, runs):
-    """``q[..., index] - a`` for the index array whose ``runs`` are given."""
-    out = np.empty(np.broadcast_shapes((*q.shape[:-1], a.shape[-1]), a.shape))
-    for dst, src in runs:
-        np.subtract(q[..., src], a[..., dst], out=out[..., dst])
-    return out
-
-
-def _gather(x, runs, shape):
-    """``x[..., index]`` (of ``shape``) for the index array whose ``runs`` are given."""
-    out = np.empty(shape)
-    for dst, src in runs:
-        out[..., dst] = x[..., src]
-    return out
-
-
 def _walk(rays, q, plane, where, point, alive):
-    """The sections ``where`` (index arrays into the chunk's (rows, cols, K)) not settled
-    at once: walked as ``section_points`` walks, from the segment at a's arc length, on
+    """The sections ``where`` (index arrays into the chunk's (cols, kq)) not settled at
+    once: walked as ``section_points`` walks, from the segment at a's arc length, on
     the band's planes of vertices (no polyline copied); their points (three planes) and
-    ``alive`` updated in place. ``q``: the role's (row, column) slices of the band;
+    ``alive`` updated in place. ``q``: the role's first ray in the band, (row, column);
     ``plane``: a's vertices and the normals (three planes each), a's arc lengths."""
     a, normal, ref = plane
-    iy, ix, _k = where
-    ray = (iy + q[0].start, ix + q[1].start)
+    ix, _k = where
+    ray = (np.full(len(ix), q[0]), ix + q[1])
     start = _segment_in(rays.cum, ray, ref[where])
     origin = np.stack([c[where] for c in a])
     nrm = np.stack([c[where] for c in normal])
@@ -414,17 +465,22 @@ def _walk(rays, q, plane, where, point, alive):
 
 
 def _flipped(points, normal, live):
-    """(rows, cols) bool: quads one of whose corner triangles, in a live section, is
-    turned against the first section. ``points``: b's, c's and d's section points
-    relative to a's vertex (three planes each). The areas are those ``cross3`` and
+    """(cols,) bool: quads one of whose corner triangles, in a live section, is turned
+    against the first section. ``points``: b's, c's and d's section points relative to
+    a's vertex (three planes each, (cols, kq)). The areas are those ``cross3`` and
     ``dot3`` make of the triangles' edges, bit for bit, up to a triangle's sign (an
     edge from a is a point, or a point negated; an area negated keeps its flips)."""
     p1, p2, p3 = points
     e21, e31, e32 = p2 - p1, p3 - p1, p3 - p2
     # a b c: (P1, P2); b c d: (P2 - P1, P3 - P1); c d a: (P3 - P2, -P2); d a b: (-P3, P1 - P3)
     flips = np.zeros(live.shape, dtype=bool)
+    cross = np.empty((3, *live.shape))
+    term = np.empty(live.shape)
     for e, f in ((p1, p2), (e21, e31), (e32, p2), (p3, e31)):
-        cross = (e[1] * f[2] - e[2] * f[1], e[2] * f[0] - e[0] * f[2], e[0] * f[1] - e[1] * f[0])
+        for c, (i, j) in enumerate(((1, 2), (2, 0), (0, 1))):  # e[i] f[j] - e[j] f[i]
+            np.multiply(e[i], f[j], out=cross[c])
+            np.multiply(e[j], f[i], out=term)
+            cross[c] -= term
         orient = np.sign(dot_planes(cross, normal))
         first = orient[..., :1]
         flips |= (orient != first) & (orient != 0) & (first != 0)
