@@ -97,6 +97,21 @@ def test_image_blend_on_the_1000x_rig_folds_nowhere_as_in_the_reference():
     assert not fast.any()
 
 
+def test_quad_folds_takes_lattices_in_any_memory_layout():
+    """The windows are read as rays one after the other in memory: vertices and
+    activity handed over as views (a transposed stack, every other column) give the map
+    that contiguous copies give, and the reference's."""
+    cams, masks = turned_rig(96, 54)
+    fld = prepare(Rig(cams, masks), "IMAGE_BLEND", settings_for("STANDARD"))
+    verts, active = lattice(fld, np.arange(0, 96, 2), np.arange(54))
+    expected = reference_quad_folds(verts, active)
+    assert expected.any()
+    held = np.moveaxis(np.ascontiguousarray(np.moveaxis(verts, -1, 0)), 0, -1)  # (3, ...) below
+    wide = np.repeat(active, 2, axis=1)[:, ::2]  # every other column of a wider array
+    assert not held.flags.c_contiguous and not wide.flags.c_contiguous
+    np.testing.assert_array_equal(quad_folds(held, wide), expected)
+
+
 def test_fold_map_counts_the_folds_only_odd_offset_quads_show():
     """Above a megapixel the count checked every other pixel: a quad on odd rows or
     columns was never looked at. With IMAGE_BLEND's weights un-eased, the three-camera

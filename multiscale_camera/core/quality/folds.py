@@ -258,7 +258,7 @@ class _Rays:
         cum = np.zeros(vertex.shape[1:])
         np.cumsum(np.sqrt(dot_planes(steps, steps)), axis=-1, out=cum[..., 1:])
         self.cum = cum
-        self.active = active
+        self.active = np.ascontiguousarray(active, dtype=bool)
         t = np.empty(vertex.shape)
         np.subtract(vertex[..., 2:], vertex[..., :-2], out=t[..., 1:-1])
         np.subtract(vertex[..., 1], vertex[..., 0], out=t[..., 0])
