@@ -14,6 +14,7 @@ from .guides import (
     GUARD_FRACTION,
     Guides,
     bezier,
+    blended_rays,
     build_guides,
     curved_rays,
 )
@@ -30,6 +31,7 @@ __all__ = [
     "RayBundle",
     "Rig",
     "bezier",
+    "blended_rays",
     "build_guides",
     "cross3",
     "curved_rays",

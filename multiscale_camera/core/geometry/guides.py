@@ -113,6 +113,42 @@ def curved_rays(guides, segments=DEFAULT_SEGMENTS, which=None):
     t)`` written per pixel (elementwise, whatever the layout; products and sums of two
     operands commute bit for bit).
     """
+    planes = _curve_planes(guides, segments, which)
+    rays = np.empty((planes.shape[0], planes.shape[-1], planes.shape[2], 3))
+    rays[...] = planes.transpose(0, 3, 2, 1)
+    return rays
+
+
+def blended_rays(guides, weights, segments=DEFAULT_SEGMENTS):
+    """The blend of every pixel's curves R_1..R_N by its weights, sum_i w_i R_i.
+
+    Parameters
+    ----------
+    guides : Guides for N cameras and P pixels.
+    weights : (N, P) float64, each pixel's camera weights.
+    segments : int, vertices per stage.
+
+    Returns
+    -------
+    (P, K, 3) float64 array, world units: the bits of
+    ``np.einsum("np,npkc->pkc", weights, curved_rays(guides, segments))`` (an
+    accumulator from +0.0 that adds w_i R_i in camera order, signed zeros included),
+    made on the coordinate planes, so that one blended curve is laid out as rows rather
+    than N curves.
+    """
+    planes = _curve_planes(guides, segments, None)
+    blend = np.zeros(planes.shape[1:])
+    term = np.empty_like(blend)
+    for i in range(len(planes)):
+        np.multiply(weights[i], planes[i], out=term)
+        blend += term
+    rays = np.empty((planes.shape[-1], planes.shape[2], 3))
+    rays[...] = blend.transpose(2, 1, 0)
+    return rays
+
+
+def _curve_planes(guides, segments, which):
+    """``curved_rays``' curves as coordinate planes (len(which), 3, K, P), float64."""
     pts, dirs = guides.points, guides.directions
     n, p = pts.shape[:2]
     which = list(range(n)) if which is None else [int(i) for i in which]
@@ -147,9 +183,7 @@ def curved_rays(guides, segments=DEFAULT_SEGMENTS, which=None):
             here += planes[r, :, j * segments][:, None]
     tail = np.linalg.norm(pts[-1] - pts[-2], axis=-1) if n > 1 else np.ones(p)
     planes[:, :, -1] = planes[:, :, -2] + dir_planes[which][:, :, 0] * tail
-    rays = np.empty((len(which), p, k, 3))
-    rays[...] = planes.transpose(0, 3, 2, 1)
-    return rays
+    return planes
 
 
 def _bezier_planes(q0, q1, q2, q3, t):

@@ -8,7 +8,7 @@ import numpy as np
 
 from ..diagnostics import diagnostics_of
 from ..field import mask_weights, solve_workers
-from ..geometry import DEFAULT_SEGMENTS, Guides, build_guides, curved_rays
+from ..geometry import DEFAULT_SEGMENTS, Guides, blended_rays, build_guides, curved_rays
 from ..quality import check_rig, fold_workers
 from ..runtime import runtime, worker_count
 from .base import RayField, Settings, guard_warnings, record_seconds
@@ -47,8 +47,7 @@ class CurveBlendField(RayField):
         verts = np.empty((len(ix), 1 + (n - 1) * self.segments + 1, 3))
         blend = np.flatnonzero(~one)
         if len(blend):
-            curves = curved_rays(_subset(g, blend), self.segments)
-            verts[blend] = np.einsum("np,npkc->pkc", w[:, blend], curves)
+            verts[blend] = blended_rays(_subset(g, blend), w[:, blend], self.segments)
         owner = w.argmax(axis=0)
         for i in range(n):
             mine = np.flatnonzero(one & (owner == i))
