@@ -423,18 +423,23 @@ def transition_folds(weights, masks, folds, names):
     not kept whole by masks (``kept_folds`` has those) whose two largest weights, summed
     over the quad's four pixels, are that pair's; most folds first.
     """
-    n, h, w = masks.shape
-    corners = _quad_owners(masks, np.arange(h), np.arange(w))
-    open_ = folds & ~(corners >= 0).all(axis=0)
+    owned = np.asarray(masks).any(axis=0)
+    whole = owned[:-1, :-1] & owned[:-1, 1:] & owned[1:, 1:] & owned[1:, :-1]
+    open_ = folds & ~whole
     if not open_.any():
         return []
-    wt = np.asarray(weights, dtype=np.float64)
     iy, ix = np.nonzero(open_)
-    quad = wt[:, iy, ix] + wt[:, iy, ix + 1] + wt[:, iy + 1, ix] + wt[:, iy + 1, ix + 1]
+    # the weights of the folded quads alone, in float64 (not the whole image's)
+    wt = [
+        np.asarray(weights[:, y, x], dtype=np.float64)
+        for y, x in ((iy, ix), (iy, ix + 1), (iy + 1, ix), (iy + 1, ix + 1))
+    ]
+    quad = wt[0] + wt[1] + wt[2] + wt[3]
     top = np.argsort(-quad, axis=0, kind="stable")[:2]
-    low, high = top.min(axis=0), top.max(axis=0)
-    pairs, counts = np.unique(np.stack([low, high], axis=1), axis=0, return_counts=True)
-    out = [((names[a], names[b]), int(c)) for (a, b), c in zip(pairs, counts)]
+    n = len(names)
+    counts = np.bincount(top.min(axis=0) * n + top.max(axis=0), minlength=n * n)
+    pairs = np.flatnonzero(counts)  # (low, high) in rig order
+    out = [((names[p // n], names[p % n]), int(counts[p])) for p in pairs]
     return sorted(out, key=lambda pc: -pc[1])
 
 
