@@ -36,18 +36,26 @@ def near_plane_entries(vertices, cameras):
     r, k = v.shape[:2]
     # coordinate planes, summed as ``dot3`` sums rows (x, then z, then y: numpy's
     # einsum), so that the depths are the bits ``dot3(v - eye, forward)`` gives
-    comp = [np.asarray(v[..., i], dtype=np.float64) for i in range(3)]
+    comp = np.moveaxis(v, -1, 0).astype(np.float64)  # (3, R, K), one pass
     out = np.empty((len(cameras), r))
     prev = np.zeros(r)
     rows = np.arange(r)
+    d, term = np.empty((r, k)), np.empty((r, k))
     for n, cam in enumerate(cameras):
         eye = np.asarray(cam.eye, dtype=np.float64)
         fwd = np.asarray(cam.forward, dtype=np.float64)
-        p = [(comp[i] - eye[i]) * fwd[i] for i in range(3)]
-        d = ((p[0] + p[2]) + p[1]) - float(cam.clip_start)  # (R, K), >= 0 beyond
+        # ((p0 + p2) + p1) - near, p_i = (v_i - eye_i) fwd_i, in place: (R, K), >= 0 beyond
+        np.subtract(comp[0], eye[0], out=d)
+        d *= fwd[0]
+        for i in (2, 1):
+            np.subtract(comp[i], eye[i], out=term)
+            term *= fwd[i]
+            d += term
+        d -= float(cam.clip_start)
         d0, d1 = d[:, :-1], d[:, 1:]
         # the upward crossings alone (few: one or two per ray) are located
-        ri, ci = np.nonzero((d0 < 0) & (d1 >= 0))
+        behind = d < 0
+        ri, ci = np.nonzero(behind[:, :-1] & (d >= 0)[:, 1:])
         a0, a1 = d0[ri, ci], d1[ri, ci]
         with np.errstate(divide="ignore", invalid="ignore"):
             at_up = ci.astype(np.float64) + (-a0 / (a1 - a0))
