@@ -80,16 +80,17 @@ def test_fold_map_makes_rays_only_for_the_quads_it_checks(monkeypatch):
     cams, masks = demo_rig(160, 90)
     fld = prepare(Rig(cams, masks), "IMAGE_BLEND", settings_for("STANDARD"))
     made = np.zeros((90, 160), dtype=int)
-    rays = type(fld).rays
+    planes = type(fld).vertex_planes
 
     def spy(self, ix, iy):
         np.add.at(made, (iy, ix), 1)
-        return rays(self, ix, iy)
+        return planes(self, ix, iy)
 
-    monkeypatch.setattr(type(fld), "rays", spy)
+    # the count's rays (fold_map's probe, one ray that says how many vertices each
+    # has, asks ``rays``)
+    monkeypatch.setattr(type(fld), "vertex_planes", spy)
     fold_map(fld, processes=1)
     monkeypatch.undo()
-    made[0, 0] -= 1  # fold_map's probe: one ray says how many vertices each has
     checked = kept_limits(fld, np.arange(90), np.arange(160)) != 0
     corner = np.zeros((90, 160), dtype=bool)
     for dy in (0, 1):
@@ -174,3 +175,18 @@ def test_row_windows_cover_every_quad_to_check_once(runs, cols):
         covered[c0:c1] += 1
     assert (covered <= 1).all()
     assert (covered[limit > 0] == 1).all()
+
+
+@pytest.mark.parametrize("rig", [turned_rig, demo_rig])
+def test_image_blend_vertex_planes_are_its_rays_float32_vertices(rig):
+    """The fold count reads IMAGE_BLEND's rays as coordinate planes made without a
+    bundle: every pixel's, kept or blended, the bits ``rays`` hands to the renderer."""
+    cams, masks = rig(64, 36)
+    fld = prepare(Rig(cams, masks), "IMAGE_BLEND", settings_for("STANDARD"))
+    iy, ix = (a.ravel() for a in np.mgrid[0:36, 0:64])
+    got = fld.vertex_planes(ix, iy)
+    want = np.moveaxis(fld.rays(ix, iy).vertices, -1, 0).astype(np.float64)
+    assert got.dtype == np.float64 and got.flags.c_contiguous
+    np.testing.assert_array_equal(got, want)
+    w = fld.weights[:, iy, ix]
+    assert (w == 1).any(axis=0).any() and not (w == 1).any(axis=0).all()  # both kinds

@@ -7,15 +7,17 @@ other part of the core but its errors.
 
 from .bundle import RayBundle
 from .camera import SENSOR_FITS, PinholeCamera, pixel_centres
-from .crossing import near_plane_entries
+from .crossing import near_plane_entries, near_plane_entries_on_planes
 from .family import Family
 from .guides import (
     DEFAULT_SEGMENTS,
     GUARD_FRACTION,
     Guides,
     bezier,
+    blended_planes,
     blended_rays,
     build_guides,
+    curve_planes,
     curved_rays,
 )
 from .rig import Rig, resolve_conflicts
@@ -31,12 +33,15 @@ __all__ = [
     "RayBundle",
     "Rig",
     "bezier",
+    "blended_planes",
     "blended_rays",
     "build_guides",
     "cross3",
+    "curve_planes",
     "curved_rays",
     "dot3",
     "near_plane_entries",
+    "near_plane_entries_on_planes",
     "pixel_centres",
     "resolve_conflicts",
     "solve3",

@@ -33,10 +33,14 @@ def near_plane_entries(vertices, cameras):
     of the segment (k + t: the point v[k] + t (v[k+1] - v[k])); inf where there is none.
     """
     v = np.asarray(vertices)
-    r, k = v.shape[:2]
-    # coordinate planes, summed as ``dot3`` sums rows (x, then z, then y: numpy's
-    # einsum), so that the depths are the bits ``dot3(v - eye, forward)`` gives
-    comp = np.moveaxis(v, -1, 0).astype(np.float64)  # (3, R, K), one pass
+    return near_plane_entries_on_planes(np.moveaxis(v, -1, 0).astype(np.float64), cameras)
+
+
+def near_plane_entries_on_planes(comp, cameras):
+    """``near_plane_entries`` of polylines held as coordinate planes: ``comp`` (3, R, K)
+    float64, the same bits (the depths are summed as ``dot3`` sums rows: x, then z, then
+    y, numpy's einsum)."""
+    r, k = comp.shape[1:]
     out = np.empty((len(cameras), r))
     prev = np.zeros(r)
     rows = np.arange(r)

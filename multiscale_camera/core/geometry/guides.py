@@ -113,7 +113,7 @@ def curved_rays(guides, segments=DEFAULT_SEGMENTS, which=None):
     t)`` written per pixel (elementwise, whatever the layout; products and sums of two
     operands commute bit for bit).
     """
-    planes = _curve_planes(guides, segments, which)
+    planes = curve_planes(guides, segments, which)
     rays = np.empty((planes.shape[0], planes.shape[-1], planes.shape[2], 3))
     rays[...] = planes.transpose(0, 3, 2, 1)
     return rays
@@ -133,22 +133,29 @@ def blended_rays(guides, weights, segments=DEFAULT_SEGMENTS):
     (P, K, 3) float64 array, world units: the bits of
     ``np.einsum("np,npkc->pkc", weights, curved_rays(guides, segments))`` (an
     accumulator from +0.0 that adds w_i R_i in camera order, signed zeros included),
-    made on the coordinate planes, so that one blended curve is laid out as rows rather
-    than N curves.
+    made on the coordinate planes (``blended_planes``), so that one blended curve is
+    laid out as rows rather than N curves.
     """
-    planes = _curve_planes(guides, segments, None)
+    blend = blended_planes(guides, weights, segments)
+    rays = np.empty((blend.shape[-1], blend.shape[1], 3))
+    rays[...] = blend.transpose(2, 1, 0)
+    return rays
+
+
+def blended_planes(guides, weights, segments=DEFAULT_SEGMENTS):
+    """``blended_rays`` as coordinate planes: (3, K, P) float64, the same bits."""
+    planes = curve_planes(guides, segments, None)
     blend = np.zeros(planes.shape[1:])
     term = np.empty_like(blend)
     for i in range(len(planes)):
         np.multiply(weights[i], planes[i], out=term)
         blend += term
-    rays = np.empty((planes.shape[-1], planes.shape[2], 3))
-    rays[...] = blend.transpose(2, 1, 0)
-    return rays
+    return blend
 
 
-def _curve_planes(guides, segments, which):
-    """``curved_rays``' curves as coordinate planes (len(which), 3, K, P), float64."""
+def curve_planes(guides, segments=DEFAULT_SEGMENTS, which=None):
+    """``curved_rays``' curves as coordinate planes (len(which), 3, K, P), float64: the
+    same bits, laid out along the pixels."""
     pts, dirs = guides.points, guides.directions
     n, p = pts.shape[:2]
     which = list(range(n)) if which is None else [int(i) for i in which]
@@ -188,13 +195,14 @@ def _curve_planes(guides, segments, which):
 
 def _bezier_planes(q0, q1, q2, q3, t):
     """``bezier(q0, q1, q2, q3, t)`` as coordinate planes (3, K, P): the same products
-    and sums, in the same order, of the same operands."""
+    and sums, in the same order, of the same operands (each control point's (P, 3) rows
+    copied to planes first: the products then read contiguous memory)."""
     t = np.asarray(t, dtype=np.float64)[None, :, None]
     s = 1.0 - t
     weights = [(s**3), (3 * s * s * t), (3 * s * t * t), (t**3)]  # (1, K, 1), as bezier's
-    out = np.multiply(weights[0][0], q0.T[:, None])
+    out = np.multiply(weights[0][0], np.ascontiguousarray(q0.T)[:, None])
     term = np.empty_like(out)
     for w, q in zip(weights[1:], (q1, q2, q3)):
-        np.multiply(w[0], q.T[:, None], out=term)
+        np.multiply(w[0], np.ascontiguousarray(q.T)[:, None], out=term)
         out += term
     return out

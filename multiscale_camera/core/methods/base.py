@@ -110,6 +110,11 @@ class RayField(abc.ABC):
     def rays(self, ix, iy):
         """Rays for pixels ``(ix, iy)`` ((P,) int arrays, row 0 at the top): a RayBundle."""
 
+    def vertex_planes(self, ix, iy):
+        """``rays(ix, iy)``' vertices as float64 coordinate planes, (3, P, K): each
+        coordinate's rays one after the other (the fold count's layout)."""
+        return np.moveaxis(self.rays(ix, iy).vertices, -1, 0).astype(np.float64, order="C")
+
     def exit_index(self, ix, iy):
         """(P,) int: the vertex where each pixel's ray leaves the modelled volume (the
         end of its bending stretch); the last vertex unless a method knows better."""

@@ -8,7 +8,7 @@ import numpy as np
 
 from ..diagnostics import diagnostics_of
 from ..field import mask_weights, solve_workers
-from ..geometry import DEFAULT_SEGMENTS, Guides, blended_rays, build_guides, curved_rays
+from ..geometry import DEFAULT_SEGMENTS, Guides, blended_planes, build_guides, curve_planes
 from ..quality import check_rig, fold_workers
 from ..runtime import runtime, worker_count
 from .base import RayField, Settings, guard_warnings, record_seconds
@@ -39,24 +39,42 @@ class CurveBlendField(RayField):
         """The blend of each pixel's curves; a pixel whose weights are one-hot (kept by
         camera i) gets R_i alone, the bits the blend ``1 R_i + 0 R_j`` has."""
         ix, iy = np.asarray(ix), np.asarray(iy)
+        planes, w = self._planes(ix, iy)
+        verts = np.empty((len(ix), planes.shape[1], 3))
+        verts[...] = planes.transpose(2, 1, 0)
+        # einsum's own loop: a matrix product would wake BLAS's threads, which spin on
+        # the cores the fold count's workers need
+        n = len(w)
+        m = np.einsum("n,np->p", np.arange(1, n + 1, dtype=np.float64), w)
+        return self._bundle(ix, iy, verts, np.repeat(m[:, None], verts.shape[1], axis=1))
+
+    def vertex_planes(self, ix, iy):
+        """``rays(ix, iy)``' vertices, float32 as the renderer gets them, as float64
+        coordinate planes (3, P, K), made without the bundle's other arrays."""
+        planes, _w = self._planes(np.asarray(ix), np.asarray(iy))
+        out = np.empty((3, planes.shape[2], planes.shape[1]))
+        out[...] = planes.astype(np.float32).transpose(0, 2, 1)
+        return out
+
+    def _planes(self, ix, iy):
+        """Each pixel's ray as coordinate planes (3, K, P) float64, and its weights (N,
+        P) float64: the blend of its curves (``geometry.blended_planes``), or, where the
+        weights are one-hot (kept by camera i), R_i alone (``geometry.curve_planes``)."""
         cams = self.rig.cameras
         n = len(cams)
         g = build_guides(cams, ix + 0.5, iy + 0.5, beta=self.rig.beta)
         w = self.weights[:, iy, ix].astype(np.float64)
         one = (w == 1.0).any(axis=0) & ((w == 0.0).sum(axis=0) == n - 1)
-        verts = np.empty((len(ix), 1 + (n - 1) * self.segments + 1, 3))
+        planes = np.empty((3, 1 + (n - 1) * self.segments + 1, len(ix)))
         blend = np.flatnonzero(~one)
         if len(blend):
-            verts[blend] = blended_rays(_subset(g, blend), w[:, blend], self.segments)
+            planes[:, :, blend] = blended_planes(_subset(g, blend), w[:, blend], self.segments)
         owner = w.argmax(axis=0)
         for i in range(n):
             mine = np.flatnonzero(one & (owner == i))
             if len(mine):
-                verts[mine] = curved_rays(_subset(g, mine), self.segments, [i])[0]
-        # einsum's own loop: a matrix product would wake BLAS's threads, which spin on
-        # the cores the fold count's workers need
-        m = np.einsum("n,np->p", np.arange(1, n + 1, dtype=np.float64), w)
-        return self._bundle(ix, iy, verts, np.repeat(m[:, None], verts.shape[1], axis=1))
+                planes[:, :, mine] = curve_planes(_subset(g, mine), self.segments, [i])[0]
+        return planes, w
 
 
 def _start_fold_workers(rig, processes):

@@ -179,11 +179,18 @@ def quad_folds(vertices, active, limit=None):
     section inside the bending stretch differs from its orientation in the first
     section.
     """
-    hy, wx, k = vertices.shape[:3]
+    planes = np.moveaxis(np.asarray(vertices), -1, 0).astype(np.float64, order="C")
+    return quad_folds_on_planes(planes, active, limit)
+
+
+def quad_folds_on_planes(planes, active, limit=None):
+    """``quad_folds`` of rays held as coordinate planes: ``planes`` (3, Hy, Wx, K)
+    float64, C-contiguous (each coordinate's rays one after the other), the same map."""
+    hy, wx, k = planes.shape[1:]
     out = np.zeros((max(hy - 1, 0), max(wx - 1, 0)), dtype=bool)
     if hy < 2 or wx < 2:
         return out
-    rays = _Rays(vertices, np.asarray(active, dtype=bool))
+    rays = _Rays(planes, np.asarray(active, dtype=bool))
     cols = min(wx - 1, max(1, CHUNK_SECTIONS // k))
     if limit is None:
         limit = np.full(out.shape, k)
@@ -244,15 +251,15 @@ class _Rays:
     around the one at a's vertex: jm = j0 - 1, j0 (segment k, the last one for the last
     vertex) and j0 + 1, (K,) int each."""
 
-    def __init__(self, v, active):
-        k = v.shape[2]
+    def __init__(self, vertex, active):
+        k = vertex.shape[-1]
         self.k = k
         self.j0 = j0 = np.minimum(np.arange(k), k - 2)
         self.jm = np.maximum(j0 - 1, 0)
         # whether a walk may go on from segment j0 back, from it on, from j0 - 1 back
         self.inner = (j0 > 0, j0 < k - 2, j0 > 1)
         self._plans = {}
-        self.vertex = vertex = np.moveaxis(v, -1, 0).astype(np.float64, order="C")
+        self.vertex = vertex = np.ascontiguousarray(vertex, dtype=np.float64)
         steps = np.diff(vertex, axis=-1)  # the bits of np.diff(v, axis=-2)
         # _arc_lengths and _unit_tangents, bit for bit, on the planes
         cum = np.zeros(vertex.shape[1:])

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..diagnostics import check_stop
-from ..geometry import dot3, near_plane_entries
+from ..geometry import dot3, near_plane_entries, near_plane_entries_on_planes
 
 # Erosion of the masks, pixels, before measuring preserved rays (docs/report.md).
 ERODE_PX = 2
@@ -239,8 +239,18 @@ def bending_active(vertices, last_cam, counts=None, earlier=()):
     ``counts``, among the traced ones: the stretch where folds are counted."""
     shape = vertices.shape
     flat = np.asarray(vertices).reshape(-1, shape[-2], 3)
-    entry = near_plane_entries(flat, tuple(earlier) + (last_cam,))[-1].reshape(shape[:-2])
-    before = np.arange(shape[-2]) < entry[..., None]
+    planes = np.moveaxis(flat, -1, 0).astype(np.float64)
+    flat_counts = None if counts is None else np.reshape(counts, -1)
+    return bending_active_on_planes(planes, last_cam, flat_counts, earlier).reshape(shape[:-1])
+
+
+def bending_active_on_planes(planes, last_cam, counts=None, earlier=()):
+    """``bending_active`` of R rays held as coordinate planes ``planes`` (3, R, K)
+    float64 (``counts``: (R,) int or None): (R, K) bool."""
+    k = planes.shape[-1]
+    cams = tuple(earlier) + (last_cam,)
+    entry = near_plane_entries_on_planes(planes, cams)[-1]
+    before = np.arange(k) < entry[:, None]
     if counts is not None:
-        before &= np.arange(vertices.shape[-2]) < counts[..., None]
+        before &= np.arange(k) < np.asarray(counts)[:, None]
     return before

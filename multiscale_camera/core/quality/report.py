@@ -10,12 +10,12 @@ import numpy as np
 
 from ..diagnostics import check_stop, diagnostics_of
 from ..runtime import runtime, worker_count
-from .folds import quad_folds
+from .folds import quad_folds_on_planes
 from .metrics import (
     ALONG_BLOCK_VERTICES,
     ERODE_PX,
     Preserved,
-    bending_active,
+    bending_active_on_planes,
     measured_pixels,
     preserved_error,
 )
@@ -235,16 +235,16 @@ def _fold_piece(fld, band, xs, limit, need, a, b, folds):
         return
     iy, ix = np.nonzero(sub)
     iy, ix = band[iy], xs[a:b][ix]
-    bundle = fld.rays(ix, iy)
-    k = bundle.vertices.shape[1]
+    planes = fld.vertex_planes(ix, iy)  # (3, P, K) float64
+    k = planes.shape[-1]
     exit_index = fld.exit_index(ix, iy)
     counts = None if exit_index is None else exit_index + 1
-    active = bending_active(bundle.vertices, cams[-1], counts, cams[:-1])
-    verts = np.zeros((*sub.shape, k, 3), dtype=bundle.vertices.dtype)
-    verts[sub] = bundle.vertices
+    active = bending_active_on_planes(planes, cams[-1], counts, cams[:-1])
+    verts = np.zeros((3, *sub.shape, k))
+    verts[:, sub] = planes
     on = np.zeros((*sub.shape, k), dtype=bool)
     on[sub] = active
-    folds[:, a : b - 1] = quad_folds(verts, on, np.minimum(limit[:, a : b - 1], k))
+    folds[:, a : b - 1] = quad_folds_on_planes(verts, on, np.minimum(limit[:, a : b - 1], k))
 
 
 def kept_limits(fld, ys, xs):
