@@ -177,6 +177,16 @@ def test_fast_counter_equals_the_reference_on_perturbed_lattices(seed, k, noise,
     np.testing.assert_array_equal(quad_folds(verts, active), reference_quad_folds(verts, active))
 
 
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), k=st.integers(2, 12), share=st.sampled_from([0.3, 0.8]))
+def test_fast_counter_equals_the_reference_where_the_active_stretch_has_holes(seed, k, share):
+    """Sections past ray a's last active vertex are skipped (``folds._live_sections``):
+    with holes in the stretch that is its last active vertex, not its active count."""
+    verts, _ = perturbed(seed, k, 0.05, 0.3, False)
+    active = np.random.default_rng(seed).random(verts.shape[:3]) < share
+    np.testing.assert_array_equal(quad_folds(verts, active), reference_quad_folds(verts, active))
+
+
 def test_perturbed_lattices_fold_and_walk(monkeypatch):
     """The lattices above hold what the comparison must cover: folded quads, flat ones,
     and sections the fast path leaves to the walk (several steps, rays doubling back)."""
