@@ -1,7 +1,13 @@
 import numpy as np
 
-from fixtures.rigs import camera, two_camera_rig
-from multiscale_camera.core.geometry import GUARD_FRACTION, bezier, build_guides, curved_rays
+from fixtures.rigs import camera, three_camera_rig, two_camera_rig
+from multiscale_camera.core.geometry import (
+    GUARD_FRACTION,
+    bezier,
+    blended_planes,
+    build_guides,
+    curved_rays,
+)
 
 
 def test_bezier_endpoints_and_tangents():
@@ -56,3 +62,20 @@ def test_guard_shortens_handles_that_reach_behind_the_next_eye():
     g = build_guides((mid_c1, far), px, py, beta=0.2)
     assert g.shortened.tolist() == [0]
     np.testing.assert_allclose(g.handles_in, GUARD_FRACTION * 1.5)
+
+
+def test_blended_planes_are_einsums_blend_of_the_curves_bit_for_bit():
+    """IMAGE_BLEND's rays: the blend made on planes against the plain weighted sum of
+    every pixel's curves (einsum's accumulation from +0.0 in camera order), one-hot,
+    zero and negative-zero-making weights included."""
+    cams, _ = three_camera_rig(48, 27)
+    rng = np.random.default_rng(3)
+    px, py = rng.uniform(0, 48, 400), rng.uniform(0, 27, 400)
+    g = build_guides(cams, px, py)
+    w = rng.dirichlet(np.ones(3), size=400).T
+    w[:, :50] = np.eye(3)[:, rng.integers(0, 3, 50)]  # kept pixels: one-hot
+    w[2, 50:100] = 0.0  # pixels out of camera 3's reach
+    want = np.einsum("np,npkc->pkc", w, curved_rays(g, 8))
+    got = blended_planes(g, w, 8).transpose(2, 1, 0)
+    assert got.shape == want.shape
+    np.testing.assert_array_equal(got.view(np.uint64), want.view(np.uint64))

@@ -119,8 +119,9 @@ def curved_rays(guides, segments=DEFAULT_SEGMENTS, which=None):
     return rays
 
 
-def blended_rays(guides, weights, segments=DEFAULT_SEGMENTS):
-    """The blend of every pixel's curves R_1..R_N by its weights, sum_i w_i R_i.
+def blended_planes(guides, weights, segments=DEFAULT_SEGMENTS):
+    """The blend of every pixel's curves R_1..R_N by its weights, sum_i w_i R_i, as
+    coordinate planes.
 
     Parameters
     ----------
@@ -130,20 +131,12 @@ def blended_rays(guides, weights, segments=DEFAULT_SEGMENTS):
 
     Returns
     -------
-    (P, K, 3) float64 array, world units: the bits of
-    ``np.einsum("np,npkc->pkc", weights, curved_rays(guides, segments))`` (an
-    accumulator from +0.0 that adds w_i R_i in camera order, signed zeros included),
-    made on the coordinate planes (``blended_planes``), so that one blended curve is
-    laid out as rows rather than N curves.
+    (3, K, P) float64 array, world units: the bits of
+    ``np.einsum("np,npkc->pkc", weights, curved_rays(guides, segments))`` moved to
+    planes (an accumulator from +0.0 that adds w_i R_i in camera order, signed zeros
+    included), made on the curves' planes (``curve_planes``), so that no pixel's N
+    curves are laid out as rows.
     """
-    blend = blended_planes(guides, weights, segments)
-    rays = np.empty((blend.shape[-1], blend.shape[1], 3))
-    rays[...] = blend.transpose(2, 1, 0)
-    return rays
-
-
-def blended_planes(guides, weights, segments=DEFAULT_SEGMENTS):
-    """``blended_rays`` as coordinate planes: (3, K, P) float64, the same bits."""
     planes = curve_planes(guides, segments, None)
     blend = np.zeros(planes.shape[1:])
     term = np.empty_like(blend)
