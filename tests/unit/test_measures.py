@@ -8,7 +8,13 @@ import pytest
 from fixtures.rigs import camera, look_at, turned_rig, zoom1000_rig, zoom_rig
 from multiscale_camera.core.geometry import Rig
 from multiscale_camera.core.methods import prepare_image_blend, prepare_linear
-from multiscale_camera.core.quality import along_ray, bending_active, fold_map, quad_folds
+from multiscale_camera.core.quality import (
+    along_ray,
+    along_ray_on_planes,
+    bending_active,
+    fold_map,
+    quad_folds,
+)
 
 W, H, LENS = 64, 48, 50.0
 EYE, TARGET = np.array([0.3, -6.0, 2.0]), np.array([0.0, 0.0, 0.5])
@@ -108,6 +114,11 @@ def test_a_ray_exact_at_its_near_plane_that_drifts_behind_it_is_measured(clip_en
         # the measure is the supremum the dense samples approach from below
         assert want <= e * (1 + 1e-12) and e == pytest.approx(want, rel=1e-4)
         assert a == pytest.approx(want_angle, rel=1e-6) and 0.3 < a <= 0.4 + 1e-9
+    # the report's measure hands the rays over as coordinate planes: the same figures
+    planes = np.moveaxis(rays, -1, 0).astype(np.float64)
+    on_planes = along_ray_on_planes(planes, cam, *np.array(PIXELS).T)
+    np.testing.assert_array_equal(on_planes[0], err)
+    np.testing.assert_array_equal(on_planes[1], angle)
 
 
 def test_a_ray_that_starts_beyond_the_near_plane_beside_the_frustum_is_measured_from_its_entry():

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..diagnostics import check_stop
-from ..geometry import dot3, near_plane_entries, near_plane_entries_on_planes
+from ..geometry import near_plane_entries_on_planes
 
 # Erosion of the masks, pixels, before measuring preserved rays (docs/report.md).
 ERODE_PX = 2
@@ -116,53 +116,96 @@ def along_ray(vertices, cam, px, py, earlier=(), should_stop=None):
     for s in range(0, r, block):
         check_stop(should_stop)
         sl = slice(s, s + block)
-        error[sl], angle[sl] = _along_block(vertices[sl], cam, px[sl], py[sl], tuple(earlier))
+        planes = np.moveaxis(vertices[sl], -1, 0).astype(np.float64, order="C")
+        error[sl], angle[sl] = _along_block(planes, cam, px[sl], py[sl], tuple(earlier))
     return error, angle
 
 
-def _along_block(vertices, cam, px, py, earlier):
-    v = vertices.astype(np.float64)
+def along_ray_on_planes(planes, cam, px, py, earlier=(), should_stop=None):
+    """``along_ray`` of R polylines held as coordinate planes: ``planes`` (3, R, K)
+    float64, K >= 2, world units (``RayField.vertex_planes``); the same figures."""
+    r, k = planes.shape[1:]
+    px, py = np.asarray(px, dtype=np.float64), np.asarray(py, dtype=np.float64)
+    error = np.empty(r)
+    angle = np.empty(r)
+    block = max(1, ALONG_BLOCK_VERTICES // (k + 1))
+    for s in range(0, r, block):
+        check_stop(should_stop)
+        sl = slice(s, s + block)
+        error[sl], angle[sl] = _along_block(planes[:, sl], cam, px[sl], py[sl], tuple(earlier))
+    return error, angle
+
+
+def _camera_planes(comp, cam, out):
+    """Write the points ``comp`` (3, R, K) float64, world units, into ``out`` (3, R, K)
+    as ``cam``'s own coordinates (x right, y up, z backwards: depth is -z)."""
+    eye, rot = np.asarray(cam.eye, dtype=np.float64), cam.rotation
+    rel = [np.subtract(comp[i], eye[i]) for i in range(3)]
+    term = np.empty(comp.shape[1:])
+    for c in range(3):
+        np.multiply(rel[0], rot[0, c], out=out[c])
+        for i in (1, 2):
+            np.multiply(rel[i], rot[i, c], out=term)
+            out[c] += term
+
+
+def _along_block(comp, cam, px, py, earlier):
+    """``along_ray`` of the polylines ``comp`` (3, R, K) float64, in ``cam``'s own
+    coordinates: each vertex turned into them once; a point along a segment, an affine
+    mix of its ends, is the same mix of theirs (the world's figures to rounding)."""
+    _, r, k = comp.shape
     near, far = float(cam.clip_start), far_depth(cam)
-    f = cam.forward
-    s = dot3(v - cam.eye, f)
-    last = v[:, -1] - v[:, -2]
-    rate = dot3(last, f)
+    ax, bx, ay, by = cam._affine
+    world = np.empty((3, r, k + 1))
+    world[:, :, :k] = comp
+    loc = np.empty((3, r, k + 1))
+    _camera_planes(comp, cam, loc[:, :, :k])
+    # the last segment run on to the far depth, as the renderer runs it on
+    s_last = -loc[2, :, k - 1]
+    rate = s_last + loc[2, :, k - 2]
     with np.errstate(divide="ignore", invalid="ignore"):
-        run = np.where(rate > 0, np.maximum((far - s[:, -1]) / rate, 0.0), 0.0)
-    end = v[:, -1] + last * run[:, None]
-    v = np.concatenate([v, end[:, None]], axis=1)
-    s = np.concatenate([s, dot3(end - cam.eye, f)[:, None]], axis=1)
+        run = np.where(rate > 0, np.maximum((far - s_last) / rate, 0.0), 0.0)
+    for x in (world, loc):
+        x[:, :, k] = x[:, :, k - 1] + (x[:, :, k - 1] - x[:, :, k - 2]) * run
     # from where the ray enters the camera's view on (inf: never)
-    entry = near_plane_entries(v, earlier + (cam,))[-1][:, None]
+    entry = near_plane_entries_on_planes(world, earlier + (cam,))[-1][:, None]
+    del world
     # segments wholly before every ray's entry cannot count (their piece starts past
     # their end): they are left out, one kept before (an entry on a vertex)
     first = entry[np.isfinite(entry)]
-    j0 = min(max(int(np.floor(first.min())) - 1, 0), v.shape[1] - 2) if len(first) else 0
-    v, s = v[:, j0:], s[:, j0:]
-    a, b = v[:, :-1], v[:, 1:]
-    sa, ds = s[:, :-1], s[:, 1:] - s[:, :-1]
-    lo = np.where((sa >= near) & (sa <= far), 0.0, 1.0)
-    hi = np.where((sa >= near) & (sa <= far), 1.0, 0.0)
+    j0 = min(max(int(np.floor(first.min())) - 1, 0), k - 1) if len(first) else 0
+    a = loc[:, :, j0:-1]
+    seg = loc[:, :, j0 + 1 :] - a
+    sa, ds = -a[2], -seg[2]  # depths along the view axis
+    inside = (sa >= near) & (sa <= far)
+    lo = np.where(inside, 0.0, 1.0)
+    hi = np.where(inside, 1.0, 0.0)
     with np.errstate(divide="ignore", invalid="ignore"):
         tn, tf = (near - sa) / ds, (far - sa) / ds
     up, down = ds > 0, ds < 0
     lo = np.where(up, np.maximum(tn, 0.0), np.where(down, np.maximum(tf, 0.0), lo))
     hi = np.where(up, np.minimum(tf, 1.0), np.where(down, np.minimum(tn, 1.0), hi))
-    seg_index = np.arange(j0, j0 + v.shape[1] - 1)[None, :]
+    seg_index = np.arange(j0, k)[None, :]
     with np.errstate(invalid="ignore"):
         lo = np.maximum(lo, entry - seg_index)
     valid = lo <= hi
-    seg = b - a
-    centre = np.stack([px, py], axis=-1)[:, None]
-    worst = np.full(len(v), -np.inf)
+    worst = np.full(r, -np.inf)
     for t in (lo, hi):
-        pix, _depth = cam.project(a + seg * np.clip(t, 0.0, 1.0)[..., None])
-        err = np.sqrt(((pix - centre) ** 2).sum(-1))
+        t = np.clip(t, 0.0, 1.0)
+        z = a[2] + seg[2] * t
+        with np.errstate(divide="ignore", invalid="ignore"):
+            x = ((a[0] + seg[0] * t) / -z - bx) / ax - px[:, None]
+            y = ((a[1] + seg[1] * t) / -z - by) / ay - py[:, None]
+        err = np.sqrt(x * x + y * y)
         worst = np.maximum(worst, np.where(valid, err, -np.inf).max(axis=1))
-    length = np.sqrt(dot3(seg, seg))
-    ref = cam.directions(px, py)
+    length = np.sqrt(seg[0] * seg[0] + seg[1] * seg[1] + seg[2] * seg[2])
+    # the pinhole direction through (px, py), in the camera's coordinates
+    lx, ly = px * ax + bx, py * ay + by
+    inv = 1.0 / np.sqrt(lx * lx + ly * ly + 1.0)
     with np.errstate(divide="ignore", invalid="ignore"):
-        cos = dot3(seg, ref[:, None]) / length
+        cos = (
+            seg[0] * (lx * inv)[:, None] + seg[1] * (ly * inv)[:, None] - seg[2] * inv[:, None]
+        ) / length
     with np.errstate(invalid="ignore"):  # inf - inf on rays that never enter the view
         long = valid & (length * (hi - lo) >= ANGLE_MIN_FRACTION * near)
     # the segment that straddles the near plane is a chord across the guide's last bend:
@@ -230,6 +273,16 @@ def preserved_error(cameras, i, bundle, should_stop=None):
     px, py = bundle.pixels[:, 0] + 0.5, bundle.pixels[:, 1] + 0.5
     err, angle = along_ray(v, cameras[i], px, py, tuple(cameras[:i]), should_stop)
     return Preserved(len(v), err, angle)
+
+
+def preserved_error_on_planes(cameras, i, planes, ix, iy, should_stop=None):
+    """``preserved_error`` of the rays of pixels ``ix``, ``iy`` ((P,) int, camera i's)
+    held as coordinate planes ``planes`` (3, P, K) float64 (``RayField.vertex_planes``)."""
+    if planes.shape[1] == 0:
+        return Preserved(0, np.zeros(0), np.zeros(0))
+    px, py = np.asarray(ix) + 0.5, np.asarray(iy) + 0.5
+    err, angle = along_ray_on_planes(planes, cameras[i], px, py, tuple(cameras[:i]), should_stop)
+    return Preserved(planes.shape[1], err, angle)
 
 
 def bending_active(vertices, last_cam, counts=None, earlier=()):

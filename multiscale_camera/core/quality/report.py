@@ -17,7 +17,7 @@ from .metrics import (
     Preserved,
     bending_active_on_planes,
     measured_pixels,
-    preserved_error,
+    preserved_error_on_planes,
 )
 
 # 2: preserved_px and angle_deg are the worst along the whole preserved ray (from the
@@ -346,7 +346,8 @@ def measure_cameras(fld, should_stop=None):
 
 def _preserved_in_blocks(fld, i, ix, iy, should_stop):
     """``preserved_error`` of camera ``i`` over the rays of pixels ``ix``, ``iy`` ((P,)
-    int), laid out ``ALONG_BLOCK_VERTICES`` vertices at a time where the field's rays are
+    int), made as coordinate planes (``RayField.vertex_planes``: no bundle's other
+    arrays), ``ALONG_BLOCK_VERTICES`` vertices at a time where the field's rays are
     long (``RayField.ray_vertices``), so that its rays and ``along_ray``'s temporaries
     are held for a block at once, not for every measured pixel (on the nested 1000x rig
     at 480x270 a camera's 20,000 measured rays of 426 vertices held 256 MB; at 1920x1080
@@ -355,12 +356,11 @@ def _preserved_in_blocks(fld, i, ix, iy, should_stop):
     it runs on past its trace in fewer float32 vertices along the same line."""
     k = fld.ray_vertices()
     block = len(ix) if k is None else max(1, ALONG_BLOCK_VERTICES // k)
-    parts = [
-        preserved_error(
-            fld.rig.cameras, i, fld.rays(ix[s : s + block], iy[s : s + block]), should_stop
-        )
-        for s in range(0, len(ix), block)
-    ]
+    parts = []
+    for s in range(0, len(ix), block):
+        bx, by = ix[s : s + block], iy[s : s + block]
+        planes = fld.vertex_planes(bx, by)
+        parts.append(preserved_error_on_planes(fld.rig.cameras, i, planes, bx, by, should_stop))
     if len(parts) == 1:
         return parts[0]
     return Preserved(
