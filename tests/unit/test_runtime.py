@@ -4,6 +4,7 @@ memory, and give way to this process (saying so) when they die, stall or fail.""
 import gc
 import os
 import sys
+import threading
 import time
 from functools import partial
 
@@ -311,3 +312,59 @@ def test_a_short_stall_limit_does_not_cut_a_slow_start_short():
         assert any(in_worker for _i, _pid, in_worker in mapped.results)
     finally:
         runtime.shutdown()
+
+
+def _iterate_in_a_thread(run):
+    """Iterate ``run`` in a thread, as ``quality.FoldCount`` does: (thread, results, errors)."""
+    results, errors = {}, []
+
+    def iterate():
+        try:
+            for index, result in run:
+                results[index] = result
+        except BaseException as err:
+            errors.append(err)
+
+    thread = threading.Thread(target=iterate)
+    thread.start()
+    return thread, results, errors
+
+
+def test_a_helped_run_shares_its_items_between_one_worker_and_the_caller(rt):
+    """A run the caller helps (``Run.help``) starts one worker for ``processes`` 1 and
+    hands the caller the items no worker has taken: each item runs once, here or there."""
+    rt.warm(1)
+    items = [(i, 0.15) for i in range(8)]
+    run = rt.run(tasks.nap, items, 1, helped=True)
+    thread, results, errors = _iterate_in_a_thread(run)
+    run.help()
+    thread.join()
+    assert not errors and results == {i: i for i in range(8)}
+    where = run.outcome.where
+    assert run.outcome.in_process >= 1 and run.outcome.in_workers >= 1
+    assert run.outcome.in_process + run.outcome.in_workers == 8 and len(run.outcome.workers) == 1
+    assert 0 in where and -1 not in where
+
+
+def test_an_error_in_the_helping_caller_ends_the_run_with_it(rt):
+    rt.warm(1)
+    run = rt.run(
+        partial(tasks.sleep, 0.2), [1, 2, 3, 4], 1, helped=True, local=lambda item, c: 1 / 0
+    )
+    thread, _results, errors = _iterate_in_a_thread(run)
+    run.help()
+    thread.join()
+    assert len(errors) == 1 and isinstance(errors[0], ZeroDivisionError)
+    assert run.outcome.cancelled
+    assert rt.map(tasks.square, [3, 4], 2).results == [9, 16]
+
+
+def test_help_returns_at_once_from_a_run_that_has_ended(rt):
+    run = rt.run(tasks.square, [1, 2], 1, helped=True)
+    assert dict(run) == {0: 1, 1: 4}
+    start = time.perf_counter()
+    run.help()
+    closed = rt.run(tasks.square, [1], 1, helped=True)
+    closed.close()
+    closed.help()
+    assert time.perf_counter() - start < 0.5

@@ -90,7 +90,7 @@ def _start_fold_workers(rig, processes):
     if solve_workers(rig.size[0] * rig.size[1], solves, available):
         return
     count = fold_workers(rig.size, 1 + (n - 1) * DEFAULT_SEGMENTS + 1, processes)
-    if count >= 2:
+    if count:
         runtime().warm(count, wait=False)
 
 

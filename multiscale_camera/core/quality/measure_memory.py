@@ -13,7 +13,8 @@ vertex grid and ``quad_folds``' planes (about 70 bytes), and each camera's curve
 every ray blended (float64, 24 bytes a camera). Bands are cut as ``report.fold_map``
 cuts them (``report.fold_plan``; smaller where an image has too few full bands for
 its workers), so the bytes a vertex carry over to any band size. Shared, the count runs
-while the main process measures (``report.measure_map``): the two add up.
+in the workers while the main process measures (``report.measure_map``), which then
+counts the bands no worker has taken: the measure, then a band, one after the other.
 """
 
 from .metrics import MAX_MEASURED
@@ -56,8 +57,9 @@ def measure_memory(width, height, cameras, workers=1):
         * (FOLD_BYTES_PER_VERTEX + int(cameras) * FOLD_BYTES_PER_CAMERA_VERTEX)
     )
     along = min(MAX_MEASURED, pixels) * k * ALONG_BYTES_PER_VERTEX
-    if not n:  # the measure, then the bands, one after the other
-        return ({"along-ray measure": along} if along >= band else {"fold band": band}), {}, 0
-    main = {"along-ray measure": along}
+    # the measure, then the bands (those no worker has taken), one after the other
+    main = {"along-ray measure": along} if along >= band else {"fold band": band}
+    if not n:
+        return main, {}, 0
     field = pixels * int(cameras) * FIELD_BYTES_PER_CAMERA_PIXEL
     return main, {"field": field, "fold band": band}, n

@@ -108,26 +108,31 @@ class FoldCount:
         self.cols = fold_columns(self.rows, k)
         self.starts = list(range(0, len(self.ys) - 1, self.rows - 1))
         self.map = None
-        self._stop, self._error, self._thread = False, None, None
-        if workers >= 2:
+        self._stop, self._error, self._thread, self._run = False, None, None, None
+        if workers >= 1:
             # runs of consecutive bands (a run's rays lie together in the image), a few a
-            # worker, so that a worker given less of the machine takes fewer
-            split = np.array_split(np.asarray(self.starts), workers * SHARES_PER_WORKER)
+            # process, so that a process given less of the machine takes fewer
+            split = np.array_split(np.asarray(self.starts), (workers + 1) * SHARES_PER_WORKER)
             self.runs = [list(r) for r in split if len(r)]
+            task = partial(_fold_bands, self.fld, self.xs, self.ys, self.rows, cols=self.cols)
             # in the caller's context: the runtime's journals (what ran where) see the run
             context = contextvars.copy_context()
+            self._run = context.run(
+                runtime().run, task, self.runs, workers, self._asked, helped=True
+            )
             self._thread = threading.Thread(
-                target=context.run, args=(self._shared, workers), name="fold count", daemon=True
+                target=context.run, args=(self._shared,), name="fold count", daemon=True
             )
             self._thread.start()
 
     def _asked(self):
         return self._stop or (self.should_stop is not None and self.should_stop())
 
-    def _shared(self, workers):
-        task = partial(_fold_bands, self.fld, self.xs, self.ys, self.rows, cols=self.cols)
+    def _shared(self):
         try:
-            shares = runtime().map(task, self.runs, workers, self._asked).results
+            shares = [None] * len(self.runs)
+            for index, bands in self._run:
+                shares[index] = bands
             self.map = self._assemble(self.runs, shares)
         except BaseException as err:  # handed to ``result``
             self._error = err
@@ -150,6 +155,7 @@ class FoldCount:
             stop = self.should_stop
             bands = _fold_bands(self.fld, self.xs, self.ys, self.rows, self.starts, stop, self.cols)
             return self._assemble([self.starts], [bands]), 1
+        self._run.help()  # the runs no worker has taken yet are counted here
         self._thread.join()
         if self._error is not None:
             raise self._error
@@ -165,18 +171,20 @@ class FoldCount:
 def fold_plan(width, height, k, available):
     """How ``fold_map`` counts an image ``width`` x ``height`` whose rays have ``k``
     vertices with ``available`` (int) processes: (workers, rows), the worker processes
-    sharing the bands (0: none, they are counted here) and the image rows of a band.
-    Bands hold at most ``FOLD_CHUNK_VERTICES`` vertices; an image of
-    ``FOLD_SHARED_MIN_PIXELS`` or more is shared among the ``available`` workers, on bands
-    cut small enough for ``SMALL_BANDS`` a worker where full ones would give a worker
-    fewer than ``MIN_SHARED_BANDS``."""
+    sharing the bands with this one (0: none, they are all counted here) and the image
+    rows of a band. Bands hold at most ``FOLD_CHUNK_VERTICES`` vertices; an image of
+    ``FOLD_SHARED_MIN_PIXELS`` or more is shared among ``available`` processes, this one
+    and ``available - 1`` workers (this one counts once it has measured the kept rays:
+    a worker more would only take the core from it), on bands cut small enough for
+    ``SMALL_BANDS`` a process where full ones would give one fewer than
+    ``MIN_SHARED_BANDS``."""
     rows = max(2, FOLD_CHUNK_VERTICES // (int(width) * int(k)))
     if int(available) < 2 or int(width) * int(height) < FOLD_SHARED_MIN_PIXELS:
         return 0, rows
-    workers = int(available)
-    if len(range(0, int(height) - 1, rows - 1)) < workers * MIN_SHARED_BANDS:
-        rows = min(rows, max(2, (int(height) - 1) // (workers * SMALL_BANDS) + 2))
-    return workers, rows
+    sharing = int(available)
+    if len(range(0, int(height) - 1, rows - 1)) < sharing * MIN_SHARED_BANDS:
+        rows = min(rows, max(2, (int(height) - 1) // (sharing * SMALL_BANDS) + 2))
+    return sharing - 1, rows
 
 
 def fold_workers(size, k, processes=1):

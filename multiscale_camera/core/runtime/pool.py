@@ -7,9 +7,11 @@ its last result comes in), so workers that are slower, or given up, leave their 
 to the others. A worker is given up when its process ends, when it neither finishes
 its item nor beats (``Context``) for ``stall_seconds``, or when its task raises there;
 its item, and whatever the run has left when no worker is, runs in this process with
-the run's ``local`` function. Cancelling (``should_stop``, or closing the run) stops
-the items in the workers (their ``Context`` says so) and returns the workers to the
-pool; only a worker that does not stop within ``CANCEL_SECONDS`` is ended.
+the run's ``local`` function. A run's caller may also take items itself from another
+thread (``Run.help``), so that this process counts as one of the run's processes.
+Cancelling (``should_stop``, or closing the run) stops the items in the workers (their
+``Context`` says so) and returns the workers to the pool; only a worker that does not
+stop within ``CANCEL_SECONDS`` is ended.
 """
 
 import contextlib
@@ -190,7 +192,9 @@ class Run:
     ``outcome`` is set when the iteration ends (normally, by an error, by
     cancelling, or by ``close``)."""
 
-    def __init__(self, runtime, function, items, processes, should_stop, launcher, local, stall):
+    def __init__(
+        self, runtime, function, items, processes, should_stop, launcher, local, stall, helped
+    ):
         self._runtime = runtime
         self._function = function
         self._items = list(items)
@@ -199,8 +203,11 @@ class Run:
         self._launcher = launcher
         self._local = function if local is None else local
         self._stall = STALL_SECONDS if stall is None else float(stall)
+        self._helped = bool(helped)
         self.outcome = None
         self._given_up = []
+        self._state = None
+        self._begun = threading.Event()
         self._iterator = self._iterate()
 
     def __iter__(self):
@@ -212,6 +219,7 @@ class Run:
     def close(self):
         """Stop the run (its workers return to the pool)."""
         self._iterator.close()
+        self._begun.set()  # a helper waiting for a run that never began goes
         if self.outcome is None:  # closed before it started: nothing ran
             where = (-1,) * len(self._items)
             self.outcome = Outcome(self._launcher.name, where, 0, (), True, 0.0)
@@ -221,17 +229,39 @@ class Run:
         """tuple of GivenUp: the workers given up so far (while the run goes on too)."""
         return tuple(self._given_up)
 
+    def help(self):
+        """Run the items no worker has taken yet here, in the calling thread, one at a
+        time with the run's ``local`` function, while another thread iterates the run
+        (which yields their results too); return when none is left to take (items still
+        in workers go on there). For a run made ``helped``: a caller with nothing else
+        to do joins the workers rather than waiting for them. An item that raises here
+        ends the run with that error, raised where the run is iterated."""
+        self._begun.wait()
+        state = self._state
+        if state is None:
+            return
+        context = Context(should_stop=self._should_stop)
+        while (index := state.claim()) is not None:
+            try:
+                result = self._local(self._items[index], context)
+            except BaseException as err:  # raised by the iterating thread
+                state.sink.put((None, ("raised", None, index, err)))
+                return
+            state.sink.put((None, ("helped", None, index, result)))
+
     def _stop_asked(self):
         return self._should_stop is not None and self._should_stop()
 
     def _iterate(self):
-        state = _State(self, self._runtime.next_job())
+        state = self._state = _State(self, self._runtime.next_job())
+        self._begun.set()
         try:
             yield from state.loop()
         except BaseException:
             state.cancelled = True
             raise
         finally:
+            state.close()
             self.outcome = state.finish()
             self._runtime.record(self.outcome)
             # what the task holds (shared arrays among it) goes with the caller's last
@@ -249,6 +279,10 @@ class _State:
         self.where = [-1] * len(self.items)
         self.todo = deque(range(len(self.items)))
         self.here = deque()
+        # ``todo`` and ``here`` are shared with a helping thread (``Run.help``); closed,
+        # they hand it nothing more
+        self.lock = threading.Lock()
+        self.closed = False
         self.given_up = run._given_up
         self.busy = {}  # worker -> index of its item
         self.seen = {}  # worker -> (time of its last progress, its beats then)
@@ -261,10 +295,11 @@ class _State:
         self.payload = None
 
     def begin(self):
-        """Check out workers when the run wants two or more."""
+        """Check out workers when the run wants two or more (one, for a run its caller
+        helps: ``Run.help``)."""
         run = self.run
         want = min(run._processes, len(self.items))
-        if want < 2:
+        if want < (1 if run._helped else 2):
             return
         self.pool = run._runtime.pool(run._launcher)
         if self.pool.broken is not None:
@@ -286,10 +321,27 @@ class _State:
         self.dropped.add(worker)
         index = self.busy.pop(worker, None)
         if index is not None:
-            self.here.append(index)
+            with self.lock:
+                self.here.append(index)
         self.given_up.append(GivenUp(worker.pid, reason, detail))
         if reason is Reason.NO_START and self.pool.broken is None:
             self.pool.broken = f"a worker did not start ({detail})"
+
+    def claim(self):
+        """The index of an item to run in this process (a helper's, ``Run.help``), taken
+        from those no worker has; None when there is none or the run has ended."""
+        with self.lock:
+            if self.closed:
+                return None
+            for waiting in (self.here, self.todo):
+                if waiting:
+                    return waiting.popleft()
+            return None
+
+    def close(self):
+        """Hand helpers nothing more (the run has ended)."""
+        with self.lock:
+            self.closed = True
 
     def feed(self):
         """Give the next items to ready workers that have none."""
@@ -302,9 +354,13 @@ class _State:
                 if not w.send(self.payload):
                     continue  # it ended: its ("exit",) follows
                 self.loaded.add(w)
-            index = self.todo.popleft()
+            with self.lock:
+                index = self.todo.popleft() if self.todo else None
+            if index is None:
+                return
             if not w.send(encode(("item", self.job, index, self.items[index]))):
-                self.todo.appendleft(index)
+                with self.lock:
+                    self.todo.appendleft(index)
                 continue
             self.busy[w] = index
             self.seen[w] = (time.monotonic(), int(w.control[BEAT]))
@@ -317,12 +373,14 @@ class _State:
         while done < len(self.items):
             self.feed()
             if all(w in self.dropped for w in self.used):  # no worker left: the rest here
-                self.here.extend(self.todo)
-                self.todo.clear()
-            if self.here:
+                with self.lock:
+                    self.here.extend(self.todo)
+                    self.todo.clear()
+            with self.lock:
+                index = self.here.popleft() if self.here else None
+            if index is not None:
                 if run._stop_asked():
                     raise Cancelled()
-                index = self.here.popleft()
                 result = run._local(self.items[index], context)
                 self.where[index] = 0
                 done += 1
@@ -344,8 +402,14 @@ class _State:
                 self.check_stalls()
 
     def take(self, worker, message):
-        """Handle a worker's message; the item's index when it brings a result."""
+        """Handle a worker's message (or a helper's: worker None); the item's index when
+        it brings a result."""
         kind = message[0]
+        if worker is None:  # a helping thread's item (``Run.help``)
+            if kind == "raised":
+                raise message[3]
+            self.where[message[2]] = 0
+            return message[2]
         if kind == "exit":
             worker.kill()  # reaped: its exit status is known
             reason = Reason.DIED if worker.ready.is_set() else Reason.NO_START
@@ -464,6 +528,7 @@ class Runtime:
         launcher=None,
         local=None,
         stall_seconds=None,
+        helped=False,
     ):
         """Start ``function(item, context)`` for every item; a Run to iterate.
 
@@ -474,15 +539,19 @@ class Runtime:
             of a few hundred kB or more travel through shared memory, and arrays made
             with ``shared_array`` are written in place).
         items : sequence of picklable items. processes : int, workers at most (one an
-            item); below 2 every item runs in this process.
+            item); below 2 (below 1 when ``helped``) every item runs in this process.
         should_stop : callable () -> bool, asked while waiting: True cancels the run.
         launcher : Launcher, the kind of worker (default: a plain Python).
         local : callable like ``function``, what runs an item in this process
             (default: ``function``).
         stall_seconds : float, default ``STALL_SECONDS``.
+        helped : bool, the caller runs items too (``Run.help``, from another thread than
+            the one iterating): one worker is then worth starting (``processes`` 1).
         """
         launcher = python_launcher() if launcher is None else launcher
-        return Run(self, function, items, processes, should_stop, launcher, local, stall_seconds)
+        return Run(
+            self, function, items, processes, should_stop, launcher, local, stall_seconds, helped
+        )
 
     def map(self, function, items, processes, should_stop=None, **options):
         """``run`` to its end: Mapped results in the items' order, and the Outcome.
