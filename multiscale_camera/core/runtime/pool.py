@@ -237,13 +237,13 @@ class Run:
         to do joins the workers rather than waiting for them. An item that raises here
         ends the run with that error, raised where the run is iterated."""
         self._begun.wait()
-        state = self._state
-        if state is None:
+        state, local = self._state, self._local  # the run lets go of ``local`` as it ends
+        if state is None or local is None:
             return
         context = Context(should_stop=self._should_stop)
         while (index := state.claim()) is not None:
             try:
-                result = self._local(self._items[index], context)
+                result = local(self._items[index], context)
             except BaseException as err:  # raised by the iterating thread
                 state.sink.put((None, ("raised", None, index, err)))
                 return
@@ -267,6 +267,7 @@ class Run:
             # what the task holds (shared arrays among it) goes with the caller's last
             # reference, not with a later garbage collection
             self._function = self._local = None
+            state.payload = None  # the state stays for a late helper (``Run.help``)
 
 
 class _State:
