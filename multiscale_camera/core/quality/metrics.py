@@ -109,30 +109,31 @@ def along_ray(vertices, cam, px, py, earlier=(), should_stop=None):
         degrees; inf where none is.
     """
     r, k = vertices.shape[:2]
-    px, py = np.asarray(px, dtype=np.float64), np.asarray(py, dtype=np.float64)
-    error = np.empty(r)
-    angle = np.empty(r)
-    block = max(1, ALONG_BLOCK_VERTICES // (k + 1))
-    for s in range(0, r, block):
-        check_stop(should_stop)
-        sl = slice(s, s + block)
-        planes = np.moveaxis(vertices[sl], -1, 0).astype(np.float64, order="C")
-        error[sl], angle[sl] = _along_block(planes, cam, px[sl], py[sl], tuple(earlier))
-    return error, angle
+
+    def block(sl):
+        return np.moveaxis(vertices[sl], -1, 0).astype(np.float64, order="C")
+
+    return _along_in_blocks(block, r, k, cam, px, py, earlier, should_stop)
 
 
 def along_ray_on_planes(planes, cam, px, py, earlier=(), should_stop=None):
     """``along_ray`` of R polylines held as coordinate planes: ``planes`` (3, R, K)
     float64, K >= 2, world units (``RayField.vertex_planes``); the same figures."""
     r, k = planes.shape[1:]
+    return _along_in_blocks(lambda sl: planes[:, sl], r, k, cam, px, py, earlier, should_stop)
+
+
+def _along_in_blocks(block, r, k, cam, px, py, earlier, should_stop):
+    """``along_ray`` of R rays of K vertices, ``ALONG_BLOCK_VERTICES`` at a time:
+    ``block(slice)`` gives a slice of the rays as coordinate planes (3, n, K) float64."""
     px, py = np.asarray(px, dtype=np.float64), np.asarray(py, dtype=np.float64)
     error = np.empty(r)
     angle = np.empty(r)
-    block = max(1, ALONG_BLOCK_VERTICES // (k + 1))
-    for s in range(0, r, block):
+    step = max(1, ALONG_BLOCK_VERTICES // (k + 1))
+    for s in range(0, r, step):
         check_stop(should_stop)
-        sl = slice(s, s + block)
-        error[sl], angle[sl] = _along_block(planes[:, sl], cam, px[sl], py[sl], tuple(earlier))
+        sl = slice(s, s + step)
+        error[sl], angle[sl] = _along_block(block(sl), cam, px[sl], py[sl], tuple(earlier))
     return error, angle
 
 
