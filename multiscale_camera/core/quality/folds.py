@@ -71,16 +71,27 @@ def _segment_in(cum, index, length):
     or before the length (clamped to the polyline) less one, clamped to the segments.
     A binary search, log2(K) gathers of N entries, with no (N, K) copy of ``cum``."""
     k = cum.shape[-1]
-    want = np.clip(length, 0.0, cum[(*index, k - 1)])
+    flat, base = _flat_rows(cum, index)
+    want = np.clip(length, 0.0, flat.take(base + (k - 1)))
     lo = np.zeros(len(want), dtype=np.int64)
     hi = np.full(len(want), k, dtype=np.int64)
     for _ in range(int(k).bit_length()):
         mid = (lo + hi) >> 1
-        at = cum[(*index, np.minimum(mid, k - 1))] <= want
+        at = flat.take(base + np.minimum(mid, k - 1)) <= want
         open_ = lo < hi
         lo = np.where(open_ & at, mid + 1, lo)
         hi = np.where(open_ & ~at, mid, hi)
     return np.clip(lo - 1, 0, k - 2)
+
+
+def _flat_rows(x, index):
+    """``x`` (..., K) as one flat array (a view where ``x`` is C-contiguous) and the
+    flat position of vertex 0 of each polyline ``index`` (a tuple of (N,) int arrays
+    into its leading axes), (N,) int64: vertex j of polyline n is ``flat[base[n] + j]``,
+    one gather where ``x[(*index, j)]`` makes numpy combine the indices on every read."""
+    x = np.ascontiguousarray(x)
+    base = np.ravel_multi_index(tuple(np.asarray(i) for i in index), x.shape[:-1])
+    return x.reshape(-1), base * x.shape[-1]
 
 
 def section_points(q, origin, normal, start):
@@ -124,10 +135,12 @@ def _cross(vertex, index, origin, normal, start):
     ``dot3`` on rows."""
     k = vertex.shape[-1]
     j = np.clip(start, 0, k - 2).astype(np.int64)
+    flat, base = _flat_rows(vertex[0], index)
+    flat = [flat] + [np.ascontiguousarray(vertex[c]).reshape(-1) for c in (1, 2)]
 
     def side(sel, jj):
-        at = (*(ix[sel] for ix in index), jj)
-        return dot_planes([vertex[c][at] - origin[c][sel] for c in range(3)], normal[:, sel])
+        at = base[sel] + jj
+        return dot_planes([flat[c].take(at) - origin[c][sel] for c in range(3)], normal[:, sel])
 
     every = np.arange(len(j))
     s0, s1 = side(every, j), side(every, j + 1)
@@ -158,8 +171,8 @@ def _cross(vertex, index, origin, normal, start):
     s0[walked], s1[walked] = side(walked, j[walked]), side(walked, j[walked] + 1)
     den = s0 - s1
     w = np.where(den != 0, s0 / np.where(den != 0, den, 1.0), 0.0)
-    qa = [vertex[c][(*index, j)] for c in range(3)]
-    qb = [vertex[c][(*index, j + 1)] for c in range(3)]
+    qa = [flat[c].take(base + j) for c in range(3)]
+    qb = [flat[c].take(base + j + 1) for c in range(3)]
     point = np.stack([(qa[c] - origin[c]) + (qb[c] - qa[c]) * w for c in range(3)])
     return point, j
 
