@@ -255,7 +255,7 @@ def straight_claims(grid, cam, mask, chunk=1 << 18, should_stop=None):
     """
     h, w = mask.shape
     dil = _square_dilations(mask, DILATION_LEVELS)
-    px_world = cam._affine[0]  # view-plane width of one pixel at unit distance
+    px_world = cam.image_affine[0]  # view-plane width of one pixel at unit distance
     core = np.zeros(grid.size, dtype=bool)
     halo = np.zeros(grid.size, dtype=bool)
     centres = grid.centres(flat=True)

@@ -87,6 +87,13 @@ class PinholeCamera:
     # eye : (3,) float64, the eye position E_i, world units.
     # forward : (3,) float64, unit view axis V_i (the camera's local -Z in world space).
 
+    @property
+    def image_affine(self):
+        """(ax, bx, ay, by) float: pixel (x, y) lies at the camera-local point (ax x + bx,
+        ay y + by, -1) on the plane at unit distance (``directions`` and ``project``
+        use it; ax is a pixel's width there)."""
+        return self._affine
+
     def view_plane(self):
         """Bounds of the view plane at unit distance, in camera-local units.
 

@@ -71,7 +71,7 @@ class Family:
         p = cam.near_points(d)
         if not derivatives:
             return p, d
-        ax, _bx, ay, _by = cam._affine
+        ax, _bx, ay, _by = cam.image_affine
         r, f = cam.rotation, cam.forward
         # the local (lx, ly, -1) gives a . f = 1, so a = (p - E) / d_j
         a = (p - cam.eye) * (1.0 / cam.clip_start)

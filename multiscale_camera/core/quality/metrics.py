@@ -156,7 +156,7 @@ def _along_block(comp, cam, px, py, earlier):
     mix of its ends, is the same mix of theirs (the world's figures to rounding)."""
     _, r, k = comp.shape
     near, far = float(cam.clip_start), far_depth(cam)
-    ax, bx, ay, by = cam._affine
+    ax, bx, ay, by = cam.image_affine
     world = np.empty((3, r, k + 1))
     world[:, :, :k] = comp
     loc = np.empty((3, r, k + 1))
