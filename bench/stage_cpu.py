@@ -6,8 +6,8 @@ Runs ``bench/methods.run_one`` (AUTO at STANDARD, the properties' defaults) in t
 process and prints one JSON line: the wall seconds (which on a shared machine say
 little), this process's CPU seconds, each worker process's (read in /proc before they
 end), and the CPU seconds of the stages an IMAGE_BLEND build spends them in: the mask
-weights' solve, the along-ray measure of the preserved rays, the fold count (this
-process's share and the workers'). With the cores to itself, Compute Field takes about
+weights' solve, the along-ray measure of the preserved rays, the fold count after it
+(this process's share and the workers'). With the cores to itself, Compute Field takes about
 this process's CPU seconds plus the busiest worker's.
 """
 
@@ -65,8 +65,11 @@ def main():
     args = parser.parse_args()
     cpu = {}
     timed(image_blend, "mask_weights", "mask weights", cpu)
-    timed(report, "preserved_error", "along-ray measure", cpu)
-    timed(report, "fold_map", "fold count", cpu)
+    timed(report, "preserved_error_on_planes", "along-ray measure", cpu)
+    # what is left of the count once the measure is done: this process's share of the
+    # bands (``Run.help``) and the workers' CPU meanwhile (the workers' CPU during the
+    # measure counts under the measure's "workers")
+    timed(report.FoldCount, "result", "fold count", cpu)
     start = time.process_time()
     row = methods.run_one(args.rig, "AUTO", "STANDARD", args.width, args.height)
     main_cpu = time.process_time() - start

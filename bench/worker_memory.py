@@ -198,8 +198,8 @@ def measure(spec):
     for i in range(len(rig.cameras)):
         tracemalloc.reset_peak()
         ix, iy = metrics.measured_pixels(rig.masks[i])
-        if len(ix):
-            metrics.preserved_error(rig.cameras, i, fld.rays(ix, iy))
+        if len(ix):  # as the report measures them (in blocks, on vertex planes)
+            rep._preserved_in_blocks(fld, i, ix, iy, None)
         peak = (tracemalloc.get_traced_memory()[1] - base) / 2**20
         print(f"along-ray measure, camera {i + 1}: {len(ix)} rays, peak {peak:.1f} MB")
 
