@@ -1,5 +1,5 @@
 """Peak memory of measuring an IMAGE_BLEND field as AUTO measures its candidates: the
-along-ray measure of each camera's preserved pixels (``metrics.preserved_error``) in
+along-ray measure of each camera's preserved pixels (``report._preserved_in_blocks``) in
 the main process, and the fold count's bands (``report.fold_map``), shared among worker
 processes when there are enough of them. Part of the memory guard's arithmetic
 (``memory``; docs/performance.md, "Peak memory").
@@ -10,7 +10,14 @@ held 53 and 93 MB (2 and 3 cameras: 10 and 18 vertices a ray), about 260 bytes a
 vertex (each ray's curves in float64 and the measure's temporaries); a fold band of
 1,036,800 vertices 122 and 145 MB, 118 and 142 bytes a vertex: the band's rays, its
 vertex grid and ``quad_folds``' planes (about 70 bytes), and each camera's curve of
-every ray blended (float64, 24 bytes a camera). Bands are cut as ``report.fold_map``
+every ray blended (float64, 24 bytes a camera). Measured again at 218addd (the measure
+on vertex planes in camera coordinates, the count on planes and its live sections):
+the measure 40.8 and 71.0 MB (204 and 197 bytes a vertex), a band of 518,400 vertices
+42.7 and 51.2 MB (82 and 99 bytes a vertex): the constants below, kept, overstate both
+stages by about 30%, on the safe side. At 1920x1080 AUTO's main process peaks in the
+weights' solve or their easing, where the measure's bytes do not count; a fold
+worker's band does (two cameras: 61 MB estimated for a band measured at 43 MB), a
+few percent of the build's estimate. Bands are cut as ``report.fold_map``
 cuts them (``report.fold_plan``; smaller where an image has too few full bands for
 its workers), so the bytes a vertex carry over to any band size. Shared, the count runs
 in the workers while the main process measures (``report.measure_map``), which then

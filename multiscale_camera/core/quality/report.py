@@ -115,11 +115,10 @@ class FoldCount:
             split = np.array_split(np.asarray(self.starts), (workers + 1) * SHARES_PER_WORKER)
             self.runs = [list(r) for r in split if len(r)]
             task = partial(_fold_bands, self.fld, self.xs, self.ys, self.rows, cols=self.cols)
-            # in the caller's context: the runtime's journals (what ran where) see the run
+            self._run = runtime().run(task, self.runs, workers, self._asked, helped=True)
+            # iterated in the caller's context: the runtime's journals (what ran where)
+            # see the run
             context = contextvars.copy_context()
-            self._run = context.run(
-                runtime().run, task, self.runs, workers, self._asked, helped=True
-            )
             self._thread = threading.Thread(
                 target=context.run, args=(self._shared,), name="fold count", daemon=True
             )
@@ -130,10 +129,7 @@ class FoldCount:
 
     def _shared(self):
         try:
-            shares = [None] * len(self.runs)
-            for index, bands in self._run:
-                shares[index] = bands
-            self.map = self._assemble(self.runs, shares)
+            self.map = self._assemble(self.runs, self._run.mapped().results)
         except BaseException as err:  # handed to ``result``
             self._error = err
 

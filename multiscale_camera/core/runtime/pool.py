@@ -224,6 +224,14 @@ class Run:
             where = (-1,) * len(self._items)
             self.outcome = Outcome(self._launcher.name, where, 0, (), True, 0.0)
 
+    def mapped(self):
+        """Iterate the run to its end: Mapped results in the items' order, and the
+        Outcome (raises what the iteration raises: ``Cancelled``, an item's error)."""
+        results = [None] * len(self._items)
+        for index, result in self:
+            results[index] = result
+        return Mapped(results, self.outcome)
+
     @property
     def given_up(self):
         """tuple of GivenUp: the workers given up so far (while the run goes on too)."""
@@ -561,11 +569,7 @@ class Runtime:
         ------
         Cancelled when ``should_stop`` says so.
         """
-        run = self.run(function, items, processes, should_stop, **options)
-        results = [None] * len(run._items)
-        for index, result in run:
-            results[index] = result
-        return Mapped(results, run.outcome)
+        return self.run(function, items, processes, should_stop, **options).mapped()
 
     def warm(self, processes, launcher=None, wait=True):
         """Start workers of ``launcher``'s kind (default: plain Python) until the pool has
