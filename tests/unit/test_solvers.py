@@ -252,3 +252,24 @@ def test_a_stop_request_ends_a_solve_between_iterations():
     assert len(asked) == 3
     full = solve_membership(values, constrained, should_stop=lambda: False)
     assert full.converged and full.iterations > 3
+
+
+@pytest.mark.parametrize("n", [1, 5, 31, 32, 33, 152, 300])
+def test_spd_inverse_matches_a_sparse_lu_solve(n):
+    """The coarsest grid's inverse, written without LAPACK (``spd_inverse``), against
+    scipy's sparse LU on the same restricted Laplacian, blocks not a multiple of the
+    elimination's included."""
+    shape = (1, 17, 30) if n > 64 else (1, 8, 8)
+    rng = np.random.default_rng(n)
+    cells = int(np.prod(shape))
+    free = np.sort(rng.choice(cells, n, replace=False))
+    a = laplacian_matrix(shape).tocsc()[free][:, free] + sp.identity(n) * 0.05
+    expected = spla.splu(a.tocsc()).solve(np.eye(n))
+    got = solvers.spd_inverse(a.toarray())
+    assert got.dtype == np.float64
+    np.testing.assert_allclose(got, expected, rtol=0, atol=1e-12 * np.abs(expected).max())
+
+
+def test_spd_inverse_rejects_a_matrix_that_is_not_positive_definite():
+    with pytest.raises(np.linalg.LinAlgError, match="not positive definite"):
+        solvers.spd_inverse(np.array([[1.0, 2.0], [2.0, 1.0]]))

@@ -36,7 +36,8 @@ MAX_ITERATIONS = 100
 # to 128^3, growing; W(2,2) 7 at every size, in less time.
 SWEEPS = 2
 COARSE_VISITS = 2
-# Coarsest grid's cell count: its free cells are solved densely (a 512 x 512 inverse).
+# Coarsest grid's cell count: its free cells are solved densely (at most a 512 x 512
+# inverse, ``spd_inverse``).
 COARSEST_CELLS = 512
 # Value given to isolated voxels. They exist only when no voxel is constrained (see
 # ``isolated_voxels``), so there is no constraint mean to take: 0 is eq. 4's "no camera".
@@ -436,7 +437,7 @@ class _Hierarchy:
         if last.free.size <= COARSEST_CELLS:
             idx = np.flatnonzero(last.free)
             lap = _dense_laplacian(last.shape)[np.ix_(idx, idx)]
-            inv = np.linalg.inv(lap)
+            inv = spd_inverse(lap)
             self.dense = (idx, 0.5 * (inv + inv.T))
 
     def precondition(self, r):
@@ -448,7 +449,8 @@ class _Hierarchy:
         if index == len(self.levels) - 1 and self.dense is not None:
             idx, inv = self.dense
             e = np.zeros(level.shape, self.dtype)
-            e.flat[idx] = inv @ r.flat[idx].astype(np.float64)
+            # einsum, not BLAS (``@`` wakes its threads: see ``spd_inverse``)
+            e.flat[idx] = np.einsum("ij,j->i", inv, r.flat[idx].astype(np.float64))
             return e
         # Pre-smoothing, red then black; the first red half-sweep starts from e = 0.
         e = r * level.inv_degree[RED]
@@ -469,6 +471,63 @@ class _Hierarchy:
             level.sweep(e, r, BLACK)
             level.sweep(e, r, RED)
         return e
+
+
+# Columns ``spd_inverse`` eliminates at a time: its updates are einsum products of this
+# rank (16 to 64 took within 10% of each other at 510 unknowns).
+INVERSE_BLOCK = 32
+
+
+def spd_inverse(a):
+    """The inverse of a symmetric positive definite matrix, by Gauss-Jordan elimination
+    in blocks of ``INVERSE_BLOCK`` columns without pivoting (every pivot block of an SPD
+    matrix is SPD), its products by ``einsum``.
+
+    ``np.linalg.inv`` would do it faster but wakes OpenBLAS's threads, at every size (a
+    3 x 3 inverse too), and they spin on the other cores for a while after each call:
+    the coarsest grid's inverse, made for every solve, kept a second core busy through
+    the whole mask-weights solve (2.0 CPU s beside a 3.0 s solve at 1920x1080, 0.17 beside
+    0.17 s at 480x270), the core the fold count's worker needs (see the note on BLAS
+    threads in ``core/runtime``). 152 unknowns (the mask weights' coarsest grid) take
+    about 3 ms, 510 about 40 ms.
+
+    a : (n, n) float array, SPD. Returns (n, n) float64.
+
+    Raises
+    ------
+    np.linalg.LinAlgError where a pivot is not positive (``a`` not positive definite).
+    """
+    m = np.array(a, dtype=np.float64)
+    n = len(m)
+    for k0 in range(0, n, INVERSE_BLOCK):
+        block = slice(k0, min(n, k0 + INVERSE_BLOCK))
+        pivot = _pivot_inverse(m[block, block])
+        col = m[:, block].copy()
+        col[block] = 0.0
+        row = np.einsum("ij,jk->ik", pivot, m[block])
+        m -= np.einsum("ij,jk->ik", col, row)
+        m[block] = row
+        m[:, block] = -np.einsum("ij,jk->ik", col, pivot)
+        m[block, block] = pivot
+    return m
+
+
+def _pivot_inverse(a):
+    """``spd_inverse`` of a small block, a column at a time: (b, b) -> (b, b) float64."""
+    m = np.array(a, dtype=np.float64)
+    for k in range(len(m)):
+        if not m[k, k] > 0.0:
+            raise np.linalg.LinAlgError("matrix is not positive definite")
+        piv = 1.0 / m[k, k]
+        row = m[k] * piv
+        row[k] = piv
+        col = m[:, k].copy()
+        col[k] = 0.0
+        m -= np.multiply.outer(col, row)
+        m[k] = row
+        m[:, k] = -col * piv
+        m[k, k] = piv
+    return m
 
 
 def _dense_laplacian(shape):
