@@ -101,3 +101,26 @@ def test_weights_solved_in_workers_are_the_bits_solved_here(monkeypatch):
     assert [run.where for run in runs] and all(pid > 0 for pid in runs[0].where)
     assert shared.iterations == here.iterations
     assert np.array_equal(shared.x.view(np.uint32), here.x.view(np.uint32))
+
+
+def test_weights_solved_on_the_free_pixels_box_match_the_whole_image_solve():
+    """The solves run on the box around the free pixels (``free_box``): where camera 1
+    keeps the frame's edges (a ring), and a free pixel touches the frame (a notch), the
+    weights are the whole image's direct solve's."""
+    h, w = 60, 90
+    yy, xx = np.mgrid[0:h, 0:w]
+    r = np.hypot(yy - 30, xx - 45)
+    masks = np.stack([r > 25, r < 8])
+    masks[0, 25:35, 70:] = False  # free pixels reaching the right edge
+    free = ~masks.any(axis=0)
+    rows, cols = harmonic.free_box(masks.any(axis=0))
+    ys, xs = np.nonzero(free)
+    assert (rows.start, rows.stop) == (ys.min() - 1, ys.max() + 2)
+    assert (cols.start, cols.stop) == (xs.min() - 1, w)
+    assert rows.start > 0 and rows.stop < h and cols.start > 0
+    got = mask_weights(masks).x
+    np.testing.assert_allclose(got, dense_reference(masks), atol=2e-5)
+    assert harmonic.free_box(np.ones((4, 5), dtype=bool)) is None
+    full = np.ones((2, 4, 5), dtype=bool)
+    full[1] = False
+    np.testing.assert_array_equal(mask_weights(full).x, full.astype(np.float32))

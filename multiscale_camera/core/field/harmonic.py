@@ -13,6 +13,8 @@ the weights differ from N independent solves by the solves' tolerance (tested ag
 direct sparse solve). Each solve starts from the same solve on every ``COARSE``-th
 pixel in each direction, held on each pixel's COARSE x COARSE block: the full solve
 then stops at the same relative residual, in fewer iterations (a start, not an answer).
+The solves run on the box around the free pixels alone (``free_box``): outside it every
+pixel is owned, and inside it the free pixels' equations are the whole image's.
 """
 
 from functools import partial
@@ -79,10 +81,16 @@ def mask_weights(masks, tol=TOLERANCE, processes=1, should_stop=None):
     owned = masks.any(axis=0)
     if not owned.any():
         raise RigError("Every mask is empty: paint white where each camera's view should be kept")
-    x = np.zeros((n, h, w), dtype=np.float64)
+    # a pixel a mask owns has its weights already: one-hot (the solves' constraints)
+    x = masks.astype(np.float64)
     slowest = SolveResult(None, True, 0, ())
     kept = [i for i in range(n) if masks[i].any()]
     solves = kept[:-1]
+    box = free_box(owned)
+    if box is None:  # no pixel to solve for
+        solves = []
+    else:
+        masks, owned = np.ascontiguousarray(masks[:, box[0], box[1]]), owned[box]
     workers = solve_workers(h * w, len(solves), worker_count(processes))
     if not workers:
         results = []
@@ -97,7 +105,7 @@ def mask_weights(masks, tol=TOLERANCE, processes=1, should_stop=None):
                 f"Mask weights did not converge: relative residual {result.residuals[-1]:.2e} "
                 f"after {result.iterations} iterations"
             )
-        x[i] = result.x[..., 0]
+        x[i][box] = result.x[..., 0]
         if result.iterations >= slowest.iterations:
             slowest = result
     # the sum of all weights is 1 exactly (module docstring): the last is what is left
@@ -105,6 +113,28 @@ def mask_weights(masks, tol=TOLERANCE, processes=1, should_stop=None):
     x = np.clip(x, 0.0, 1.0)
     x /= np.maximum(x.sum(axis=0, keepdims=True), 1e-12)
     return SolveResult(x.astype(np.float32), True, slowest.iterations, slowest.residuals)
+
+
+def free_box(owned):
+    """The pixels the weight solves need: (rows, columns) slices of the box around the
+    pixels no mask owns, one pixel wider on each side where the image goes on; None
+    when every pixel is owned. ``owned``: (H, W) bool.
+
+    Outside the box every pixel is owned, so its weights are the masks'; inside, every
+    free pixel has its four neighbours in the box (the ring around the free pixels is
+    owned, fixed), so the Laplace equations of the free pixels, and their solution,
+    are those of the whole image. Camera 1 keeps the frame's edges on most rigs: the
+    box then leaves out what lies between its mask's inner edge and the frame (the 6x
+    rig: 84% of 1920x1080 solved, the demo 59%)."""
+    free = ~np.asarray(owned, dtype=bool)
+    rows, cols = np.flatnonzero(free.any(axis=1)), np.flatnonzero(free.any(axis=0))
+    if not len(rows):
+        return None
+    h, w = free.shape
+    return (
+        slice(max(int(rows[0]) - 1, 0), min(int(rows[-1]) + 2, h)),
+        slice(max(int(cols[0]) - 1, 0), min(int(cols[-1]) + 2, w)),
+    )
 
 
 def _solve_weight(masks, owned, tol, i, context=None, should_stop=None):
