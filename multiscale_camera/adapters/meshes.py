@@ -128,7 +128,9 @@ def _mesh_arrays(mesh, matrix):
     nv, nt, nl = len(mesh.vertices), len(mesh.loop_triangles), len(mesh.loops)
     co = np.empty(nv * 3, dtype=np.float64)
     mesh.vertices.foreach_get("co", co)
-    co = co.reshape(nv, 3) @ matrix[:3, :3].T + matrix[:3, 3]
+    # einsum, not ``@``: BLAS's threads, woken by a product of 30,000 rows or more, spin on
+    # the cores the render's workers cast on (core/runtime)
+    co = np.einsum("ij,vj->vi", matrix[:3, :3], co.reshape(nv, 3)) + matrix[:3, 3]
     tris = np.empty(nt * 3, dtype=np.int64)
     mesh.loop_triangles.foreach_get("vertices", tris)
     loops = np.empty(nt * 3, dtype=np.int64)
@@ -148,10 +150,19 @@ def _mesh_arrays(mesh, matrix):
     else:  # Blender before 4.1
         mesh.loops.foreach_get("normal", normals)
     normals = normals.reshape(nl, 3)[loops].reshape(nt, 3, 3).astype(np.float64)
-    normal_matrix = np.linalg.inv(matrix[:3, :3]).T
-    normals = normals @ normal_matrix.T
+    normals = np.einsum("ij,...j->...i", _inverse_transpose(matrix[:3, :3]), normals)
     normals /= np.maximum(np.linalg.norm(normals, axis=-1, keepdims=True), 1e-30)
     return co, tris.reshape(nt, 3), mat, uv, normals.astype(np.float32)
+
+
+def _inverse_transpose(m):
+    """The inverse transpose of a 3x3 matrix ((3, 3) float64), which carries normals:
+    its cofactors over its determinant (``np.linalg.inv`` wakes BLAS's threads, at any
+    size: core/runtime). Rows of inv(M)^T are m1 x m2, m2 x m0, m0 x m1 over
+    det M = m0 . (m1 x m2), m_i the rows of M."""
+    m = np.asarray(m, dtype=np.float64)
+    cof = np.stack([np.cross(m[1], m[2]), np.cross(m[2], m[0]), np.cross(m[0], m[1])])
+    return cof / float((m[0] * cof[0]).sum())
 
 
 def scene_geometry(depsgraph):

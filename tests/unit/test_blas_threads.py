@@ -141,3 +141,35 @@ def test_mask_weights_solve_keeps_to_one_core(detectable):
     _cams, masks = three_camera_rig(240, 135)
     masks = np.asarray(masks)
     assert _others_busy(lambda: mask_weights(masks)) < 0.1 * detectable
+
+
+def test_mesh_gather_keeps_to_one_core(detectable):
+    """A render's scene gather moved each mesh's vertices with ``@`` and inverted its
+    matrix with ``np.linalg.inv``: both woke BLAS's threads (a product of 100,000 rows,
+    and any inverse), once for every object, as the render's workers started."""
+    import bpy
+
+    from multiscale_camera.adapters.meshes import _mesh_arrays
+
+    rng = np.random.default_rng(7)
+    n = 60_000
+    verts = rng.normal(size=(n, 3))
+    faces = np.stack([np.arange(0, n - 2, 3), np.arange(1, n - 1, 3), np.arange(2, n, 3)], 1)
+    mesh = bpy.data.meshes.new("blas_threads")
+    mesh.from_pydata(verts.tolist(), [], faces.tolist())
+    mesh.calc_loop_triangles()
+    matrix = np.array(
+        [[0.0, -2.0, 0.0, 1.0], [1.5, 0.0, 0.0, 2.0], [0.0, 0.3, 0.8, 3.0], [0, 0, 0, 1.0]]
+    )
+    try:
+        co, _tris, _mat, _uv, normals = _mesh_arrays(mesh, matrix)
+        stored = verts.astype(np.float32).astype(np.float64)  # a mesh's coordinates
+        np.testing.assert_allclose(co, stored @ matrix[:3, :3].T + matrix[:3, 3], atol=1e-12)
+        corner = np.empty(len(mesh.loops) * 3, dtype=np.float32)
+        mesh.corner_normals.foreach_get("vector", corner)
+        want = corner.reshape(-1, 3).astype(np.float64) @ np.linalg.inv(matrix[:3, :3])
+        want /= np.linalg.norm(want, axis=1, keepdims=True)
+        np.testing.assert_allclose(normals.reshape(-1, 3), want, atol=1e-6)
+        assert _others_busy(lambda: _mesh_arrays(mesh, matrix)) < 0.1 * detectable
+    finally:
+        bpy.data.meshes.remove(mesh)
