@@ -194,3 +194,39 @@ def test_perturbed_lattices_fold_and_walk(monkeypatch):
     maps = [quad_folds(*perturbed(seed, 9, 0.05, 0.3, False)) for seed in range(20)]
     assert sum(m.sum() for m in maps) > 0 and sum((~m).sum() for m in maps) > 0
     assert sum(seen) > 20, seen
+
+
+@pytest.mark.parametrize("rig, method", [(turned_rig, "IMAGE_BLEND"), (three_camera_rig, "LINEAR")])
+def test_windows_stacked_into_rectangles_give_the_row_windows_map(monkeypatch, rig, method):
+    """Rows' windows stacked into rectangles (``folds._rectangles``) give the map each
+    row's windows give alone, with per-quad limits in runs of every kind (0: not
+    checked, a few sections, all of them) that shift from row to row, as the kept
+    quads' limits do along a mask's edge."""
+    cams, masks = rig(96, 54)
+    fld = prepare(Rig(cams, masks), method, settings_for("STANDARD"))
+    verts, active = lattice(fld, np.arange(96), np.arange(54))
+    planes = np.moveaxis(verts, -1, 0).astype(np.float64, order="C")
+    k = verts.shape[2]
+    rng = np.random.default_rng(5)
+    limit = np.zeros((53, 95), dtype=np.int16)
+    for r in range(53):
+        cuts = np.sort(rng.choice(np.arange(1, 95), 4, replace=False))
+        for a, b in zip(np.concatenate([[0], cuts]), np.concatenate([cuts, [95]])):
+            limit[r, a:b] = rng.choice([0, 3, 10, k])
+    rects = folds_module._rectangles(np.minimum(limit, k), 95, folds_module.CHUNK_SECTIONS // k)
+    # rows are stacked, windows of one rectangle starting at different columns
+    assert max(len(rect[4]) for rect in rects) > 1
+    assert any(len({c0 for _r, c0, _c1 in rect[4]}) > 1 for rect in rects)
+    stacked = folds_module.quad_folds_on_planes(planes, active, limit)
+
+    def row_by_row(lim, cols, _budget):
+        return [
+            (r, c0, c1, kmax, [(r, c0, c1)])
+            for r in range(lim.shape[0])
+            for c0, c1, kmax in folds_module._row_windows(lim[r], cols)
+        ]
+
+    monkeypatch.setattr(folds_module, "_rectangles", row_by_row)
+    alone = folds_module.quad_folds_on_planes(planes, active, limit)
+    assert alone.any() and (limit[alone] > 0).all()
+    np.testing.assert_array_equal(stacked, alone)

@@ -29,9 +29,11 @@ most sections: 94% of a SCALAR_FIELD on the turned rig, 63% on the nested 1000x 
 the others walk as ``section_points`` does, reading the band's
 vertices where the walk goes (``_cross``: no polyline is copied whole, and the walk's
 start is a binary search over the arc lengths). Arc lengths and tangents are computed
-once per band, as three (Hy, Wx, K) coordinate planes. A window is one row of quads:
-its rays, and each role's, lie one after the other in memory (``_window``: the band's
-own rows where the window takes every vertex, a copy of the first kq otherwise), so
+once per band, as three (Hy, Wx, K) coordinate planes. A window is a few rows of quads
+(each row's runs of quads to check, stacked where they line up: ``_rectangles``): its
+rays, and each role's, lie one after the other in memory (``_window``: a copy of the
+window's rows, one ray wider than its quads, so that a ray's neighbours on the right
+and below are fixed offsets on), so
 that the vertices j0 - 1, j0 and j0 + 1 of every ray are the window's vertices read
 one element back, in place or one on (``_along``: one numpy call over the whole window
 and a column or two fixed where the index is no such shift), and the arithmetic runs
@@ -211,10 +213,48 @@ def quad_folds_on_planes(planes, active, limit=None):
     if limit is None:
         limit = np.full(out.shape, k)
     limit = np.minimum(np.minimum(np.asarray(limit), k), _live_sections(rays.active, k))
-    for r0 in range(hy - 1):
-        for c0, c1, kmax in _row_windows(limit[r0], cols):
-            out[r0, c0:c1] = _chunk_folds(rays, (r0, c0, c1), kmax, limit[r0, c0:c1])
+    for rect in _rectangles(limit, cols, max(1, CHUNK_SECTIONS // k)):
+        y, c0, c1, kmax, rows = rect
+        lim = np.zeros((len(rows), c1 - c0), dtype=limit.dtype)
+        for i, (r0, a, b) in enumerate(rows):
+            lim[i, a - c0 : b - c0] = limit[r0, a:b]
+        got = _chunk_folds(rays, (y, len(rows), c0, c1), kmax, lim)
+        for i, (r0, a, b) in enumerate(rows):
+            out[r0, a:b] = got[i, a - c0 : b - c0]
     return out
+
+
+def _rectangles(limit, cols, budget):
+    """The windows of every row (``_row_windows``, at most ``cols`` quads) stacked into
+    rectangles of consecutive rows: a list of (y, c0, c1, kmax, rows), rows y, y + 1,
+    ... of quads and the columns c0 to c1 (excluded) that hold them all, ``rows`` each
+    row's own window (row, c0, c1). A row's window joins the rectangle of the row above
+    with the same ``kmax`` where its ends lie within ``GAP_QUADS`` of the rectangle's
+    and the rectangle stays within ``budget`` quads (its rows times one more than its
+    width): a window's fixed cost is then paid once for a few narrow rows (on the 6x
+    rig at 1920x1080 the row windows averaged 240 quads, and those of 32 cost four
+    times as much a quad as those of 900). The quads of the rectangle outside a row's
+    own window are computed with no section checked and dropped."""
+    done, open_ = [], []
+    for r0 in range(limit.shape[0]):
+        carried = []
+        for c0, c1, kmax in _row_windows(limit[r0], cols):
+            for n, rect in enumerate(open_):
+                if rect is None or rect[3] != kmax:
+                    continue
+                lo, hi = min(rect[1], c0), max(rect[2], c1)
+                near = abs(rect[1] - c0) <= GAP_QUADS and abs(rect[2] - c1) <= GAP_QUADS
+                if near and (len(rect[4]) + 1) * (hi - lo + 1) <= budget:
+                    rect[1], rect[2] = lo, hi
+                    rect[4].append((r0, c0, c1))
+                    carried.append(rect)
+                    open_[n] = None
+                    break
+            else:
+                carried.append([r0, c0, c1, kmax, [(r0, c0, c1)]])
+        done += [rect for rect in open_ if rect is not None]
+        open_ = carried
+    return [tuple(rect) for rect in done + open_]
 
 
 # The sections a quad may fold in end after ray a's last active vertex, rounded up to a
@@ -379,52 +419,74 @@ def _along(out, x, plan, y=None, func=None):
     return out
 
 
-def _window(x, y, c0, c1, kq, lead=1):
-    """Rows y and y + 1, columns c0 to c1 (included), vertices below kq of a band array
-    ``x`` (``lead`` axes before its (Hy, Wx, K) ones): each row's rays contiguous, so
-    that its first and last ``c1 - c0`` rays are ``_flat`` windows. A view where the
-    rays are whole (kq = K), else a copy."""
-    w = x[(slice(None),) * lead + (slice(y, y + 2), slice(c0, c1 + 1), slice(0, kq))]
-    return w if kq == x.shape[-1] else np.ascontiguousarray(w)
+def _window(x, y, rows, c0, c1, kq, lead=1):
+    """Rows y to y + rows (included), columns c0 to c1 (included), vertices below kq
+    of a band array ``x`` (``lead`` axes before its (Hy, Wx, K) ones), as one run of
+    rays, (..., (rows + 1) (c1 - c0 + 1), kq), contiguous: a ray's neighbour on the
+    right is the next one, below it the one ``c1 - c0 + 1`` on, so that each role's
+    rays are a ``_flat`` window of it. A view where that needs no copy."""
+    w = x[(slice(None),) * lead + (slice(y, y + rows + 1), slice(c0, c1 + 1), slice(0, kq))]
+    w = np.ascontiguousarray(w)
+    return w.reshape(*w.shape[:lead], -1, w.shape[-1])
 
 
 def _chunk_folds(rays, window, kmax, limit):
-    """(cols,) bool: the folds of the quads ``window`` = (row, c0, c1), of one lattice
-    row, columns c0 to c1 (excluded), in their sections k < ``kmax`` and k < ``limit``
-    ((cols,) int). The arithmetic runs over sections 0 to kq - 1, kq = min(kmax + 1,
-    K), on windows whose rays are contiguous (``_window``); the last is not checked
-    where kq > kmax."""
-    y, c0, c1 = window
+    """(rows, cols) bool: the folds of the quads ``window`` = (y, rows, c0, c1), lattice
+    rows y to y + rows - 1, columns c0 to c1 (excluded), in their sections k < ``kmax``
+    and k < ``limit`` ((rows, cols) int; 0: not checked). The rays of rows y to y + rows
+    are laid one after the other (``_window``), each row one ray longer than its quads,
+    so that the quads are Q = rows (cols + 1) - 1 consecutive rays a and their roles'
+    rays lie at fixed offsets on from them; the quad at the end of each row (whose b
+    would be the next row's first ray) is computed with no section checked and dropped.
+    The arithmetic runs over sections 0 to kq - 1, kq = min(kmax + 1, K), on those
+    contiguous rays; the last is not checked where kq > kmax."""
+    y, rows, c0, c1 = window
     cols = c1 - c0
+    width = cols + 1
+    quads = rows * width - 1
     kq = min(kmax + 1, rays.k)
-    vertex = _window(rays.vertex, y, c0, c1, kq)
-    a = vertex[:, 0, :cols]
-    # the roles' rays, each (3, cols, kq): b, c, d
-    q = [vertex[:, dy, dx : dx + cols] for dy, dx in ROLES]
-    normal = rays.normal[:, y, c0:c1, :kq]
-    if kq < rays.k:
-        normal = np.ascontiguousarray(normal)
-    cum = _window(rays.cum, y, c0, c1, kq, 0)
-    ref = cum[0, :cols]
-    active = _window(rays.active, y, c0, c1, kq, 0)
-    live = active[0, :cols] & (np.arange(kq) < limit[:, None])
-    point, alive = _sections(rays, (y, c0, cols), (a, q, normal), (cum, ref, active), live)
+    vertex = _window(rays.vertex, y, rows, c0, c1, kq)
+    a = vertex[:, :quads]
+    offsets = [dy * width + dx for dy, dx in ROLES]
+    # the roles' rays, each (3, Q, kq): b, c, d
+    q = [vertex[:, o : o + quads] for o in offsets]
+    normal = _window(rays.normal, y, rows - 1, c0, c1, kq)[:, :quads]
+    cum = _window(rays.cum, y, rows, c0, c1, kq, 0)
+    ref = cum[:quads]
+    active = _window(rays.active, y, rows, c0, c1, kq, 0)
+    lim = np.zeros((rows, width), dtype=np.asarray(limit).dtype)
+    lim[:, :cols] = limit
+    live = active[:quads] & (np.arange(kq) < lim.ravel()[:quads, None])
+    ends = rays.cum[y : y + rows + 1, c0 : c1 + 1, -1].ravel()
+
+    def role(o):
+        """The rows and columns in the band of the role's rays at offset ``o`` from
+        quads ``ix`` ((N,) int) of the window."""
+        return lambda ix: (y + (ix + o) // width, c0 + (ix + o) % width)
+
+    roles = [(o, ends[o : o + quads, None], role(o)) for o in offsets]
+    point, alive = _sections(rays, roles, (a, q, normal), (cum, ref, active), live)
     live &= alive.all(axis=0)
-    return _flipped((point[:, 0], point[:, 1], point[:, 2]), normal, live)
+    flips = _flipped((point[:, 0], point[:, 1], point[:, 2]), normal, live)
+    out = np.zeros(rows * width, dtype=bool)
+    out[:quads] = flips
+    return out.reshape(rows, width)[:, :cols]
 
 
-def _sections(rays, window, planes, lengths, live):
+def _sections(rays, roles, planes, lengths, live):
     """Where the three roles' rays (``ROLES``) cross a's sections: the points relative to
-    a's vertices (3, 3, cols, kq: the coordinates, then the roles) and whether each
-    point's segment is active (3, cols, kq). ``section_points``' walk, from the segment
+    a's vertices (3, 3, Q, kq: the coordinates, then the roles) and whether each
+    point's segment is active (3, Q, kq). ``section_points``' walk, from the segment
     at a's arc length, settled at once where it takes at most one step from segment j0
     or j0 - 1; the other sections walk there (those checked, and the first, which
-    every other is compared with). ``window``: (row, c0, cols); ``planes``: a's
-    vertices, the roles' (a list) and a's normals, (3, cols, kq) each; ``lengths``: the
-    arc lengths and activity of rows y and y + 1 (``_window``) and a's arc lengths."""
+    every other is compared with). ``roles``: for each role, its rays' offset in the
+    window's run of rays, their whole lengths ((Q, 1) float64) and the function giving
+    the band's (rows, columns) of its rays for quads ``ix``; ``planes``: a's vertices,
+    the roles' (a list) and a's normals, (3, Q, kq) each; ``lengths``: the arc lengths
+    and activity of the window's rays (``_window``) and a's arc lengths."""
     a, q, normal = planes
     cum, ref, active = lengths
-    y, c0, cols = window
+    cols = ref.shape[0]
     kq = ref.shape[-1]
     j0 = rays.j0
     plan = {name: rays.plan(name, kq) for name in ("m", "0", "1", "step", "step_m")}
@@ -442,14 +504,12 @@ def _sections(rays, window, planes, lengths, live):
     # first or after the last would be meant), and their activity at jm and j0
     c_m, c_0, c_1 = (np.empty((3, cols, kq)) for _ in range(3))
     act_m, act_0 = (np.empty((3, cols, kq), dtype=bool) for _ in range(2))
-    ends = []
-    for r, (dy, dx) in enumerate(ROLES):
-        role = cum[dy, dx : dx + cols]
+    for r, (o, _ends, _ray) in enumerate(roles):
         for out, name in ((c_m, "m"), (c_0, "0"), (c_1, "1")):
-            _along(out[r], role, plan[name])
+            _along(out[r], cum[o : o + cols], plan[name])
         for out, name in ((act_m, "m"), (act_0, "0")):
-            _along(out[r], active[dy, dx : dx + cols], plan[name])
-        ends.append(rays.cum[y + dy, c0 + dx : c0 + dx + cols, -1:])
+            _along(out[r], active[o : o + cols], plan[name])
+    ends = [e for _o, e, _ray in roles]
     c_m[..., j0[:kq] == 0] = np.inf
     c_1[..., j0[:kq] == rays.k - 2] = np.inf
     # a's arc length (>= 0), clamped to each role's length: np.clip's bits
@@ -478,23 +538,23 @@ def _sections(rays, window, planes, lengths, live):
     alive = np.where(back, act_m, act_0)
     first = np.arange(kq) == 0
     slow = ~(back | here) & (live | first)
-    for r, (dy, dx) in enumerate(ROLES if slow.any() else ()):
+    for r, (_o, _ends, ray) in enumerate(roles if slow.any() else ()):
         where = np.nonzero(slow[r])
         if len(where[0]):
-            role = (y + dy, c0 + dx)
-            _walk(rays, role, (a, normal[:, 0], ref), where, point[:, r], alive[r])
+            _walk(rays, ray, (a, normal[:, 0], ref), where, point[:, r], alive[r])
     return point, alive
 
 
 def _walk(rays, q, plane, where, point, alive):
-    """The sections ``where`` (index arrays into the chunk's (cols, kq)) not settled at
+    """The sections ``where`` (index arrays into the chunk's (Q, kq)) not settled at
     once: walked as ``section_points`` walks, from the segment at a's arc length, on
     the band's planes of vertices (no polyline copied); their points (three planes) and
-    ``alive`` updated in place. ``q``: the role's first ray in the band, (row, column);
-    ``plane``: a's vertices and the normals (three planes each), a's arc lengths."""
+    ``alive`` updated in place. ``q``: the role's rays in the band, a function of the
+    quads ``ix`` ((N,) int) giving their (rows, columns); ``plane``: a's vertices and
+    the normals (three planes each), a's arc lengths."""
     a, normal, ref = plane
     ix, _k = where
-    ray = (np.full(len(ix), q[0]), ix + q[1])
+    ray = q(ix)
     start = _segment_in(rays.cum, ray, ref[where])
     origin = np.stack([c[where] for c in a])
     nrm = np.stack([c[where] for c in normal])
