@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 import bpy
 import numpy as np
 
+from ..core.geometry import cross3, dot3
 from .textures import texture_from_node
 from .visibility import HOLDOUT, camera_instances
 from .volumes import is_volume_source
@@ -161,8 +162,8 @@ def _inverse_transpose(m):
     size: core/runtime). Rows of inv(M)^T are m1 x m2, m2 x m0, m0 x m1 over
     det M = m0 . (m1 x m2), m_i the rows of M."""
     m = np.asarray(m, dtype=np.float64)
-    cof = np.stack([np.cross(m[1], m[2]), np.cross(m[2], m[0]), np.cross(m[0], m[1])])
-    return cof / float((m[0] * cof[0]).sum())
+    cof = cross3(m[[1, 2, 0]], m[[2, 0, 1]])
+    return cof / float(dot3(m[0], cof[0]))
 
 
 def scene_geometry(depsgraph):

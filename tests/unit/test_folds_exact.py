@@ -215,13 +215,13 @@ def test_windows_stacked_into_rectangles_give_the_row_windows_map(monkeypatch, r
             limit[r, a:b] = rng.choice([0, 3, 10, k])
     rects = folds_module._rectangles(np.minimum(limit, k), 95, folds_module.CHUNK_SECTIONS // k)
     # rows are stacked, windows of one rectangle starting at different columns
-    assert max(len(rect[4]) for rect in rects) > 1
-    assert any(len({c0 for _r, c0, _c1 in rect[4]}) > 1 for rect in rects)
+    assert max(len(rect[3]) for rect in rects) > 1
+    assert any(len({c0 for _r, c0, _c1 in rect[3]}) > 1 for rect in rects)
     stacked = folds_module.quad_folds_on_planes(planes, active, limit)
 
     def row_by_row(lim, cols, _budget):
         return [
-            (r, c0, c1, kmax, [(r, c0, c1)])
+            (c0, c1, kmax, [(r, c0, c1)])
             for r in range(lim.shape[0])
             for c0, c1, kmax in folds_module._row_windows(lim[r], cols)
         ]

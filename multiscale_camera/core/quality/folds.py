@@ -209,16 +209,16 @@ def quad_folds_on_planes(planes, active, limit=None):
     if hy < 2 or wx < 2:
         return out
     rays = _Rays(planes, np.asarray(active, dtype=bool))
-    cols = min(wx - 1, max(1, CHUNK_SECTIONS // k))
+    budget = max(1, CHUNK_SECTIONS // k)
+    cols = min(wx - 1, budget)
     if limit is None:
         limit = np.full(out.shape, k)
     limit = np.minimum(np.minimum(np.asarray(limit), k), _live_sections(rays.active, k))
-    for rect in _rectangles(limit, cols, max(1, CHUNK_SECTIONS // k)):
-        y, c0, c1, kmax, rows = rect
+    for c0, c1, kmax, rows in _rectangles(limit, cols, budget):
         lim = np.zeros((len(rows), c1 - c0), dtype=limit.dtype)
         for i, (r0, a, b) in enumerate(rows):
             lim[i, a - c0 : b - c0] = limit[r0, a:b]
-        got = _chunk_folds(rays, (y, len(rows), c0, c1), kmax, lim)
+        got = _chunk_folds(rays, (rows[0][0], len(rows), c0, c1), kmax, lim)
         for i, (r0, a, b) in enumerate(rows):
             out[r0, a:b] = got[i, a - c0 : b - c0]
     return out
@@ -226,9 +226,9 @@ def quad_folds_on_planes(planes, active, limit=None):
 
 def _rectangles(limit, cols, budget):
     """The windows of every row (``_row_windows``, at most ``cols`` quads) stacked into
-    rectangles of consecutive rows: a list of (y, c0, c1, kmax, rows), rows y, y + 1,
-    ... of quads and the columns c0 to c1 (excluded) that hold them all, ``rows`` each
-    row's own window (row, c0, c1). A row's window joins the rectangle of the row above
+    rectangles of consecutive rows: a list of (c0, c1, kmax, rows), the columns c0 to c1
+    (excluded) that hold the windows of consecutive rows ``rows``, each row's own
+    window (row, c0, c1). A row's window joins the rectangle of the row above
     with the same ``kmax`` where its ends lie within ``GAP_QUADS`` of the rectangle's
     and the rectangle stays within ``budget`` quads (its rows times one more than its
     width): a window's fixed cost is then paid once for a few narrow rows (on the 6x
@@ -240,18 +240,18 @@ def _rectangles(limit, cols, budget):
         carried = []
         for c0, c1, kmax in _row_windows(limit[r0], cols):
             for n, rect in enumerate(open_):
-                if rect is None or rect[3] != kmax:
+                if rect is None or rect[2] != kmax:
                     continue
-                lo, hi = min(rect[1], c0), max(rect[2], c1)
-                near = abs(rect[1] - c0) <= GAP_QUADS and abs(rect[2] - c1) <= GAP_QUADS
-                if near and (len(rect[4]) + 1) * (hi - lo + 1) <= budget:
-                    rect[1], rect[2] = lo, hi
-                    rect[4].append((r0, c0, c1))
+                lo, hi = min(rect[0], c0), max(rect[1], c1)
+                near = abs(rect[0] - c0) <= GAP_QUADS and abs(rect[1] - c1) <= GAP_QUADS
+                if near and (len(rect[3]) + 1) * (hi - lo + 1) <= budget:
+                    rect[0], rect[1] = lo, hi
+                    rect[3].append((r0, c0, c1))
                     carried.append(rect)
                     open_[n] = None
                     break
             else:
-                carried.append([r0, c0, c1, kmax, [(r0, c0, c1)]])
+                carried.append([c0, c1, kmax, [(r0, c0, c1)]])
         done += [rect for rect in open_ if rect is not None]
         open_ = carried
     return [tuple(rect) for rect in done + open_]
