@@ -20,7 +20,15 @@ from ..runtime import runtime, worker_count
 from .grid import FieldSampler
 from .plane_step import NearPlaneStep, schedule_of
 from .preserved_rays import arc_length_rays, first_past_near_plane, scheduled_rays
-from .trace import StopReason, Traced, merge, rk4_streamlines
+from .trace import (
+    PackedTraced,
+    Share,
+    StopReason,
+    Traced,
+    merge,
+    rk4_streamlines,
+    straight_tails,
+)
 
 # RK4 step, in cells, at an accuracy target of 0.5 px on an image STEP_WIDTH pixels
 # wide. The trace's error in world units falls about as the step cubed (measured 0.22,
@@ -346,7 +354,7 @@ class FieldTracer:
         orders = [np.arange(k, rays, n) for k in range(n)]
         if parts:
             return [(p[0], rows) for p, rows in zip(shares, orders)]
-        return merge([p[0] for p in shares], orders, rays, schedule_of(step))
+        return merge([p[0] for p in shares], orders, rays, schedule_of(step), trace_step=step)
 
     def trace(self, u0, v0, step, max_steps, should_stop=None):
         """RK4 streamlines from the near-plane points of pixels (u0, v0) of camera 1.
@@ -384,11 +392,14 @@ class FieldTracer:
         traced = self._shared("pixels", ix, iy, step, max_steps, should_stop, parts)
         if traced is not None:
             return traced
-        traced = self._pixels_here(ix, iy, step, max_steps, should_stop)
+        traced = self._pixels_here(ix, iy, step, max_steps, should_stop, packed=parts)
         return [(traced, np.arange(len(ix)))] if parts else traced
 
-    def _pixels_here(self, ix, iy, step, max_steps, should_stop=None):
-        """``trace_pixels`` in this process."""
+    def _pixels_here(self, ix, iy, step, max_steps, should_stop=None, packed=False):
+        """``trace_pixels`` in this process: a ``Traced``, or with ``packed`` a ``Share``
+        of the pieces, the streamlines packed (``PackedTraced``): what a worker sends
+        back and the lattice keeps until its last merge, without each ray's padding to
+        the longest (``merge`` lays them out with the trace's step)."""
         u, v = ix + 0.5, iy + 0.5
         todo = np.ones(len(ix), dtype=bool)
         parts, order = [], []
@@ -402,8 +413,11 @@ class FieldTracer:
             todo[sel[ok]] = False
         rest = np.flatnonzero(todo)
         if len(rest):
-            parts.append(self._trace_here(u[rest], v[rest], step, max_steps, should_stop))
+            lines = self._trace_here(u[rest], v[rest], step, max_steps, should_stop)
+            parts.append(PackedTraced.pack(lines) if packed else lines)
             order.append(rest)
+        if packed:
+            return Share(parts, order, len(ix), schedule_of(step))
         return merge(parts, order, len(ix), schedule_of(step))
 
     def _trace_here(self, u0, v0, step, max_steps, should_stop=None):
@@ -431,30 +445,20 @@ class FieldTracer:
         r, k = pts.shape[:2]
         counts = lines.counts.astype(np.int64)
         membership = np.empty((r, k), dtype=np.float32)
-        ks = np.arange(k)[None, :]
         # in blocks of rays: float64 copies of every vertex, and N's temporaries at
         # every vertex, would take gigabytes at 1920x1080
         block = max(1, BLOCK_VERTICES // k)
         for s in range(0, r, block):
             sl = slice(s, s + block)
-            verts = pts[sl].astype(np.float64)
-            count = counts[sl]
-            rows = np.arange(len(verts))
-            last = verts[rows, count - 1]
-            d = last - verts[rows, np.maximum(count - 2, 0)]
-            short = np.linalg.norm(d, axis=-1) < 1e-12
-            d[short] = cam1.directions(u0[sl][short], v0[sl][short])
-            d /= np.linalg.norm(d, axis=-1, keepdims=True)
             # after a ray stops, run straight on along its last direction at the same
-            # step, so vertex k of every ray lies at the same arc length
-            after = ks >= count[:, None]
-            after_last = ks - (count[:, None] - 1)
-            if isinstance(step, NearPlaneStep):  # the band's steps, as the trace had them
-                run = step.run_lengths(last, d, after_last)
-            else:
-                spacing = step(last)[:, None] if callable(step) else step
-                run = after_last * spacing
-            verts = np.where(after[..., None], last[:, None] + d[:, None] * run[..., None], verts)
+            # step, so vertex k of every ray lies at the same arc length (a ray of one
+            # vertex along camera 1's pinhole ray)
+            verts = straight_tails(
+                pts[sl].astype(np.float64),
+                counts[sl],
+                step,
+                lambda rows, sl=sl: cam1.directions(u0[sl][rows], v0[sl][rows]),
+            )
             pts[sl] = verts
             membership[sl] = self.n_of(verts.reshape(-1, 3)).reshape(len(verts), k)
         return Traced(
@@ -475,8 +479,10 @@ def _trace_share(tracer, kind, a, b, step, max_steps, rays, share, context):
     k, n = share
     rows = np.arange(k, rays, n)
     missed, seconds, lost = tracer.missed, tracer.tangent_seconds, len(tracer.lost)
-    here = tracer._trace_here if kind == "trace" else tracer._pixels_here
-    traced = here(a[rows], b[rows], step, max_steps, context)
+    if kind == "trace":
+        traced = tracer._trace_here(a[rows], b[rows], step, max_steps, context)
+    else:  # sent back packed: the padding of every ray to the longest is most of it
+        traced = tracer._pixels_here(a[rows], b[rows], step, max_steps, context, packed=True)
     counts = tracer.missed - missed, tracer.tangent_seconds - seconds, tracer.lost[lost:]
     tracer.missed, tracer.tangent_seconds = missed, seconds
     del tracer.lost[lost:]

@@ -21,7 +21,7 @@ from ..field import (
 )
 from ..field.plane_step import plane_gain, schedule_of
 from ..quality import along_ray, conflict_messages, substitution_messages
-from ..runtime import worker_count
+from ..runtime import release_free_memory, worker_count
 from .base import RayField, guard_warnings
 
 
@@ -244,7 +244,7 @@ class _AdaptiveLattice:
         pure, mixed = self.labels.kinds(cells)
         fine = (err <= self.tol) & ~mixed & ~pure
         check = np.flatnonzero(pure)
-        k = max(p.vertices.shape[1] for p in self.parts)
+        k = self.width()
         block = max(1, DEVIATION_BLOCK_VERTICES // (5 * k))  # five rays a cell
         for s in range(0, len(check), block):
             sel = check[s : s + block]
@@ -301,7 +301,7 @@ class _AdaptiveLattice:
             px, py = self.pixel_x[todo], self.pixel_y[todo]
             c_of = self.label[py, px].astype(np.int64) - 1
             cams = self.rig.cameras
-            k = max(p.vertices.shape[1] for p in self.parts)
+            k = self.width()
             block = max(1, DEVIATION_BLOCK_VERTICES // k)
             for s in range(0, len(todo), block):
                 verts = self.rows(todo[s : s + block])[0]
@@ -337,12 +337,16 @@ class _AdaptiveLattice:
         self.pixel_y = np.concatenate([self.pixel_y, py[rows]])
         self.index[py[rows], px[rows]] = np.arange(start, self.count)
 
+    def width(self):
+        """int: the most vertices any traced ray is laid out with."""
+        return max(p.width for p in self.parts)
+
     def rows(self, ids):
         """Vertices (n, K, 3) float32 and counts (n,) of traced rays ``ids`` (n,),
         K the most any part has (shorter rays run straight on, as ``merge`` lays
         them out). The parts stay apart until ``run`` ends: merging after every round
         would hold two copies of every ray."""
-        k = max(p.vertices.shape[1] for p in self.parts)
+        k = self.width()
         ids = np.asarray(ids)
         verts = np.empty((len(ids), k, 3), dtype=np.float32)
         counts = np.empty(len(ids), dtype=np.int32)
@@ -353,7 +357,7 @@ class _AdaptiveLattice:
             if not len(sel):
                 continue
             r = ids[sel] - starts[j]
-            verts[sel] = run_on(p.rows(r), k, self.schedule).vertices
+            verts[sel] = run_on(p.laid(r, self.step), k, self.schedule).vertices
             counts[sel] = p.counts[r]
         return verts, counts
 
@@ -368,7 +372,7 @@ class _AdaptiveLattice:
         ia, ib, im = (self.index.ravel()[k] for k in (a, b, mid))
         pixels = np.asarray(pixels)
         out = np.zeros(len(ia))
-        k = max(p.vertices.shape[1] for p in self.parts)
+        k = self.width()
         # in blocks: three float64 copies of every ray's vertices would take gigabytes
         block = max(1, DEVIATION_BLOCK_VERTICES // max(k, 1))
         for s in range(0, len(ia), block):
@@ -460,7 +464,11 @@ class _AdaptiveLattice:
         # in shared memory where workers will be handed the field (its fold count, the
         # render's tables): they map its rays then rather than a copy of them
         shared = worker_count(getattr(self.tracer, "processes", 1)) >= 2
-        traced = merge(parts, order, self.count, self.schedule, shared=shared)
+        # the rounds' temporaries freed between the kept rays: their pages go back
+        # before the merge lays every ray out, and the merge's before the report
+        release_free_memory()
+        traced = merge(parts, order, self.count, self.schedule, shared=shared, trace_step=self.step)
+        release_free_memory()
         return traced, self.index, leaves, leaf_of
 
 

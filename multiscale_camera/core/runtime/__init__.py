@@ -35,6 +35,7 @@ import atexit
 import os
 import threading
 
+from .heap import release_free_memory
 from .launch import Launcher, python_launcher
 from .outcome import GivenUp, Mapped, Outcome, Reason
 from .pool import STALL_SECONDS, Run, Runtime
@@ -53,6 +54,7 @@ __all__ = [
     "cores",
     "gave_up",
     "python_launcher",
+    "release_free_memory",
     "runtime",
     "shutdown",
     "worker_count",
