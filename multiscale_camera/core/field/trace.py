@@ -18,7 +18,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..geometry import dot3
-from ..runtime import runtime
+from ..runtime import release_free_memory, runtime
 from .plane_step import schedule_of
 
 # Rays traced together: bounds the memory of the state, the stages and the vertex
@@ -717,11 +717,14 @@ def merge(parts, order, total, schedule=None, shared=False, trace_step=None):
         if banded:
             bands[idx] = p.bands if p.bands is not None else np.iinfo(np.int8).max
         block = max(1, MERGE_BLOCK_VERTICES // k)
+        sub = None
         for s in range(0, len(idx), block):
             sl = slice(s, s + block)
             sub = run_on(replace(p.laid(sl, trace_step), step=step), k, schedule)
             out.write(idx[sl], sub.vertices, sub.membership)
-        del p
+        del p, sub
+        if total * k > MERGE_BLOCK_VERTICES:  # the part's pages back as the result grows
+            release_free_memory()
     return Traced(out.verts, out.mem, counts, reason, step, bands)
 
 
