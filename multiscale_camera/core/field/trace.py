@@ -464,13 +464,8 @@ class Traced:
             bands,
         )
 
-    def laid(self, sl, trace_step=None):
-        """``rows``: what ``merge`` reads of a part (``PackedTraced`` and ``Share`` lay
-        theirs out with the trace's step)."""
-        return self.rows(sl)
 
-
-def straight_tails(verts, counts, step, fallback=None):
+def straight_tails(verts, counts, step, fallback):
     """Rays run straight on past their last traced vertex at the trace's step, as the
     tracer lays them out (``FieldTracer.trace``): vertex k of every ray at the same arc
     length.
@@ -480,7 +475,7 @@ def straight_tails(verts, counts, step, fallback=None):
         float (world units), a callable (P, 3) -> (P,) lengths (the step at the last
         vertex runs on), or a ``NearPlaneStep`` (its bands' steps, ``run_lengths``).
     fallback : callable, (m,) int rows -> (m, 3) directions for rays whose last segment
-        has no length (a single vertex), or None when there are none.
+        has no length (a single vertex).
 
     Returns
     -------
@@ -493,8 +488,6 @@ def straight_tails(verts, counts, step, fallback=None):
     d = last - verts[rows, np.maximum(counts - 2, 0)]
     short = np.linalg.norm(d, axis=-1) < 1e-12
     if short.any():
-        if fallback is None:
-            raise ValueError("A ray with no last segment needs a fallback direction")
         d[short] = fallback(np.flatnonzero(short))
     d /= np.linalg.norm(d, axis=-1, keepdims=True)
     after = ks >= counts[:, None]
@@ -506,144 +499,6 @@ def straight_tails(verts, counts, step, fallback=None):
         spacing = step(last)[:, None] if callable(step) else step
         run = after_last * spacing
     return np.where(after[..., None], last[:, None] + d[:, None] * run[..., None], verts)
-
-
-@dataclass(frozen=True)
-class PackedTraced:
-    """A ``Traced`` of streamlines that keeps only each ray's traced vertices: the run
-    past them (``straight_tails``) is laid out again when read (``laid``), the same to
-    the bit. A ray's padding to the longest ray is most of its vertices' memory where
-    rays' lengths differ (on the 1000x rig at 1920x1080 the median ray has 378 of 572).
-
-    head : (V, 3) float32, world units: ray r's first ``stored[r]`` vertices at
-        ``head[start[r]:start[r] + stored[r]]``.
-    start : (R,) int64. stored : (R,) int64: ``counts[r]``, or ``width`` for a ray
-        whose last segment has no length (its run needs the direction it was traced
-        from) or that has no run.
-    membership : (R, width) float32, N at every vertex, run included (as traced).
-    counts : (R,) int32. reason : (R,) int8. step : as ``Traced.step``. width : int.
-    """
-
-    head: np.ndarray
-    start: np.ndarray
-    stored: np.ndarray
-    membership: np.ndarray
-    counts: np.ndarray
-    reason: np.ndarray
-    step: float
-    width: int
-    bands = None
-
-    @classmethod
-    def pack(cls, traced):
-        """The ``PackedTraced`` of ``traced``, a ``Traced`` without bands whose rays past
-        their counts run straight at the trace's step (``FieldTracer.trace``'s)."""
-        v = traced.vertices
-        k = v.shape[1]
-        counts = traced.counts.astype(np.int64)
-        rows = np.arange(len(v))
-        seg = v[rows, counts - 1].astype(np.float64) - v[rows, np.maximum(counts - 2, 0)]
-        whole = (counts >= k) | (np.linalg.norm(seg, axis=-1) < 1e-12)
-        stored = np.where(whole, k, counts)
-        head = v[np.arange(k)[None, :] < stored[:, None]]
-        return cls(
-            head,
-            np.cumsum(stored) - stored,
-            stored,
-            traced.membership,
-            traced.counts,
-            traced.reason,
-            traced.step,
-            k,
-        )
-
-    def __len__(self):
-        return len(self.counts)
-
-    @property
-    def nbytes(self):
-        """int: bytes held."""
-        arrays = (self.head, self.start, self.stored, self.membership, self.counts, self.reason)
-        return sum(a.nbytes for a in arrays)
-
-    def laid(self, sl, trace_step):
-        """The ``Traced`` of rays ``sl`` (a slice or index array) at ``width`` vertices,
-        runs laid out with ``trace_step`` (the trace's step, as ``straight_tails``)."""
-        ids = np.arange(len(self.counts))[sl]
-        stored = self.stored[ids]
-        # every slot past a ray's stored vertices holds its last one until its run is
-        # laid out below
-        at = np.minimum(np.arange(self.width), stored[:, None] - 1)
-        at += self.start[ids][:, None]
-        out = self.head[at]
-        # the runs, shortest rays first, from two vertices before each block's shortest
-        # on (the vertices a run starts from): the same run, vertex numbers and all
-        runs = np.flatnonzero(stored < self.width)
-        runs = runs[np.argsort(stored[runs], kind="stable")]
-        s = 0
-        while s < len(runs):
-            lo = max(0, int(stored[runs[s]]) - 2)
-            r = runs[s : s + max(1, TAIL_BLOCK_VERTICES // (self.width - lo))]
-            s += len(r)
-            counts = stored[r] - lo
-            out[r, lo:] = straight_tails(out[r, lo:].astype(np.float64), counts, trace_step)
-        return Traced(
-            out, self.membership[ids], self.counts[ids], self.reason[ids], self.step, None
-        )
-
-
-class Share:
-    """A worker's share of a trace as its pieces came (each camera's preserved rays, the
-    streamlines ``PackedTraced``): read as ``merge(pieces, order, total, schedule)``
-    would have laid them out, bit for bit, without holding that padded copy.
-
-    pieces : list of ``Traced`` or ``PackedTraced``. order : list of (n_j,) int arrays,
-    which of the share's ``total`` rays each piece holds. schedule : the trace's
-    ``NearPlaneStep`` or None (as ``merge``).
-    """
-
-    def __init__(self, pieces, order, total, schedule=None):
-        self.pieces, self.schedule = pieces, schedule
-        self.width = max(p.width for p in pieces)
-        self.step = pieces[0].step
-        self.piece = np.empty(total, dtype=np.int8)
-        self.within = np.empty(total, dtype=np.int64)
-        self.counts = np.empty(total, dtype=np.int32)
-        self.reason = np.empty(total, dtype=np.int8)
-        banded = any(p.bands is not None for p in pieces)
-        self.bands = np.zeros(total, dtype=np.int8) if banded else None
-        for j, (p, idx) in enumerate(zip(pieces, order)):
-            self.piece[idx], self.within[idx] = j, np.arange(len(idx))
-            self.counts[idx], self.reason[idx] = p.counts, p.reason
-            if banded:
-                self.bands[idx] = p.bands if p.bands is not None else np.iinfo(np.int8).max
-
-    def __len__(self):
-        return len(self.counts)
-
-    @property
-    def nbytes(self):
-        """int: bytes held by the pieces."""
-        return sum(
-            p.nbytes if isinstance(p, PackedTraced) else p.vertices.nbytes + p.membership.nbytes
-            for p in self.pieces
-        )
-
-    def laid(self, sl, trace_step):
-        """The ``Traced`` of rays ``sl`` at ``width`` vertices (``trace_step``: the
-        trace's step, for the streamlines' runs)."""
-        ids = np.arange(len(self.counts))[sl]
-        verts = np.empty((len(ids), self.width, 3), dtype=np.float32)
-        mem = np.empty((len(ids), self.width), dtype=np.float32)
-        piece = self.piece[ids]
-        for j, p in enumerate(self.pieces):
-            sel = np.flatnonzero(piece == j)
-            if len(sel):
-                sub = replace(p.laid(self.within[ids[sel]], trace_step), step=self.step)
-                sub = run_on(sub, self.width, self.schedule)
-                verts[sel], mem[sel] = sub.vertices, sub.membership
-        bands = None if self.bands is None else self.bands[ids]
-        return Traced(verts, mem, self.counts[ids], self.reason[ids], self.step, bands)
 
 
 def run_on(traced, vertices, schedule=None):
@@ -691,11 +546,9 @@ def run_on(traced, vertices, schedule=None):
     )
 
 
-def merge(parts, order, total, schedule=None, shared=False, trace_step=None):
+def merge(parts, order, total, schedule=None, shared=False):
     """Combine ``Traced`` parts into one, rays placed at ``order`` (one index array per
     part) among ``total`` rays, shorter ones run on (``run_on``, with ``schedule``).
-    Parts may be ``PackedTraced`` or ``Share``: their streamlines' runs are laid out with
-    ``trace_step``, the trace's step.
     Consumes ``parts``: each entry is released (set to None) once copied, so a large
     merge holds little more than its result and its largest part.
 
@@ -720,7 +573,7 @@ def merge(parts, order, total, schedule=None, shared=False, trace_step=None):
         sub = None
         for s in range(0, len(idx), block):
             sl = slice(s, s + block)
-            sub = run_on(replace(p.laid(sl, trace_step), step=step), k, schedule)
+            sub = run_on(replace(p.rows(sl), step=step), k, schedule)
             out.write(idx[sl], sub.vertices, sub.membership)
         del p, sub
         if total * k > MERGE_BLOCK_VERTICES:  # the part's pages back as the result grows
@@ -771,6 +624,3 @@ class _MergeArrays:
 
 # Ray vertices ``merge`` extends at a time.
 MERGE_BLOCK_VERTICES = 1 << 22
-
-# Ray vertices ``PackedTraced.laid`` runs on at a time (float64 temporaries).
-TAIL_BLOCK_VERTICES = 1 << 18

@@ -20,15 +20,7 @@ from ..runtime import runtime, worker_count
 from .grid import FieldSampler
 from .plane_step import NearPlaneStep, schedule_of
 from .preserved_rays import arc_length_rays, first_past_near_plane, scheduled_rays
-from .trace import (
-    PackedTraced,
-    Share,
-    StopReason,
-    Traced,
-    merge,
-    rk4_streamlines,
-    straight_tails,
-)
+from .trace import StopReason, Traced, merge, rk4_streamlines, straight_tails
 
 # RK4 step, in cells, at an accuracy target of 0.5 px on an image STEP_WIDTH pixels
 # wide. The trace's error in world units falls about as the step cubed (measured 0.22,
@@ -354,7 +346,7 @@ class FieldTracer:
         orders = [np.arange(k, rays, n) for k in range(n)]
         if parts:
             return [(p[0], rows) for p, rows in zip(shares, orders)]
-        return merge([p[0] for p in shares], orders, rays, schedule_of(step), trace_step=step)
+        return merge([p[0] for p in shares], orders, rays, schedule_of(step))
 
     def trace(self, u0, v0, step, max_steps, should_stop=None):
         """RK4 streamlines from the near-plane points of pixels (u0, v0) of camera 1.
@@ -392,14 +384,11 @@ class FieldTracer:
         traced = self._shared("pixels", ix, iy, step, max_steps, should_stop, parts)
         if traced is not None:
             return traced
-        traced = self._pixels_here(ix, iy, step, max_steps, should_stop, packed=parts)
+        traced = self._pixels_here(ix, iy, step, max_steps, should_stop)
         return [(traced, np.arange(len(ix)))] if parts else traced
 
-    def _pixels_here(self, ix, iy, step, max_steps, should_stop=None, packed=False):
-        """``trace_pixels`` in this process: a ``Traced``, or with ``packed`` a ``Share``
-        of the pieces, the streamlines packed (``PackedTraced``): what a worker sends
-        back and the lattice keeps until its last merge, without each ray's padding to
-        the longest (``merge`` lays them out with the trace's step)."""
+    def _pixels_here(self, ix, iy, step, max_steps, should_stop=None):
+        """``trace_pixels`` in this process."""
         u, v = ix + 0.5, iy + 0.5
         todo = np.ones(len(ix), dtype=bool)
         parts, order = [], []
@@ -413,11 +402,8 @@ class FieldTracer:
             todo[sel[ok]] = False
         rest = np.flatnonzero(todo)
         if len(rest):
-            lines = self._trace_here(u[rest], v[rest], step, max_steps, should_stop)
-            parts.append(PackedTraced.pack(lines) if packed else lines)
+            parts.append(self._trace_here(u[rest], v[rest], step, max_steps, should_stop))
             order.append(rest)
-        if packed:
-            return Share(parts, order, len(ix), schedule_of(step))
         return merge(parts, order, len(ix), schedule_of(step))
 
     def _trace_here(self, u0, v0, step, max_steps, should_stop=None):
@@ -479,10 +465,8 @@ def _trace_share(tracer, kind, a, b, step, max_steps, rays, share, context):
     k, n = share
     rows = np.arange(k, rays, n)
     missed, seconds, lost = tracer.missed, tracer.tangent_seconds, len(tracer.lost)
-    if kind == "trace":
-        traced = tracer._trace_here(a[rows], b[rows], step, max_steps, context)
-    else:  # sent back packed: the padding of every ray to the longest is most of it
-        traced = tracer._pixels_here(a[rows], b[rows], step, max_steps, context, packed=True)
+    here = tracer._trace_here if kind == "trace" else tracer._pixels_here
+    traced = here(a[rows], b[rows], step, max_steps, context)
     counts = tracer.missed - missed, tracer.tangent_seconds - seconds, tracer.lost[lost:]
     tracer.missed, tracer.tangent_seconds = missed, seconds
     del tracer.lost[lost:]

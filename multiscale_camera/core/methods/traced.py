@@ -357,7 +357,7 @@ class _AdaptiveLattice:
             if not len(sel):
                 continue
             r = ids[sel] - starts[j]
-            verts[sel] = run_on(p.laid(r, self.step), k, self.schedule).vertices
+            verts[sel] = run_on(p.rows(r), k, self.schedule).vertices
             counts[sel] = p.counts[r]
         return verts, counts
 
@@ -467,7 +467,7 @@ class _AdaptiveLattice:
         # the rounds' temporaries freed between the kept rays: their pages go back
         # before the merge lays every ray out, and the merge's before the report
         release_free_memory()
-        traced = merge(parts, order, self.count, self.schedule, shared=shared, trace_step=self.step)
+        traced = merge(parts, order, self.count, self.schedule, shared=shared)
         release_free_memory()
         return traced, self.index, leaves, leaf_of
 

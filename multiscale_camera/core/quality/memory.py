@@ -57,10 +57,7 @@ CELL_TABLE_BYTES_PER_PIXEL = 8
 # Per vertex of a traced ray kept in the main process (float32 xyz and membership). Once
 # the rounds (and their error estimates) are done, the lattice's parts are merged: the
 # result beside the part being copied (a worker's share, or the largest round traced
-# here; the rounds' peak and the merge's come one after the other). Through the rounds
-# the streamlines are kept without their run past the last traced vertex
-# (``field.trace.PackedTraced``), less than this by the padding; the estimate keeps the
-# padded size for both stages (an upper bound through the rounds, the merge's own).
+# here; the rounds' peak and the merge's come one after the other).
 RAY_BYTES_PER_VERTEX = 16
 # The lattice's error estimate weighs ``methods.traced.DEVIATION_BLOCK_VERTICES``
 # vertices at a time (the same value, tests/unit/test_memory_guard.py), a dozen float32
