@@ -17,6 +17,12 @@ pytestmark = pytest.mark.e2e
 
 SCRIPT = """
 import sys, time
+
+def say(*parts):
+    # one write a line: Blender's Python writes stdout through, so print()'s pieces went
+    # out one by one and Blender's "Sent an internal break event" could land between them
+    sys.stdout.write(" ".join(str(p) for p in parts) + "\\n")
+    sys.stdout.flush()
 sys.path.insert(0, {repo!r})
 import bpy
 import multiscale_camera
@@ -27,13 +33,13 @@ scene = bpy.context.scene
 two_camera_scene(scene, 160, 120)
 scene.multiscale.quality = "STANDARD"
 scene.render.filepath = {out!r}
-print("STARTED", flush=True)
+say("STARTED")
 start = time.perf_counter()
 try:
     result = {call}
 except RuntimeError as err:
     result = str(err).strip()
-print("RESULT", result, flush=True)
+say("RESULT", result)
 """
 
 

@@ -19,6 +19,12 @@ pytestmark = pytest.mark.e2e
 
 SCRIPT = """
 import os, signal, sys, threading, time
+
+def say(*parts):
+    # one write a line: Blender's Python writes stdout through, so print()'s pieces went
+    # out one by one and Blender's "Sent an internal break event" could land between them
+    sys.stdout.write(" ".join(str(p) for p in parts) + "\\n")
+    sys.stdout.flush()
 sys.path.insert(0, {repo!r})
 import bpy
 import multiscale_camera
@@ -42,12 +48,12 @@ opened = []  # the stages open now, innermost last
 
 def interrupt():
     sent.append(time.perf_counter())
-    print("OPEN", ",".join(opened) or None, flush=True)
+    say("OPEN", ",".join(opened) or None)
     os.kill(os.getpid(), signal.SIGINT)
 
 def arm(name):
     if not sent and name == {stage!r}:
-        print("STAGE", name, flush=True)
+        say("STAGE", name)
         if {delay} > 0:
             threading.Timer({delay}, interrupt).start()
         else:  # at once, from inside the stage: a stage too short for a timer
@@ -81,8 +87,8 @@ except RuntimeError as err:
     result = str(err).strip()
 end = time.perf_counter()
 if sent:
-    print("SECONDS", end - sent[0], flush=True)
-print("RESULT", result, flush=True)
+    say("SECONDS", end - sent[0])
+say("RESULT", result)
 """
 
 COMPUTE = "bpy.ops.multiscale.compute_field()"
