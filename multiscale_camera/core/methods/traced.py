@@ -465,10 +465,9 @@ class _AdaptiveLattice:
         # render's tables): they map its rays then rather than a copy of them
         shared = worker_count(getattr(self.tracer, "processes", 1)) >= 2
         # the rounds' temporaries freed between the kept rays: their pages go back
-        # before the merge lays every ray out, and the merge's before the report
+        # before the merge lays every ray out (the merge hands back each part's itself)
         release_free_memory()
         traced = merge(parts, order, self.count, self.schedule, shared=shared)
-        release_free_memory()
         return traced, self.index, leaves, leaf_of
 
 
