@@ -17,16 +17,11 @@ pytestmark = pytest.mark.e2e
 
 SCRIPT = """
 import sys, time
-
-def say(*parts):
-    # one write a line: Blender's Python writes stdout through, so print()'s pieces went
-    # out one by one and Blender's "Sent an internal break event" could land between them
-    sys.stdout.write(" ".join(str(p) for p in parts) + "\\n")
-    sys.stdout.flush()
 sys.path.insert(0, {repo!r})
 import bpy
 import multiscale_camera
 multiscale_camera.register()
+from fixtures.blender.output import say
 from fixtures.blender.scenes import two_camera_scene
 bpy.ops.wm.read_homefile(use_empty=True)
 scene = bpy.context.scene

@@ -19,17 +19,12 @@ pytestmark = pytest.mark.e2e
 
 SCRIPT = """
 import os, signal, sys, threading, time
-
-def say(*parts):
-    # one write a line: Blender's Python writes stdout through, so print()'s pieces went
-    # out one by one and Blender's "Sent an internal break event" could land between them
-    sys.stdout.write(" ".join(str(p) for p in parts) + "\\n")
-    sys.stdout.flush()
 sys.path.insert(0, {repo!r})
 import bpy
 import multiscale_camera
 multiscale_camera.register()
 from contextlib import contextmanager
+from fixtures.blender.output import say
 from fixtures.blender.scenes import two_camera_scene
 from multiscale_camera.core import diagnostics
 from multiscale_camera.render import cycles
