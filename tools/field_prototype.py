@@ -16,7 +16,11 @@ lattice's first spacing in pixels (1: every pixel's ray traced, none interpolate
 ``clock=cpu`` the build's stage seconds (``stages``, as the report's) in CPU seconds of
 this process instead of wall seconds: with ``proc=1`` the whole build, so a shared
 machine's load does not blur them; ``plane=0`` the trace's step left whole at the near
-planes (no ``field.NearPlaneStep``: every gain 1), the build before it shortened there.
+planes (no ``field.NearPlaneStep``: every gain 1), the build before it shortened there;
+``transition_tol=X`` the lattice's target times X on cells of transition pixels alone
+(preserved regions and their edges as the build); ``count=1`` counts the trace's
+field evaluations (points, with ``proc=1``: a worker's are not seen), its tangent
+evaluations and those of them Newton solved (off each camera's straight stretch).
 """
 
 import dataclasses
@@ -24,6 +28,8 @@ import resource
 import sys
 import time
 from pathlib import Path
+
+import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -59,6 +65,28 @@ def main(argv):
         traced.lattice_stride = lambda *_args: spacing
     if opts.get("plane") == "0":
         traced.plane_gains = lambda tracer_, rig_, *rest: [1.0] * (len(rig_.cameras) - 1)
+    if "transition_tol" in opts:
+        factor, own = float(opts["transition_tol"]), traced._AdaptiveLattice._fine
+        # only transition cells are judged by the estimate (``_AdaptiveLattice._fine``)
+        traced._AdaptiveLattice._fine = lambda self, cells, err: own(self, cells, err / factor)
+    counts = {"field points": 0, "tangents": 0, "newton": 0}
+    if opts.get("count") == "1":
+        velocity, tangent = tracer.FieldTracer.velocity, tracer.FieldTracer._tangent
+
+        def counted_velocity(self, x, rows):
+            counts["field points"] += len(x)
+            return velocity(self, x, rows)
+
+        def counted_tangent(self, i, x, params, rows):
+            cam = self.rig.cameras[i]
+            beyond = (x - cam.eye) @ cam.forward >= cam.clip_start
+            straight = beyond & (params[i, rows, 2] >= i - 1)  # as ``_tangent`` tells
+            counts["tangents"] += len(x)
+            counts["newton"] += int((~straight).sum())
+            return tangent(self, i, x, params, rows)
+
+        tracer.FieldTracer.velocity = counted_velocity
+        tracer.FieldTracer._tangent = counted_tangent
     if opts.get("clock") == "cpu":
         time.perf_counter = time.process_time
     wall, cpu = time.perf_counter(), time.process_time()
@@ -77,15 +105,22 @@ def main(argv):
     stages = ", ".join(f"{k} {v:.2f}" for k, v in fld.seconds.items())
     traced_rays = getattr(fld, "traced", None)
     vertices = traced_rays.vertices.shape[1] if traced_rays is not None else 0
+    transition = ""
+    if getattr(fld, "index", None) is not None:
+        kept = np.any([np.asarray(m, dtype=bool) for m in masks], axis=0)
+        rk4 = (fld.index >= 0) & ~kept
+        transition = f"transition pixels traced {int(rk4.sum())} of {int((~kept).sum())}, "
     print(
         f"{rig} {width}x{height} {method}->{fld.method} {quality} {opts}: build {wall:.1f} s wall, "
         f"{cpu:.1f} s CPU, peak {peak:.0f} MB; stages {stages}; "
         f"p95/max px {cams_out}; folds {rep['folds']}; "
         f"levels {rep['levels']}, grid {rep['grids'][:1]}, traced {fld.stats.get('traced')}, "
-        f"vertices {vertices}, "
+        f"vertices {vertices}, {transition}"
         f"plane gains {fld.stats.get('plane_gains')}; "
         f"newton_lost {rep['newton_lost']}, stalled {rep['stalled']}"
     )
+    if opts.get("count") == "1":
+        print("trace evaluations:", counts)
     if "auto" in rep:
         print("auto:", rep["auto"])
 
