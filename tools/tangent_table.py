@@ -11,13 +11,13 @@ Builds forced ``SCALAR_FIELD`` on nested grids (STANDARD, one process), then:
   weight can be positive (N within 1 of i at the centre or a neighbour); cold Newton
   from ``Family.start``, as the build's retries; points Newton loses are left out;
 - traces ``RAYS`` (default 4,000, seeded) transition pixels' rays three times with the
-  build's step: exact tangents (the build's), the table (exact where a corner is
-  missing, analytic on each camera's straight stretch, as the build), and exact
-  tangents with Newton's tolerance at 1e-9 instead of 1e-6 (what a negligible change
-  moves the rays by: the baseline);
-- prints the times and, for each ray, its worst distance from the exact ray over the
-  vertices both traced, in pixels of the multiscale image there (the ``ScaleField``'s
-  view width over the image width): p50, p95, p99 and max over the rays.
+  build's step: exact tangents (the build's), the table (exact only where a corner's
+  value is missing), and exact tangents with Newton's tolerance at 1e-9 instead of
+  1e-6 (what a negligible change moves the rays by: the baseline);
+- prints the times and, for each ray, its worst distance across the exact ray
+  (``transition_convergence.across_px``), in pixels of the multiscale image there (the
+  ``ScaleField``'s view width over the image width): p50, p95, p99 and max over the
+  rays.
 """
 
 import dataclasses
@@ -34,6 +34,7 @@ import multiscale_camera.core.field.tracer as tracer_module  # noqa: E402
 from multiscale_camera.core.field.nested import ScaleField  # noqa: E402
 from multiscale_camera.core.geometry import Rig  # noqa: E402
 from multiscale_camera.core.methods import prepare, settings_for  # noqa: E402
+from tools.transition_convergence import across_px  # noqa: E402
 
 
 def dilate(mask):
@@ -92,24 +93,20 @@ def read(domain, table, points, level):
 
 
 class TableTracer(tracer_module.FieldTracer):
-    """The build's tracer with X_i read from ``tables`` (exact where a corner is
-    missing, and on camera i's straight stretch)."""
+    """The build's tracer with X_i read from ``tables`` (exact where a corner's value
+    is missing)."""
 
     tables = None
     fallback = 0
 
     def _tangent(self, i, x, params, rows):
         start = time.perf_counter()
-        cam = self.rig.cameras[i]
-        rel = x - cam.eye
         level, ramp = self.domain._depth(x)
         out = read(self.domain, self.tables[i], x, level)
         band = np.flatnonzero(ramp < 1.0)
         if len(band):
             parent = read(self.domain, self.tables[i], x[band], level[band] - 1)
             out[band] = parent + ramp[band, None] * (out[band] - parent)
-        straight = rel @ cam.forward >= cam.clip_start
-        out[straight] = rel[straight]
         bad = np.flatnonzero(~np.isfinite(out).all(axis=1))
         self.fallback += len(bad)
         self.tangent_seconds += time.perf_counter() - start
@@ -121,15 +118,6 @@ class TableTracer(tracer_module.FieldTracer):
 def build_tracer(fld):
     """The build's own tracer of ``fld`` (one process)."""
     return tracer_module.FieldTracer(fld.rig, fld.grid, fld.membership, domain=fld.domain)
-
-
-def worst_px(a, b, scale, width):
-    """(R,) each ray's worst distance between traces ``a`` and ``b``, in pixels."""
-    k = min(a.vertices.shape[1], b.vertices.shape[1])
-    both = np.arange(k)[None] < np.minimum(a.counts, b.counts)[:, None]
-    va, vb = (t.vertices[:, :k].astype(np.float64) for t in (a, b))
-    px = scale(va.reshape(-1, 3)).reshape(va.shape[:2]) / width
-    return np.where(both, np.linalg.norm(va - vb, axis=2) / px, 0.0).max(axis=1)
 
 
 def main(argv):
@@ -169,8 +157,12 @@ def main(argv):
     tracer_module.TRACE_NEWTON_TOLERANCE = 1e-9
     runs["tight"] = tight._trace_here(u0, v0, fld.step, 4000)
     scale = ScaleField(cams)
+    ref = runs["exact"]
     for name in ("table", "tight"):
-        dev = worst_px(runs["exact"], runs[name], scale, width)
+        got = runs[name]
+        dev = across_px(
+            ref.vertices, ref.counts, got.vertices, got.counts, lambda p: scale(p) / width
+        )
         p = np.percentile(dev, [50, 95, 99, 100])
         print(
             f"{name} vs exact, each ray's worst px: p50 {p[0]:.4f} p95 {p[1]:.4f} "
