@@ -20,7 +20,8 @@ planes (no ``field.NearPlaneStep``: every gain 1), the build before it shortened
 ``transition_tol=X`` the lattice's target times X on cells of transition pixels alone
 (preserved regions and their edges as the build); ``count=1`` counts the trace's
 field evaluations (points, with ``proc=1``: a worker's are not seen), its tangent
-evaluations and those of them Newton solved (off each camera's straight stretch).
+evaluations and the points Newton solved (``Family.solve``: a SCALAR_FIELD trace's
+tangents off each camera's straight stretch; VECTOR_FIELD's grid tangents too).
 """
 
 import dataclasses
@@ -29,13 +30,12 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
-
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import fixtures.rigs as rigs  # noqa: E402
 import multiscale_camera.core.field.fill as fill  # noqa: E402
 import multiscale_camera.core.field.tracer as tracer  # noqa: E402
+import multiscale_camera.core.geometry.family as family  # noqa: E402
 import multiscale_camera.core.methods.scalar_field as scalar_field  # noqa: E402
 import multiscale_camera.core.methods.traced as traced  # noqa: E402
 from multiscale_camera.core.geometry import Rig  # noqa: E402
@@ -72,21 +72,23 @@ def main(argv):
     counts = {"field points": 0, "tangents": 0, "newton": 0}
     if opts.get("count") == "1":
         velocity, tangent = tracer.FieldTracer.velocity, tracer.FieldTracer._tangent
+        solve = family.Family.solve
 
         def counted_velocity(self, x, rows):
             counts["field points"] += len(x)
             return velocity(self, x, rows)
 
         def counted_tangent(self, i, x, params, rows):
-            cam = self.rig.cameras[i]
-            beyond = (x - cam.eye) @ cam.forward >= cam.clip_start
-            straight = beyond & (params[i, rows, 2] >= i - 1)  # as ``_tangent`` tells
             counts["tangents"] += len(x)
-            counts["newton"] += int((~straight).sum())
             return tangent(self, i, x, params, rows)
+
+        def counted_solve(self, points, *args, **kwargs):
+            counts["newton"] += len(points)
+            return solve(self, points, *args, **kwargs)
 
         tracer.FieldTracer.velocity = counted_velocity
         tracer.FieldTracer._tangent = counted_tangent
+        family.Family.solve = counted_solve
     if opts.get("clock") == "cpu":
         time.perf_counter = time.process_time
     wall, cpu = time.perf_counter(), time.process_time()
@@ -107,7 +109,7 @@ def main(argv):
     vertices = traced_rays.vertices.shape[1] if traced_rays is not None else 0
     transition = ""
     if getattr(fld, "index", None) is not None:
-        kept = np.any([np.asarray(m, dtype=bool) for m in masks], axis=0)
+        kept = traced.preserved_labels(fld.rig) > 0
         rk4 = (fld.index >= 0) & ~kept
         transition = f"transition pixels traced {int(rk4.sum())} of {int((~kept).sum())}, "
     print(

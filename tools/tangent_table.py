@@ -34,7 +34,7 @@ import multiscale_camera.core.field.tracer as tracer_module  # noqa: E402
 from multiscale_camera.core.field.nested import ScaleField  # noqa: E402
 from multiscale_camera.core.geometry import Rig  # noqa: E402
 from multiscale_camera.core.methods import prepare, settings_for  # noqa: E402
-from tools.transition_convergence import across_px  # noqa: E402
+from tools.transition_convergence import across_px, transition_pixels  # noqa: E402
 
 
 def dilate(mask):
@@ -141,12 +141,7 @@ def main(argv):
     table.tables = tables
     total = domain.values.size * len(cams)
     print(f"table: {nodes} values (of {total} centres x families), {seconds:.1f} s")
-    taken = np.zeros((height, width), dtype=bool)
-    for m in masks:
-        taken |= np.asarray(m, dtype=bool)
-    ys, xs = np.nonzero(~taken)
-    pick = np.random.default_rng(1).choice(len(xs), min(count, len(xs)), replace=False)
-    u0, v0 = xs[pick] + 0.5, ys[pick] + 0.5
+    u0, v0 = transition_pixels(rig, count)
     runs = {}
     for name, tr in (("exact", exact), ("table", table)):
         start = time.perf_counter()

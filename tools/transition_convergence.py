@@ -31,6 +31,7 @@ from multiscale_camera.core.field import FieldTracer  # noqa: E402
 from multiscale_camera.core.field.nested import ScaleField  # noqa: E402
 from multiscale_camera.core.geometry import Rig  # noqa: E402
 from multiscale_camera.core.methods import prepare, settings_for  # noqa: E402
+from multiscale_camera.core.methods.traced import preserved_labels  # noqa: E402
 
 
 def arc_lengths(verts):
@@ -69,15 +70,20 @@ def across_px(ref, ref_counts, got, got_counts, px_at):
     return worst
 
 
+def transition_pixels(rig, count, seed=1):
+    """(n,) float64 u, v: the centres of ``count`` transition pixels of ``rig`` (no
+    camera keeps them), drawn without repeats (all of them if fewer)."""
+    ys, xs = np.nonzero(preserved_labels(rig) == 0)
+    pick = np.random.default_rng(seed).choice(len(xs), min(count, len(xs)), replace=False)
+    return xs[pick] + 0.5, ys[pick] + 0.5
+
+
 def main(argv):
     rig_name, width, height = argv[0], int(argv[1]), int(argv[2])
     count = int(argv[3]) if len(argv) > 3 else 1500
     cams, masks = getattr(rigs, f"{rig_name}_rig")(width, height)
     rig = Rig(cams, masks)
-    taken = np.any([np.asarray(m, dtype=bool) for m in masks], axis=0)
-    ys, xs = np.nonzero(~taken)
-    pick = np.random.default_rng(1).choice(len(xs), min(count, len(xs)), replace=False)
-    u0, v0 = xs[pick] + 0.5, ys[pick] + 0.5
+    u0, v0 = transition_pixels(rig, count)
     settings = dataclasses.replace(
         settings_for("STANDARD"), nested=True, processes=1, max_voxels=4 * 160**3
     )

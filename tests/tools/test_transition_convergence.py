@@ -3,7 +3,9 @@ rays written out here."""
 
 import numpy as np
 
+from fixtures.rigs import three_camera_rig
 from fixtures.tools import load_tool
+from multiscale_camera.core.geometry import Rig
 
 tc = load_tool("transition_convergence")
 
@@ -43,3 +45,17 @@ def test_only_the_vertices_each_ray_counts_are_weighed():
     got[0, 6:] += [5.0, 0.0, 0.0]  # beyond the counted vertices
     worst = tc.across_px(ref, [10], got, [6], lambda p: np.ones(len(p)))
     np.testing.assert_allclose(worst, [0.0], atol=1e-12)
+
+
+def test_transition_pixels_are_drawn_once_each_and_never_from_a_kept_view():
+    cams, masks = three_camera_rig(48, 27)
+    rig = Rig(cams, masks)
+    kept = np.any([np.asarray(m, dtype=bool) for m in masks], axis=0)
+    free = int((~kept).sum())
+    u, v = tc.transition_pixels(rig, 100)
+    x, y = (u - 0.5).astype(int), (v - 0.5).astype(int)
+    assert len(u) == 100 and not kept[y, x].any()
+    assert len(set(zip(x.tolist(), y.tolist()))) == 100
+    # fewer free pixels than asked: every one of them, once
+    u, v = tc.transition_pixels(rig, 10 * free)
+    assert len(u) == free and len(set(zip(u.tolist(), v.tolist()))) == free
