@@ -20,7 +20,10 @@ more than M image sizes off its image the tangent of the nearest pixel within th
 margin (same tau), ``soft=M`` that of the pixel M tanh(d / M) image sizes off the
 image for one d off it (smooth across the edge); ``fade=M0,M1`` fades camera i > 1's
 blend weight from 1 at M0 image sizes off its image to 0 at M1 (smoothstep, the
-others' weights renormalised).
+others' weights renormalised); ``family=M`` changes the family itself: camera i > 1's
+rays leave its near plane at their pixels' pinhole points along the direction of the
+pixel held within M image sizes of its image (``soft_clamp``), its guides and straight
+stretch with them (``edge_family``); ``family_only=K`` holds camera K's alone.
 """
 
 import dataclasses
@@ -200,6 +203,68 @@ def clamp_tangents(margin, soft=False):
     tracer_module.FieldTracer._tangent = tangent
 
 
+def soft_clamp(c, n, margin):
+    """(c', dc'/dc): pixel coordinates ``c`` held softly within ``margin`` image sizes
+    of [0, n]: e + margin n tanh((c - e) / (margin n)) beyond an edge e, c inside."""
+    edge = np.clip(c, 0.0, n)
+    th = np.tanh((c - edge) / (margin * n))
+    return edge + margin * n * th, 1.0 - th * th
+
+
+def edge_family(margin, only=None):
+    """Patch ``Family._near`` and ``FieldTracer._tangent`` (``family=M``): camera i > 1's
+    rays leave its near plane at the pinhole points of their pixels, as before, but
+    along the direction of the pixel held within ``margin`` image sizes of its image
+    (``soft_clamp``), so off the image its guides turn no more than near the edge and
+    its straight stretch runs on along those directions. The family stays one family
+    (points, tangents and Jacobian agree), unlike ``clamp=``, which changes the tangent
+    alone. Off the image beyond the near plane the tangent is no longer the pinhole
+    direction, so there the tracer solves the family as it does on the guides."""
+    near = family.Family._near
+
+    def _near(self, j, u, v, derivatives=False):
+        if j == 0 or (only is not None and j != only):
+            return near(self, j, u, v, derivatives)
+        cam = self.cameras[j]
+        u, v = np.asarray(u, dtype=np.float64), np.asarray(v, dtype=np.float64)
+        p = cam.near_points(cam.directions(u, v))
+        cu, fu = soft_clamp(u, cam.width, margin)
+        cv, fv = soft_clamp(v, cam.height, margin)
+        d = cam.directions(cu, cv)
+        if not derivatives:
+            return p, d
+        ax, _bx, ay, _by = cam.image_affine
+        r, f = cam.rotation, cam.forward
+        a = (p - cam.eye) * (1.0 / cam.clip_start)
+        inv_norm_c = (d @ f)[:, None]  # 1 / |a| at the held pixel, where a . f = 1
+        out = []
+        for col, scale, fac in ((r[:, 0], ax, fu), (r[:, 1], ay, fv)):
+            da = col * scale
+            dp = cam.clip_start * (da - a * (da @ f))
+            dd = (da - d * (d @ da)[:, None]) * inv_norm_c * fac[:, None]
+            out += [dp, dd]
+        return p, d, out
+
+    family.Family._near = _near
+    original = tracer_module.FieldTracer._tangent
+
+    def tangent(self, i, x, params, rows):
+        out = original(self, i, x, params, rows)
+        if i == 0 or (only is not None and i != only):
+            return out
+        cam = self.rig.cameras[i]
+        beyond = ((x - cam.eye) @ cam.forward >= cam.clip_start) & (params[i, rows, 2] >= i - 1)
+        pix = cam.project(x[beyond])[0]
+        off = np.flatnonzero(beyond)[off_image(pix[:, 0], pix[:, 1], self.rig.size) > 0]
+        if len(off):
+            fam = self.families[i]
+            scale = self.domain.scale(x[off]) if self.domain is not None else None
+            out[off] = fam.solve(x[off], *fam.start(x[off]), 12, scale)[3]
+        return out
+
+    tracer_module.FieldTracer._tangent = tangent
+
+
 def fade_weights(m0, m1):
     """Patch ``FieldTracer.velocity``: camera i > 1's weight fades from 1 at ``m0`` image
     sizes off its image to 0 at ``m1`` (``fade=``); where every weight fades, the
@@ -263,6 +328,9 @@ def main(argv):
         clamp_tangents(float(opts["soft"]), soft=True)
     if "fade" in opts:
         fade_weights(*(float(m) for m in opts["fade"].split(",")))
+    if "family" in opts:
+        only = int(opts["family_only"]) - 1 if "family_only" in opts else None
+        edge_family(float(opts["family"]), only)
     cams, masks = zoom1000_rig(width, height)
     settings = dataclasses.replace(
         settings_for("STANDARD"), nested=True, processes=1, cubic=opts.get("cubic") == "1"
