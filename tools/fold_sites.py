@@ -219,7 +219,8 @@ def edge_family(margin, only=None):
     its straight stretch runs on along those directions. The family stays one family
     (points, tangents and Jacobian agree), unlike ``clamp=``, which changes the tangent
     alone. Off the image beyond the near plane the tangent is no longer the pinhole
-    direction, so there the tracer solves the family as it does on the guides."""
+    direction, so there the tracer solves the family as it does on the guides (from
+    ``Family.start``, no warm start; its lost points counted as the tracer's)."""
     near = family.Family._near
 
     def _near(self, j, u, v, derivatives=False):
@@ -259,7 +260,9 @@ def edge_family(margin, only=None):
         if len(off):
             fam = self.families[i]
             scale = self.domain.scale(x[off]) if self.domain is not None else None
-            out[off] = fam.solve(x[off], *fam.start(x[off]), 12, scale)[3]
+            solved = fam.solve(x[off], *fam.start(x[off]), 12, scale)
+            out[off] = solved[3]
+            self.missed += solved[4]  # counted as the tracer counts its own
         return out
 
     tracer_module.FieldTracer._tangent = tangent
@@ -345,6 +348,7 @@ def main(argv):
             f"{c['preserved_px']['p95']:.2f} / {c['preserved_px']['max']:.2f}"
             for c in report["cameras"]
         )
+        + f"; Newton lost {report['newton_lost']}"
     )
     if "along" in opts:
         along(fld, *(int(c) for c in opts["along"].split(",")))
