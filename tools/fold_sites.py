@@ -23,7 +23,9 @@ blend weight from 1 at M0 image sizes off its image to 0 at M1 (smoothstep, the
 others' weights renormalised); ``family=M`` changes the family itself: camera i > 1's
 rays leave its near plane at their pixels' pinhole points along the direction of the
 pixel held within M image sizes of its image (``soft_clamp``), its guides and straight
-stretch with them (``edge_family``); ``family_only=K`` holds camera K's alone.
+stretch with them (``edge_family``); ``family_only=K`` holds camera K's alone;
+``shrink=M0,M1`` brings N between two cameras' values down to the outer one's beside
+the smaller camera's view, from M0 to M1 image sizes off it (``shrink_membership``).
 """
 
 import dataclasses
@@ -298,6 +300,49 @@ def fade_weights(m0, m1):
     tracer_module.FieldTracer.velocity = velocity
 
 
+def shrunk_membership(rig, x, nval, m0, m1):
+    """(P,) float64: N at points ``x`` (P, 3) brought down as ``shrink_membership`` says,
+    from ``nval`` (P,), for ``rig``'s cameras."""
+    nval = np.array(nval, dtype=np.float64)
+    base = np.floor(nval)
+    for c in range(1, len(rig.cameras)):
+        sel = np.flatnonzero((nval > base) & (base == c))
+        if not len(sel):
+            continue
+        cam = rig.cameras[c]
+        pix, depth = cam.project(x[sel])
+        ahead = depth > 0
+        off = np.full(len(sel), np.inf)
+        off[ahead] = off_image(pix[ahead, 0], pix[ahead, 1], rig.size)
+        t = np.clip((m1 - off) / (m1 - m0), 0.0, 1.0)
+        keep = t * t * (3.0 - 2.0 * t)
+        g = np.clip(depth / cam.clip_start, 0.0, 1.0)
+        keep = 1.0 - (1.0 - keep) * g * g * (3.0 - 2.0 * g)
+        nval[sel] = base[sel] + (nval[sel] - base[sel]) * keep
+    return nval
+
+
+def shrink_membership(m0, m1):
+    """Patch ``FieldTracer.velocity`` (``shrink=M0,M1``): where N lies between two
+    cameras' values, k < N < k + 1, its excess over k is brought down towards k (the
+    outer camera's value) beside the smaller camera's view: scaled by 1 within ``m0``
+    image sizes of its image, seen from its eye, falling by a smoothstep to 0 at
+    ``m1``; the fall itself fades in with the point's depth in that camera, from 0 at
+    its eye to whole at its near plane (no change behind its eye). Whole values, which
+    the preserved rays hold, do not move."""
+    original = tracer_module.FieldTracer.velocity
+
+    def velocity(self, x, rows):
+        own = self.n_of  # the blend reads N through it: shrink it for this call alone
+        self.n_of = lambda pts: shrunk_membership(self.rig, pts, own(pts), m0, m1)
+        try:
+            return original(self, x, rows)
+        finally:
+            self.n_of = own
+
+    tracer_module.FieldTracer.velocity = velocity
+
+
 def along(fld, x, y, first=30, last=100):
     """Print, every 5 vertices, N and camera 2's family (u, v, tau) along the rays of
     pixels (x, y) and (x + 1, y), and the angle of X_2 there to camera 1's direction of
@@ -331,6 +376,8 @@ def main(argv):
         clamp_tangents(float(opts["soft"]), soft=True)
     if "fade" in opts:
         fade_weights(*(float(m) for m in opts["fade"].split(",")))
+    if "shrink" in opts:
+        shrink_membership(*(float(m) for m in opts["shrink"].split(",")))
     if "family" in opts:
         only = int(opts["family_only"]) - 1 if "family_only" in opts else None
         edge_family(float(opts["family"]), only)

@@ -8,7 +8,7 @@ import pytest
 import multiscale_camera.core.field.tracer as tracer_module
 from fixtures.rigs import zoom1000_rig
 from fixtures.tools import load_tool
-from multiscale_camera.core.geometry import Family
+from multiscale_camera.core.geometry import Family, Rig
 from multiscale_camera.core.geometry import family as family_module
 
 fs = load_tool("fold_sites")
@@ -64,3 +64,34 @@ def test_the_held_family_is_a_family(held_family, i):
     assert lost == 0
     np.testing.assert_allclose(su, u, atol=1e-5)
     np.testing.assert_allclose(sv, v, atol=1e-5)
+
+
+def _at(cam, px, py, depth):
+    """The point of camera ``cam``'s pixel (px, py) at ``depth`` along its view axis."""
+    d = cam.directions(np.array([px]), np.array([py]))[0]
+    return cam.eye + d * depth / (d @ cam.forward)
+
+
+def test_shrunk_membership_moves_only_transition_values_beside_the_smaller_view():
+    cams, masks = zoom1000_rig(192, 108)
+    rig = Rig(cams, masks)
+    c2, c3 = cams[1], cams[2]
+    # beyond each camera's near plane (the fall whole); 3 image widths to the right of
+    # the centre is 2.5 image sizes off the view, past m1 = 2
+    centre = _at(c2, 96.0, 54.0, 2 * c2.clip_start)
+    far = _at(c2, 96.0 + 3 * 192, 54.0, 2 * c2.clip_start)
+    behind = c2.eye - c2.forward * c2.clip_start
+    far3 = _at(c3, 96.0 + 3 * 192, 54.0, 2 * c3.clip_start)
+    x = np.array([centre, far, far, behind, far3, far3])
+    nval = np.array([1.6, 1.6, 2.0, 1.6, 2.4, 3.0])
+    got = fs.shrunk_membership(rig, x, nval, 0.5, 2.0)
+    # within camera 2's view kept; far off it the outer camera's 1; whole values (the
+    # preserved rays') kept; behind camera 2's eye kept; the 2-3 band beside camera 3's
+    # view down to 2
+    np.testing.assert_allclose(got, [1.6, 1.0, 2.0, 1.6, 2.0, 3.0], atol=1e-12)
+    # 1.75 image widths right is 1.25 off: half way down the smoothstep, half the excess
+    mid = _at(c2, 96.0 + 1.75 * 192, 54.0, 2 * c2.clip_start)
+    np.testing.assert_allclose(fs.shrunk_membership(rig, mid[None], [1.6], 0.5, 2.0), [1.3])
+    # at camera 2's eye the fall has not begun; half way to its near plane, half of it
+    side = _at(c2, 96.0 + 3 * 192, 54.0, 0.5 * c2.clip_start)
+    np.testing.assert_allclose(fs.shrunk_membership(rig, side[None], [1.6], 0.5, 2.0), [1.3])
