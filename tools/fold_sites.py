@@ -187,10 +187,7 @@ def clamp_tangents(margin, soft=False):
         pix, _depth = cam.project(x[beyond])
         u[beyond], v[beyond] = pix[:, 0], pix[:, 1]
         if soft:  # u beyond the image's edge e goes to e + margin * tanh((u - e) / margin)
-            cu, cv = (
-                np.clip(c, 0, n) + margin * n * np.tanh((c - np.clip(c, 0, n)) / (margin * n))
-                for c, n in ((u, w), (v, h))
-            )
+            cu, cv = soft_clamp(u, w, margin)[0], soft_clamp(v, h, margin)[0]
         else:
             cu = np.clip(u, -margin * w, (1 + margin) * w)
             cv = np.clip(v, -margin * h, (1 + margin) * h)

@@ -31,22 +31,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import fixtures.rigs as rigs  # noqa: E402
 import multiscale_camera.core.field.tracer as tracer_module  # noqa: E402
+from multiscale_camera.core.field.fill import _dilate  # noqa: E402
 from multiscale_camera.core.field.nested import ScaleField  # noqa: E402
 from multiscale_camera.core.geometry import Rig  # noqa: E402
 from multiscale_camera.core.methods import prepare, settings_for  # noqa: E402
 from tools.transition_convergence import across_px, transition_pixels  # noqa: E402
-
-
-def dilate(mask):
-    """(nx, ny, nz) bool grown by one cell along every axis and diagonal."""
-    padded = np.pad(mask, 1)
-    out = np.zeros_like(mask)
-    nx, ny, nz = mask.shape
-    for dx in range(3):
-        for dy in range(3):
-            for dz in range(3):
-                out |= padded[dx : dx + nx, dy : dy + ny, dz : dz + nz]
-    return out
 
 
 def tabulate(domain, family, i, first_eye):
@@ -56,7 +45,7 @@ def tabulate(domain, family, i, first_eye):
     parts = []
     for lev, grid in enumerate(domain.grids):
         n = domain.values[domain.offsets[lev] : domain.offsets[lev] + grid.size]
-        need = dilate(np.abs(n.reshape(grid.shape) - (i + 1)) < 1.0).ravel()
+        need = _dilate(np.abs(n.reshape(grid.shape) - (i + 1)) < 1.0).ravel()
         table = np.full((grid.size, 3), np.nan, dtype=np.float32)
         centres = grid.centres(flat=True)[need]
         if i == 0:  # camera 1's rays are straight

@@ -35,13 +35,3 @@ def test_the_table_reads_a_linear_field_exactly_on_every_level():
     np.testing.assert_allclose(
         tt.read(domain, table, points[fine], level[fine] - 1), points[fine] @ a.T + b, atol=1e-12
     )
-
-
-def test_dilation_takes_every_cell_within_one_step_on_each_axis():
-    rng = np.random.default_rng(2)
-    mask = rng.random((7, 6, 5)) < 0.05
-    got = tt.dilate(mask)
-    want = np.zeros_like(mask)
-    for x, y, z in np.argwhere(mask):
-        want[max(x - 1, 0) : x + 2, max(y - 1, 0) : y + 2, max(z - 1, 0) : z + 2] = True
-    np.testing.assert_array_equal(got, want)

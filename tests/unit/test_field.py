@@ -330,3 +330,16 @@ def test_the_trace_step_follows_the_accuracy_target_and_the_image_width():
     # and a looser target lengthens it as its cube root, within 0.5 .. 3 cells
     assert step_cells(0.25, 1920) == pytest.approx(STEP_CELLS / 2 ** (1 / 3))
     assert step_cells(4.0, 1920) == 3.0 and step_cells(0.01, 3840) == 0.5
+
+
+def test_dilate_takes_every_voxel_within_one_step_on_each_axis():
+    from multiscale_camera.core.field.fill import _dilate
+
+    rng = np.random.default_rng(2)
+    mask = rng.random((7, 6, 5)) < 0.05
+    want = np.zeros_like(mask)
+    for x, y, z in np.argwhere(mask):  # the 3x3x3 cube around each set voxel, by hand
+        want[max(x - 1, 0) : x + 2, max(y - 1, 0) : y + 2, max(z - 1, 0) : z + 2] = True
+    got = _dilate(mask)
+    np.testing.assert_array_equal(got, want)
+    assert mask.sum() and not got.all()  # neither empty nor everything
